@@ -1,0 +1,32 @@
+#!/usr/bin/env bash
+# Installs what the project needs on a fresh Debian/Ubuntu machine, idempotently:
+# Mesa's headless EGL (OpenGL without a display or GPU), a virtual environment in .venv, the
+# CPU build of torch (first, so no dependency can pull the multi-GB CUDA wheels) and the
+# package with its [train] and [dev] extras.  A second run with nothing changed takes a second.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+apt_packages=(libegl1 libegl-mesa0 libgl1-mesa-dri)
+missing=()
+for pkg in "${apt_packages[@]}"; do
+  dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
+done
+if [ ${#missing[@]} -gt 0 ]; then
+  echo "bootstrap: installing ${missing[*]} (apt)"
+  sudo_cmd=()
+  [ "$(id -u)" -ne 0 ] && sudo_cmd=(sudo)
+  "${sudo_cmd[@]}" apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive "${sudo_cmd[@]}" apt-get install -y -qq "${missing[@]}" >/dev/null
+fi
+
+python=${PYTHON:-python3}
+[ -x .venv/bin/python ] || "$python" -m venv .venv
+stamp=.venv/.prt-installed
+want=$(cat pyproject.toml scripts/bootstrap.sh | sha1sum | cut -c1-16)
+if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
+  echo "bootstrap: installing Python packages into .venv"
+  # PRT_TORCH_INDEX lets a machine without a local CPU wheel name the CPU index of its mirror.
+  .venv/bin/pip install -q ${PRT_TORCH_INDEX:+--index-url "$PRT_TORCH_INDEX"} "torch==2.13.0"
+  .venv/bin/pip install -q -e ".[train,dev]"
+  echo "$want" > "$stamp"
+fi

@@ -1,0 +1,94 @@
+"""Segments: object and spatial split, CPCA-style merging, seam margins, point assignment."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from prt.train.geometry import load_geometry
+from prt.train.sampling import sample_surface
+from prt.train.segments import segment_samples
+from prt.train.transfer import compute_transfer
+
+DATA = Path(__file__).parent / "data"
+
+
+@pytest.fixture(scope="module")
+def cornell():
+    geometry = load_geometry(str(DATA / "CornellBox-Original.obj"))
+    s = sample_surface(geometry, 6000, seed=0)
+    t = compute_transfer(geometry, s.points, s.normals, rays=64)
+    return geometry, s, t
+
+
+def test_every_sample_has_one_segment_and_segments_respect_objects(cornell):
+    geometry, s, t = cornell
+    seg = segment_samples(s.points, s.object_ids, t, max_segments=12, merge=False, min_samples=50)
+    assert seg.count == 12
+    assert seg.home.shape == (len(s),) and seg.home.min() == 0 and seg.home.max() == seg.count - 1
+    for k in range(seg.count):
+        assert len(np.unique(s.object_ids[seg.home == k])) == 1  # no cell spans two objects
+    # the rule the runtime will use reproduces every sample's segment
+    assert np.array_equal(seg.assign(s.points, s.object_ids), seg.home)
+
+
+def test_margins_hold_neighbours_within_delta_and_nothing_farther(cornell):
+    geometry, s, t = cornell
+    delta = 0.05
+    seg = segment_samples(s.points, s.object_ids, t, max_segments=12, merge=False, delta=delta, min_samples=50)
+    for k in range(seg.count):
+        own = np.flatnonzero(seg.home == k)
+        members = seg.members[k]
+        assert np.isin(own, members).all()
+        extra = np.setdiff1d(members, own)
+        if len(extra):
+            gaps = np.linalg.norm(s.points[extra][:, None] - s.points[own][None], axis=2).min(axis=1)
+            assert gaps.max() <= delta + 1e-6
+    # the floor meets the walls, so somebody has margin samples
+    assert sum(len(m) for m in seg.members) > len(s)
+
+
+def test_unshadowed_plane_merges_into_one_segment_but_shadowed_regions_stay_apart(tmp_path):
+    plane = trimesh.Trimesh([[-1, 0, -1], [1, 0, -1], [1, 0, 1], [-1, 0, 1]], [[0, 2, 1], [0, 3, 2]])
+    plane.export(tmp_path / "plane.ply")
+    geometry = load_geometry(str(tmp_path / "plane.ply"))
+    s = sample_surface(geometry, 4000, seed=1)
+    up = s.normals[:, 1] > 0
+    s = s.subset(np.flatnonzero(up))
+    t = compute_transfer(geometry, s.points, s.normals, rays=64)
+    seg = segment_samples(s.points, s.object_ids, t, max_segments=8, min_samples=50)
+    assert seg.leaves_before_merge == 8
+    assert seg.count == 1  # identical transfer everywhere: one network is enough
+
+    # a plane with a wall standing on half of it: the shadowed half is not "simple"
+    wall = trimesh.creation.box(extents=(0.05, 1.0, 2.0))
+    wall.apply_translation((0.0, 0.5, 0.0))
+    scene = trimesh.util.concatenate([plane, wall])
+    scene.export(tmp_path / "wall.ply")
+    geometry = load_geometry(str(tmp_path / "wall.ply"))
+    s = sample_surface(geometry, 6000, seed=1)
+    t = compute_transfer(geometry, s.points, s.normals, rays=64)
+    merged = segment_samples(s.points, s.object_ids, t, max_segments=8, min_samples=50, by_object=False)
+    assert 1 < merged.count < merged.leaves_before_merge
+    assert (merged.residual_rms <= 0.01 + 1e-12).sum() >= 1
+
+
+def test_an_object_without_samples_still_gets_a_segment(cornell):
+    geometry, s, t = cornell
+    light = geometry.object_names.index("light")
+    keep = s.object_ids != light  # as if the small light had received no samples
+    seg = segment_samples(s.points[keep], s.object_ids[keep], t[keep], max_segments=6, min_samples=50)
+    assert all(len(m) > 0 for m in seg.members)
+    probe = np.array([[0.0, 0.99, 0.0]])
+    got = seg.assign(probe, np.array([light]))
+    assert 0 <= got[0] < seg.count
+
+
+def test_bad_inputs_are_rejected():
+    with pytest.raises(ValueError, match="no samples"):
+        segment_samples(np.zeros((0, 3)), np.zeros(0, int), np.zeros((0, 16)))
+    with pytest.raises(ValueError, match="NaN"):
+        segment_samples(np.full((4, 3), np.nan), np.zeros(4, int), np.zeros((4, 16)))

@@ -1,0 +1,281 @@
+"""Segments: which network is responsible for which part of the scene.
+
+1. Split: samples are grouped by object (optional), then each group is cut by a k-d tree
+   (median split along the longest side of the biggest leaf) until the leaf budget is spent.
+2. Merge (CPCA in spirit): transfer in a region that only sees the sky is an exact function
+   of the normal and lies in a low-dimensional affine subspace; shadows add what that subspace
+   cannot explain.  For each leaf we keep the first and second moments of its transfer, so
+   the residual of a rank-``r`` PCA of any union of leaves costs one small eigenproblem.
+   Neighbouring segments are merged greedily, cheapest union first, while the union's RMS
+   residual stays under a tolerance: simple regions share a network, complex ones keep theirs.
+3. Margin: each segment also trains on the samples of its neighbours lying within ``delta``
+   of its box, so two networks agree where they meet.
+
+The tree is kept, so ``assign(points, object_ids)`` tells the segment of any surface point
+(the runtime needs the same rule for fragments).  Every sample knows its segment.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["Segmentation", "segment_samples"]
+
+
+@dataclass
+class _Moments:
+    count: int
+    total: np.ndarray  # (n,)
+    outer: np.ndarray  # (n, n)
+
+    @classmethod
+    def of(cls, transfer: np.ndarray) -> "_Moments":
+        t = np.asarray(transfer, dtype=np.float64)
+        return cls(len(t), t.sum(axis=0), t.T @ t)
+
+    def __add__(self, other: "_Moments") -> "_Moments":
+        return _Moments(self.count + other.count, self.total + other.total, self.outer + other.outer)
+
+    def residual_rms(self, rank: int) -> float:
+        """RMS (per sample, over all coefficients) of what a rank-``rank`` PCA leaves out."""
+        if self.count == 0:
+            return 0.0
+        mean = self.total / self.count
+        cov = self.outer / self.count - np.outer(mean, mean)
+        eig = np.clip(np.linalg.eigvalsh(cov), 0.0, None)  # ascending
+        return float(np.sqrt(eig[: max(len(eig) - rank, 0)].sum()))
+
+
+@dataclass
+class Segmentation:
+    """Segments of a scene and the rule that maps surface points to them.
+
+    nodes : k-d tree, one dict per node: ``{"axis", "split", "left", "right"}`` for inner
+        nodes, ``{"leaf": i}`` for leaves
+    roots : ``{object_id: root node index}``
+    leaf_segment : (n_leaves,) int, final segment of each leaf (after merging)
+    bounds : (S, 2, 3) float, box of each segment's own samples
+    residual_rms : (S,) float, rank-``rank`` PCA residual of each segment's transfer
+    home : (N,) int, segment of each sample
+    members : list of S index arrays: own samples plus the margin samples of neighbours
+    """
+
+    nodes: list[dict]
+    roots: dict[int, int]
+    leaf_segment: np.ndarray
+    bounds: np.ndarray
+    residual_rms: np.ndarray
+    home: np.ndarray
+    members: list[np.ndarray]
+    delta: float
+    rank: int
+    leaves_before_merge: int
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def count(self) -> int:
+        return len(self.bounds)
+
+    def assign(self, points: np.ndarray, object_ids: np.ndarray) -> np.ndarray:
+        """Segment of each point (N, 3) on object ``object_ids`` (N,).
+
+        Points of an object that received no samples go to the segment with the nearest box.
+        """
+        points = np.asarray(points)
+        object_ids = np.asarray(object_ids)
+        leaf = np.full(len(points), -1, dtype=np.int64)
+        for obj, root in self.roots.items():
+            sel = np.flatnonzero(object_ids == obj)
+            self._descend(root, points, sel, leaf)
+        out = np.full(len(points), -1, dtype=np.int64)
+        ok = leaf >= 0
+        out[ok] = self.leaf_segment[leaf[ok]]
+        if not ok.all():  # an object that got no samples: the segment with the nearest box
+            p = points[~ok][:, None, :]
+            gap = np.maximum(self.bounds[None, :, 0] - p, 0) + np.maximum(p - self.bounds[None, :, 1], 0)
+            out[~ok] = np.argmin(np.linalg.norm(gap, axis=2), axis=1)
+        return out
+
+    def _descend(self, node: int, points: np.ndarray, sel: np.ndarray, leaf: np.ndarray) -> None:
+        stack = [(node, sel)]
+        while stack:
+            node, sel = stack.pop()
+            n = self.nodes[node]
+            if "leaf" in n:
+                leaf[sel] = n["leaf"]
+                continue
+            left = points[sel, n["axis"]] <= n["split"]
+            stack.append((n["left"], sel[left]))
+            stack.append((n["right"], sel[~left]))
+
+    def to_json(self) -> dict:
+        return {
+            "count": self.count,
+            "delta": self.delta,
+            "pca_rank": self.rank,
+            "leaves_before_merge": self.leaves_before_merge,
+            "roots": {str(k): v for k, v in self.roots.items()},
+            "nodes": self.nodes,
+            "leaf_segment": self.leaf_segment.tolist(),
+            "segments": [
+                {
+                    "id": s,
+                    "bounds": self.bounds[s].tolist(),
+                    "samples": int((self.home == s).sum()),
+                    "margin_samples": int(len(self.members[s]) - (self.home == s).sum()),
+                    "residual_rms": float(self.residual_rms[s]),
+                }
+                for s in range(self.count)
+            ],
+            "notes": self.notes,
+        }
+
+
+def segment_samples(
+    points: np.ndarray,
+    object_ids: np.ndarray,
+    transfer: np.ndarray,
+    *,
+    max_segments: int = 8,
+    by_object: bool = True,
+    merge: bool = True,
+    merge_tolerance: float = 0.01,
+    rank: int = 8,
+    delta: float = 0.05,
+    min_samples: int = 256,
+) -> Segmentation:
+    """Split a scene's samples into segments, merge the simple ones, add seam margins.
+
+    Parameters
+    ----------
+    points : (N, 3) sample positions (scene units)
+    object_ids : (N,) object of each sample
+    transfer : (N, n) ground-truth transfer of each sample
+    max_segments : leaf budget of the spatial split (at least one leaf per object)
+    by_object : never let a segment's tree cell span two objects before merging
+    merge : merge neighbouring segments whose union stays simple
+    merge_tolerance : largest RMS PCA residual a merged segment may have
+    rank : PCA rank of the residual test (8 spans unshadowed transfer of 3 bands)
+    delta : margin width (scene units) sampled into neighbouring segments
+    min_samples : leaves are not split below twice this count
+    """
+    points = np.asarray(points, dtype=np.float64)
+    object_ids = np.asarray(object_ids, dtype=np.int64)
+    transfer = np.asarray(transfer, dtype=np.float64)
+    if not (len(points) == len(object_ids) == len(transfer)):
+        raise ValueError("points, object_ids and transfer differ in length")
+    if len(points) == 0:
+        raise ValueError("no samples to segment")
+    if not np.isfinite(points).all() or not np.isfinite(transfer).all():
+        raise ValueError("samples contain NaN or Inf")
+
+    groups = np.unique(object_ids) if by_object else np.array([-1])
+    nodes: list[dict] = []
+    roots: dict[int, int] = {}
+    leaves: list[tuple[int, np.ndarray]] = []  # (node index, sample indices)
+    for g in groups:
+        sel = np.flatnonzero(object_ids == g) if by_object else np.arange(len(points))
+        nodes.append({})
+        leaves.append((len(nodes) - 1, sel))
+        if by_object:
+            roots[int(g)] = len(nodes) - 1
+    if not by_object:
+        roots = {int(o): 0 for o in np.unique(object_ids)}
+
+    budget = max(int(max_segments), len(leaves))
+    while len(leaves) < budget:
+        biggest = max(range(len(leaves)), key=lambda i: len(leaves[i][1]))
+        node, sel = leaves[biggest]
+        if len(sel) < 2 * min_samples:
+            break
+        p = points[sel]
+        axis = int(np.argmax(p.max(axis=0) - p.min(axis=0)))
+        split = float(np.median(p[:, axis]))
+        left = p[:, axis] <= split
+        if left.all() or not left.any():
+            break  # all samples on one plane along the longest axis: nothing left to cut
+        nodes.append({})
+        nodes.append({})
+        li, ri = len(nodes) - 2, len(nodes) - 1
+        nodes[node] = {"axis": axis, "split": split, "left": li, "right": ri}
+        leaves[biggest] = (li, sel[left])
+        leaves.append((ri, sel[~left]))
+
+    for i, (node, _) in enumerate(leaves):
+        nodes[node] = {"leaf": i}
+    leaf_samples = [sel for _, sel in leaves]
+    leaf_box = np.array([[points[s].min(axis=0), points[s].max(axis=0)] for s in leaf_samples])
+    moments = [_Moments.of(transfer[s]) for s in leaf_samples]
+
+    # Union-find style merging over a neighbour graph of boxes grown by delta.
+    segment_of_leaf = np.arange(len(leaves))
+    members_of = {i: [i] for i in range(len(leaves))}
+    seg_moments = {i: moments[i] for i in range(len(leaves))}
+    seg_box = {i: leaf_box[i].copy() for i in range(len(leaves))}
+    notes: list[str] = []
+    if merge:
+        while True:
+            best = None
+            ids = sorted(members_of)
+            for a_i, a in enumerate(ids):
+                for b in ids[a_i + 1 :]:
+                    if not _boxes_touch(seg_box[a], seg_box[b], delta):
+                        continue
+                    cost = (seg_moments[a] + seg_moments[b]).residual_rms(rank)
+                    if cost <= merge_tolerance and (best is None or cost < best[0]):
+                        best = (cost, a, b)
+            if best is None:
+                break
+            _, a, b = best
+            members_of[a] += members_of.pop(b)
+            seg_moments[a] = seg_moments[a] + seg_moments.pop(b)
+            seg_box[a] = np.array([np.minimum(seg_box[a][0], seg_box[b][0]), np.maximum(seg_box[a][1], seg_box[b][1])])
+            del seg_box[b]
+    final_ids = sorted(members_of)
+    for new, old in enumerate(final_ids):
+        for leaf in members_of[old]:
+            segment_of_leaf[leaf] = new
+
+    home = np.empty(len(points), dtype=np.int64)
+    for leaf, sel in enumerate(leaf_samples):
+        home[sel] = segment_of_leaf[leaf]
+    bounds = np.array([seg_box[old] for old in final_ids])
+    residual = np.array([seg_moments[old].residual_rms(rank) for old in final_ids])
+
+    members = [_with_margin(points, home, s, bounds[s], delta) for s in range(len(final_ids))]
+    if len(final_ids) < len(leaves):
+        notes.append(f"merged {len(leaves)} leaves into {len(final_ids)} segments")
+    return Segmentation(
+        nodes=nodes,
+        roots=roots,
+        leaf_segment=segment_of_leaf,
+        bounds=bounds,
+        residual_rms=residual,
+        home=home,
+        members=members,
+        delta=float(delta),
+        rank=int(rank),
+        leaves_before_merge=len(leaves),
+        notes=notes,
+    )
+
+
+def _with_margin(points: np.ndarray, home: np.ndarray, segment: int, box: np.ndarray, delta: float) -> np.ndarray:
+    """Own samples plus other segments' samples within ``delta`` of one of the own samples."""
+    from scipy.spatial import cKDTree
+
+    own = home == segment
+    near_box = np.all((points >= box[0] - delta) & (points <= box[1] + delta), axis=1) & ~own
+    candidates = np.flatnonzero(near_box)
+    if len(candidates) and delta > 0:
+        dist, _ = cKDTree(points[own]).query(points[candidates], k=1, distance_upper_bound=delta)
+        candidates = candidates[np.isfinite(dist)]
+    else:
+        candidates = candidates[:0]
+    return np.sort(np.concatenate([np.flatnonzero(own), candidates]))
+
+
+def _boxes_touch(a: np.ndarray, b: np.ndarray, delta: float) -> bool:
+    return bool(np.all(a[0] - delta <= b[1]) and np.all(b[0] - delta <= a[1]))
