@@ -2,7 +2,8 @@
 
 Images are equirectangular (latitude-longitude, width = 2 * height), row 0 at the top, linear
 RGB in channel order R, G, B; see :mod:`prt.runtime.sh` for the direction of each texel.
-OpenCV does the decoding; it is imported lazily so that importing this module stays cheap.
+OpenCV decodes ``.hdr`` and the OpenEXR bindings (package ``openexr``) handle ``.exr``, since
+OpenCV wheels may lack the EXR codec; both are imported lazily so this module stays cheap.
 Every failure raises :class:`~prt.runtime.errors.EnvmapError` with a one-line message that
 names the file.
 """
@@ -26,8 +27,6 @@ SUPPORTED_EXTENSIONS = (".hdr", ".exr")
 # Negative values down to this fraction of the image maximum are resampling noise, clamped
 # silently; anything more negative is clamped too but with a warning.
 _NEGATIVE_NOISE = 1e-3
-# First four bytes of every OpenEXR file.
-_EXR_MAGIC = bytes([0x76, 0x2F, 0x31, 0x01])
 
 
 def _cv2():
@@ -43,12 +42,6 @@ def _one_line(text: object) -> str:
     return " ".join(str(text).split())
 
 
-def _has_exr_magic(path: Path) -> bool:
-    """Whether the file starts with the OpenEXR magic number (so it is EXR, just undecodable)."""
-    with open(path, "rb") as f:
-        return f.read(4) == _EXR_MAGIC
-
-
 def _check_extension(path: Path) -> str:
     """Lower-case extension of ``path``; EnvmapError unless it is a supported one."""
     ext = path.suffix.lower()
@@ -57,6 +50,45 @@ def _check_extension(path: Path) -> str:
             f"{path}: unsupported env map extension {path.suffix!r}; expected .hdr or .exr"
         )
     return ext
+
+
+def _read_hdr_bgr(path: Path) -> np.ndarray:
+    """Decode a Radiance file with OpenCV (BGR order, as OpenCV returns it)."""
+    cv2 = _cv2()
+    try:
+        # IMREAD_COLOR forces 3 channels (grey is replicated, alpha dropped); ANYDEPTH keeps floats.
+        image = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH)
+    except cv2.error as exc:
+        raise EnvmapError(f"{path}: cannot decode .hdr file ({_one_line(exc)})") from None
+    if image is None:
+        raise EnvmapError(f"{path}: cannot decode .hdr file (corrupt or not a .hdr image)")
+    return image
+
+
+def _read_exr_bgr(path: Path) -> np.ndarray:
+    """Decode an OpenEXR file's R, G, B channels with the OpenEXR bindings (BGR order)."""
+    try:
+        import OpenEXR
+    except ImportError:
+        raise EnvmapError(f"{path}: reading .exr needs the 'openexr' package (pip install openexr)") from None
+    try:
+        with OpenEXR.File(str(path)) as f:
+            channels = f.channels()
+            if "RGB" in channels:
+                rgb = np.asarray(channels["RGB"].pixels)
+            elif all(c in channels for c in "RGB"):
+                rgb = np.stack([np.asarray(channels[c].pixels) for c in "RGB"], axis=-1)
+            elif "Y" in channels:  # luminance-only map: grey light
+                rgb = np.repeat(np.asarray(channels["Y"].pixels)[..., None], 3, axis=-1)
+            else:
+                raise EnvmapError(f"{path}: OpenEXR file has no R, G, B (or Y) channels: {sorted(channels)}")
+    except EnvmapError:
+        raise
+    except Exception as exc:  # the bindings raise RuntimeError and friends for corrupt files
+        raise EnvmapError(f"{path}: cannot decode .exr file ({_one_line(exc)})") from None
+    if rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise EnvmapError(f"{path}: expected a 3-channel colour image, got shape {rgb.shape}")
+    return np.ascontiguousarray(rgb[..., ::-1]).astype(np.float32)
 
 
 def read_envmap(path) -> np.ndarray:
@@ -85,18 +117,10 @@ def read_envmap(path) -> np.ndarray:
     if not path.is_file():
         raise EnvmapError(f"{path}: env map file not found")
 
-    cv2 = _cv2()
-    try:
-        # IMREAD_COLOR forces 3 channels (grey is replicated, alpha dropped); ANYDEPTH keeps floats.
-        image = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH)
-    except cv2.error as exc:
-        raise EnvmapError(f"{path}: cannot decode {ext} file ({_one_line(exc)})") from None
-    if image is None:
-        if ext == ".exr" and _has_exr_magic(path):
-            raise EnvmapError(
-                f"{path}: this OpenCV build cannot decode the OpenEXR file (convert it to .hdr)"
-            )
-        raise EnvmapError(f"{path}: cannot decode {ext} file (corrupt or not a {ext} image)")
+    if ext == ".exr":
+        image = _read_exr_bgr(path)
+    else:
+        image = _read_hdr_bgr(path)
     if image.ndim != 3 or image.shape[2] != 3:
         raise EnvmapError(f"{path}: expected a 3-channel colour image, got shape {image.shape}")
     if not np.issubdtype(image.dtype, np.floating):
@@ -153,25 +177,39 @@ def write_hdr(path, image) -> None:
         raise EnvmapError(f"{path}: image to write contains NaN or Inf values")
     if (img < 0).any():
         raise EnvmapError(f"{path}: image to write has negative values (HDR stores radiance >= 0)")
-    bgr = np.ascontiguousarray(img[..., ::-1])
 
-    cv2 = _cv2()
     # Same folder so os.replace is atomic; the temporary keeps the extension because OpenCV
-    # picks the encoder from it, and OpenCV creates it so it gets the usual permissions.
+    # picks the encoder from it.
     tmp_name = str(path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}{ext}"))
-    params = [cv2.IMWRITE_EXR_TYPE, cv2.IMWRITE_EXR_TYPE_FLOAT] if ext == ".exr" else []
     try:
-        try:
-            ok = cv2.imwrite(tmp_name, bgr, params)
-        except cv2.error as exc:
-            raise EnvmapError(f"{path}: cannot write {ext} file ({_one_line(exc)})") from None
-        if not ok:
-            raise EnvmapError(f"{path}: cannot write {ext} file (OpenCV encoder failed)")
+        if ext == ".exr":
+            _write_exr(path, tmp_name, img)
+        else:
+            cv2 = _cv2()
+            try:
+                ok = cv2.imwrite(tmp_name, np.ascontiguousarray(img[..., ::-1]))
+            except cv2.error as exc:
+                raise EnvmapError(f"{path}: cannot write {ext} file ({_one_line(exc)})") from None
+            if not ok:
+                raise EnvmapError(f"{path}: cannot write {ext} file (OpenCV encoder failed)")
         os.replace(tmp_name, path)
     except BaseException:
         if os.path.exists(tmp_name):
             os.unlink(tmp_name)
         raise
+
+
+def _write_exr(path: Path, tmp_name: str, rgb: np.ndarray) -> None:
+    try:
+        import OpenEXR
+    except ImportError:
+        raise EnvmapError(f"{path}: writing .exr needs the 'openexr' package (pip install openexr)") from None
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    try:
+        with OpenEXR.File(header, {"RGB": np.ascontiguousarray(rgb, dtype=np.float32)}) as f:
+            f.write(tmp_name)
+    except Exception as exc:
+        raise EnvmapError(f"{path}: cannot write .exr file ({_one_line(exc)})") from None
 
 
 def load_envmap_sh(path, bands: int = 4) -> np.ndarray:
