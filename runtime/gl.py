@@ -10,6 +10,7 @@ import math
 import moderngl
 import numpy as np
 
+from ..shaders import source as shader_source
 from .errors import GLContextError
 
 __all__ = ["create_context", "context_info", "run_fragment_program", "FRAGMENT_HEADER"]
@@ -19,19 +20,9 @@ _INSTALL_HINT = (
     "or run on a machine with a GPU driver"
 )
 
-# Full-screen triangle from gl_VertexID alone, so no vertex buffer is needed.
-_FULLSCREEN_VERTEX = """#version 330
-void main() {
-    vec2 v = vec2(float((gl_VertexID & 1) << 2) - 1.0, float((gl_VertexID & 2) << 1) - 1.0);
-    gl_Position = vec4(v, 0.0, 1.0);
-}
-"""
+_FULLSCREEN_VERTEX = shader_source("fullscreen.vert")
 
-FRAGMENT_HEADER = """#version 330
-uniform sampler2D u_input;
-out vec4 f_out;
-vec4 prt_input() { return texelFetch(u_input, ivec2(gl_FragCoord.xy), 0); }
-"""
+FRAGMENT_HEADER = shader_source("packed_eval_header.frag")
 """Prepended by :func:`run_fragment_program` to sources without a ``#version`` line."""
 
 # Texels per row of the packed input grid.
