@@ -29,6 +29,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from ..runtime import sh
 from .cache import ChunkStore
@@ -282,6 +283,8 @@ def compute_transfer(
 
     workers = threads or os.cpu_count() or 1
     pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="transfer")
+    # Our threads already fill the cores; BLAS threads spinning beside Embree cost ~25 %.
+    blas_limit = threadpool_limits(limits=1, user_api="blas")
     try:
         for k, value in pool.map(work, todo):
             result[k * chunk_size : (k + 1) * chunk_size] = value
@@ -293,6 +296,7 @@ def compute_transfer(
         raise
     finally:
         pool.shutdown(wait=True)
+        blas_limit.restore_original_limits()
         if bar is not None:
             bar.close()
     return result
