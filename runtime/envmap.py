@@ -34,6 +34,11 @@ def _cv2():
     os.environ["OPENCV_IO_ENABLE_OPENEXR"] = "1"
     import cv2
 
+    # OpenCV logs decode failures to stderr itself; we raise one EnvmapError line instead.
+    try:
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    except AttributeError:
+        pass
     return cv2
 
 

@@ -94,7 +94,10 @@ def test_bad_input_gives_one_line_and_no_output(tmp_path):
         "corrupt": [tmp_path / "bad.obj", "-o", tmp_path / "b"],
         "unwritable": [CORNELL, "-o", tmp_path / "file.txt" / "sub"],
         "zero rays": [CORNELL, "-o", tmp_path / "c", "--rays", 0],
+        "corrupt envmap": [CORNELL, "-o", tmp_path / "d", "--envmap", tmp_path / "sky.hdr"],
+        "missing envmap": [CORNELL, "-o", tmp_path / "e", "--envmap", tmp_path / "nope.hdr"],
     }
+    (tmp_path / "sky.hdr").write_bytes(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 4 +X 8\n\x01\x02")
     (tmp_path / "bad.obj").write_bytes(b"v 0 0 0\nf 1 2 9\n\x00\xff garbage")
     (tmp_path / "file.txt").write_text("not a folder")
     for name, args in cases.items():
@@ -103,5 +106,6 @@ def test_bad_input_gives_one_line_and_no_output(tmp_path):
         lines = proc.stderr.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith("prt-precompute: error:"), (name, proc.stderr)
         assert "Traceback" not in proc.stderr
-    assert not (tmp_path / "b" / "samples.npz").exists()
+    for folder in "bd":
+        assert not (tmp_path / folder / "samples.npz").exists()
     assert "bad.obj" in cli(*cases["corrupt"], "--no-progress").stderr

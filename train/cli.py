@@ -1,6 +1,6 @@
 """prt-precompute: ground-truth transfer for a scene (the first stage of training).
 
-usage: prt-precompute INPUT -o OUTDIR [--samples N] [--rays R] [--segments S] [--seed K]
+usage: prt-precompute INPUT -o OUTDIR [--samples N] [--rays R] [--segments S] [--seed K] [--envmap HDR]
 
 INPUT is a mesh file (OBJ, PLY, STL, GLB/glTF, ...) or a built-in SDF scene name
 (``prt-precompute --list-sdf``).  Rerunning the same command resumes an interrupted run.
@@ -40,6 +40,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-merge", action="store_true", help="keep every leaf of the split as its own segment")
     p.add_argument("--no-object-split", action="store_true", help="let segments span several objects")
     p.add_argument("--seed", type=int, default=d.seed, help="random seed (samples and ray frames)")
+    p.add_argument("--envmap", type=Path, default=None, help="equirectangular .hdr/.exr lighting the preview (default: a procedural sky)")
     p.add_argument("--threads", type=int, default=os.cpu_count(), help="worker threads")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--list-sdf", action="store_true", help="list the built-in SDF scenes and exit")
@@ -65,6 +66,11 @@ def main(argv: list[str] | None = None) -> int:
         from .geometry import load_geometry
         from .precompute import PrecomputeSettings, run_precompute
 
+        envmap = None
+        if args.envmap is not None:  # read first: a bad file must fail before hours of work
+            from ..runtime.envmap import read_envmap
+
+            envmap = read_envmap(args.envmap)
         geometry = load_geometry(args.input)
         print(geometry.summary() if hasattr(geometry, "summary") else geometry.source)
         settings = PrecomputeSettings(
@@ -79,7 +85,9 @@ def main(argv: list[str] | None = None) -> int:
             merge_tolerance=args.merge_tolerance,
             delta=args.delta,
         )
-        summary = run_precompute(geometry, args.out, settings, threads=args.threads, progress=not args.no_progress)
+        summary = run_precompute(
+            geometry, args.out, settings, threads=args.threads, progress=not args.no_progress, preview_envmap=envmap
+        )
     except PRTError as exc:
         print(f"prt-precompute: error: {exc}", file=sys.stderr)
         return 2

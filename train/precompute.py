@@ -70,8 +70,11 @@ def run_precompute(
     threads: int | None = None,
     progress: bool = True,
     log=print,
+    preview_envmap: np.ndarray | None = None,
 ) -> dict:
     """Run (or resume) the precompute stage for ``geometry`` into ``out_dir``.
+
+    ``preview_envmap`` (H, W, 3) lights ``preview.png`` (default: a procedural sky).
 
     Returns the summary that is also written to ``precompute.json``.
     """
@@ -154,7 +157,9 @@ def run_precompute(
     try:
         from .preview import write_preview
 
-        write_preview(out / "preview.png", train.points, train.normals, train_t, area=float(geometry.mesh.area))
+        write_preview(
+            out / "preview.png", train.points, train.normals, train_t, envmap=preview_envmap, area=float(geometry.mesh.area)
+        )
         files.append("preview.png")
     except ImportError as exc:  # matplotlib-free installs still get the data
         log(f"precompute: no preview ({exc})")
