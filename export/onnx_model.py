@@ -1,0 +1,137 @@
+"""Segment networks as ONNX files, built from plain arrays (no torch needed here).
+
+Graph (opset 17), one input and one output, dynamic batch ``N``:
+
+    x : float32 [N, 6]   position (scene units), normal (any length)
+    transfer : float32 [N, bands^2]
+
+The encoding is part of the graph (Split, Sub/Mul/Clip, ReduceL2/Max/Div, MatMul, Sin, Cos,
+Concat), then ``layers`` x (Gemm, LeakyRelu), Gemm, Tanh, Mul, Add.  Initialiser names match
+:meth:`prt.train.network.TransferMLP.arrays`; the GLSL generator reads the weights back from
+the file by those names.  Metadata (``metadata_props``) records the format, SH bands,
+architecture, encoding and output scale, so a file explains itself.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["OPSET", "FORMAT", "LEAKY_SLOPE", "POSITION_CLIP", "NORMAL_EPS", "build_model", "save_model", "read_arrays", "read_metadata"]
+
+OPSET = 17
+FORMAT = "prt-transfer-mlp/1"
+LEAKY_SLOPE = 0.01
+POSITION_CLIP = 2.0  # normalised positions are clipped to [-2, 2]: finite output anywhere
+NORMAL_EPS = 1e-8
+
+
+def build_model(arrays: dict[str, np.ndarray], architecture: dict, *, name: str = "segment"):
+    """An ``onnx.ModelProto`` for one segment network.
+
+    Parameters
+    ----------
+    arrays : initialiser name -> float32 array (see :meth:`TransferMLP.arrays`)
+    architecture : ``{"hidden", "layers", "pos_freqs", "normal_freqs", "bands", "input_dim"}``
+    """
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    layers = int(architecture["layers"])
+    bands = int(architecture["bands"])
+    outputs = bands * bands
+    nodes = []
+    inits = [numpy_helper.from_array(np.asarray(v, dtype=np.float32), k) for k, v in sorted(arrays.items())]
+    inits += [
+        numpy_helper.from_array(np.array([3, 3], dtype=np.int64), "split_sizes"),
+        numpy_helper.from_array(np.array(-POSITION_CLIP, dtype=np.float32), "clip_lo"),
+        numpy_helper.from_array(np.array(POSITION_CLIP, dtype=np.float32), "clip_hi"),
+        numpy_helper.from_array(np.array(NORMAL_EPS, dtype=np.float32), "normal_eps"),
+    ]
+    add = lambda op, ins, outs, **kw: nodes.append(helper.make_node(op, ins, outs, **kw))  # noqa: E731
+    add("Split", ["x", "split_sizes"], ["p", "n_raw"], axis=1)
+    add("Sub", ["p", "enc_centre"], ["p_centred"])
+    add("Mul", ["p_centred", "enc_inv_half"], ["p_scaled"])
+    add("Clip", ["p_scaled", "clip_lo", "clip_hi"], ["p_enc"])
+    add("ReduceL2", ["n_raw"], ["n_len"], axes=[1], keepdims=1)
+    add("Max", ["n_len", "normal_eps"], ["n_len_safe"])
+    add("Div", ["n_raw", "n_len_safe"], ["n_enc"])
+    features = ["p_enc"]
+    if int(architecture["pos_freqs"]) > 0:
+        add("MatMul", ["p_enc", "enc_pos_freq"], ["p_angle"])
+        add("Sin", ["p_angle"], ["p_sin"])
+        add("Cos", ["p_angle"], ["p_cos"])
+        features += ["p_sin", "p_cos"]
+    features.append("n_enc")
+    if int(architecture["normal_freqs"]) > 0:
+        add("MatMul", ["n_enc", "enc_normal_freq"], ["n_angle"])
+        add("Sin", ["n_angle"], ["n_sin"])
+        add("Cos", ["n_angle"], ["n_cos"])
+        features += ["n_sin", "n_cos"]
+    add("Concat", features, ["features"], axis=1)
+    h = "features"
+    for i in range(layers):
+        add("Gemm", [h, f"layer{i}_weight", f"layer{i}_bias"], [f"pre{i}"])
+        add("LeakyRelu", [f"pre{i}"], [f"h{i}"], alpha=LEAKY_SLOPE)
+        h = f"h{i}"
+    add("Gemm", [h, "out_weight", "out_bias"], ["out_pre"])
+    add("Tanh", ["out_pre"], ["out_tanh"])
+    add("Mul", ["out_tanh", "out_scale"], ["out_scaled"])
+    add("Add", ["out_scaled", "out_offset"], ["transfer"])
+    graph = helper.make_graph(
+        nodes,
+        name,
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["N", 6])],
+        [helper.make_tensor_value_info("transfer", TensorProto.FLOAT, ["N", outputs])],
+        initializer=inits,
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)], producer_name="prt-runtime")
+    model.ir_version = 8  # readable by onnxruntime >= 1.10
+    meta = {
+        "prt.format": FORMAT,
+        "prt.sh_bands": str(bands),
+        "prt.architecture": json.dumps(architecture, sort_keys=True),
+        "prt.encoding": json.dumps(
+            {
+                "position": "clip((p - enc_centre) * enc_inv_half, -2, 2); sin/cos of (x @ enc_pos_freq)",
+                "normal": f"n / max(|n|, {NORMAL_EPS}); sin/cos of (n @ enc_normal_freq)",
+                "features": "[p, sin_p, cos_p, n, sin_n, cos_n]",
+                "activation": f"leaky_relu({LEAKY_SLOPE})",
+                "output": "tanh(z) * out_scale + out_offset",
+            }
+        ),
+        "prt.output_scale": json.dumps(np.asarray(arrays["out_scale"]).tolist()),
+        "prt.output_offset": json.dumps(np.asarray(arrays["out_offset"]).tolist()),
+        "prt.input": "x float32 [N, 6]: position (scene units), normal",
+    }
+    helper.set_model_props(model, meta)
+    onnx.checker.check_model(model, full_check=True)
+    return model
+
+
+def save_model(model, path) -> None:
+    """Write an ONNX model atomically."""
+    from ..runtime.files import atomic_write_bytes
+
+    atomic_write_bytes(Path(path), model.SerializeToString())
+
+
+def read_arrays(path) -> tuple[dict[str, np.ndarray], dict]:
+    """Initialisers (name -> float32 array) and the architecture recorded in an exported file."""
+    import onnx
+    from onnx import numpy_helper
+
+    model = onnx.load(str(path))
+    arrays = {t.name: numpy_helper.to_array(t) for t in model.graph.initializer}
+    meta = {p.key: p.value for p in model.metadata_props}
+    if meta.get("prt.format") != FORMAT:
+        raise ValueError(f"{path}: not a {FORMAT} model (prt.format = {meta.get('prt.format')!r})")
+    return arrays, json.loads(meta["prt.architecture"])
+
+
+def read_metadata(path) -> dict[str, str]:
+    import onnx
+
+    return {p.key: p.value for p in onnx.load(str(path)).metadata_props}

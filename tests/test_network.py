@@ -1,0 +1,158 @@
+"""The segment network: fitting, target scaling, hard inputs, ONNX export against PyTorch."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import torch
+
+from prt.export.onnx_model import FORMAT, build_model, read_arrays, read_metadata, save_model
+from prt.runtime import sh
+from prt.train import compute_transfer, load_geometry, sample_surface
+from prt.train.fit import FitSettings, fit_segment, right_size
+from prt.train.network import Architecture, TransferMLP, target_scaling
+
+DATA = Path(__file__).parent / "data"
+SMALL = Architecture(hidden=32, layers=2, pos_freqs=4)
+
+
+@pytest.fixture(scope="module")
+def spot():
+    geometry = load_geometry(str(DATA / "spot.obj"))
+    train = sample_surface(geometry, 6000, seed=0)
+    valid = sample_surface(geometry, 1000, seed=0, stream=1)
+    t = compute_transfer(geometry, train.points, train.normals, rays=128)
+    tv = compute_transfer(geometry, valid.points, valid.normals, rays=128)
+    return geometry, train, t, valid, tv
+
+
+@pytest.fixture(scope="module")
+def fitted(spot):
+    geometry, train, t, valid, tv = spot
+    bounds = np.array(geometry.mesh.bounds)
+    light = {"const": np.tile([[np.sqrt(4 * np.pi)]] + [[0.0]] * 15, (1, 3))}
+    return fit_segment(
+        train.points, train.normals, t, valid.points, valid.normals, tv, SMALL, bounds,
+        FitSettings(epochs=25, batch=256, lr=1e-2, seed=0), lights=light,
+    )
+
+
+def session(path):
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = 1
+    return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+
+
+def test_fit_learns_transfer_far_better_than_the_mean(spot, fitted):
+    _, _, t, _, tv = spot
+    baseline = np.abs(tv - t.mean(axis=0)).mean()
+    assert fitted.val_mae < 0.35 * baseline
+    assert fitted.history[0]["val_mae"] > fitted.val_mae
+    assert 0 <= fitted.shaded["const"] < 0.1
+
+
+def test_fit_is_deterministic_for_a_seed(spot):
+    geometry, train, t, valid, tv = spot
+    args = (train.points[:2000], train.normals[:2000], t[:2000], valid.points, valid.normals, tv, SMALL, np.array(geometry.mesh.bounds))
+    a = fit_segment(*args, FitSettings(epochs=2, batch=512, seed=3, bf16=False))
+    b = fit_segment(*args, FitSettings(epochs=2, batch=512, seed=3, bf16=False))
+    for key, value in a.model.state_dict().items():
+        assert torch.equal(value, b.model.state_dict()[key]), key
+
+
+def test_onnx_export_matches_pytorch_on_real_samples(tmp_path, spot, fitted):
+    _, train, _, valid, _ = spot
+    path = tmp_path / "seg.onnx"
+    save_model(build_model(fitted.model.arrays(), fitted.arch.as_dict()), path)
+    x = np.concatenate([valid.points, valid.normals], axis=1).astype(np.float32)
+    with torch.inference_mode():
+        ref = fitted.model(torch.from_numpy(x)).numpy()
+    got = session(path).run(None, {"x": x})[0]
+    assert got.shape == (len(x), 16)
+    assert np.abs(got - ref).max() <= 1e-5
+    meta = read_metadata(path)
+    assert meta["prt.format"] == FORMAT and meta["prt.sh_bands"] == "4"
+    arrays, arch = read_arrays(path)
+    assert arch["hidden"] == 32 and arch["input_dim"] == SMALL.input_dim
+    assert np.array_equal(arrays["layer0_weight"], fitted.model.arrays()["layer0_weight"])
+
+
+def test_hard_inputs_give_bounded_finite_output(tmp_path, fitted):
+    path = tmp_path / "seg.onnx"
+    save_model(build_model(fitted.model.arrays(), fitted.arch.as_dict()), path)
+    x = np.array(
+        [
+            [1e6, -1e6, 3e7, 0, 1, 0],  # far outside the segment's box
+            [0, 0, 0, 0, 0, 0],  # zero normal
+            [0.1, 0.2, 0.3, 0, 50, 0],  # normal of length 50
+            [0.1, 0.2, 0.3, 0, 1, 0],
+        ],
+        dtype=np.float32,
+    )
+    out = session(path).run(None, {"x": x})[0]
+    assert np.isfinite(out).all()
+    bound = np.abs(fitted.model.out_scale.numpy()) + np.abs(fitted.model.out_offset.numpy())
+    assert (np.abs(out) <= bound + 1e-6).all()
+    assert np.allclose(out[2], out[3], atol=1e-6)  # normals are normalised inside the graph
+
+
+def test_target_scaling_keeps_tanh_out_of_saturation():
+    rng = np.random.default_rng(0)
+    t = rng.uniform(-1, 1, size=(1000, 16)).astype(np.float32)
+    t[:, 0] = 0.999  # a constant coefficient, and coefficients near +-1
+    t[0, 1], t[1, 1] = -1.0, 1.0
+    scale, offset = target_scaling(t)
+    scaled = (t - offset) / scale
+    assert np.abs(scaled).max() <= 0.9 + 1e-6
+    assert np.all(scale > 0)
+    # the network reproduces a constant +-1 target without needing infinite pre-activations
+    x = torch.zeros(4, 6)
+    x[:, 4] = 1
+    model = TransferMLP(SMALL, np.array([[-1, -1, -1], [1, 1, 1.0]]), scale, offset)
+    with torch.no_grad():
+        model.out.weight.zero_()
+        model.out.bias.copy_(torch.from_numpy(np.arctanh(np.clip((t[0] - offset) / scale, -0.9, 0.9))))
+        assert torch.allclose(model(x)[0], torch.from_numpy(t[0]), atol=1e-5)
+
+
+def test_a_segment_with_very_few_samples_still_fits(spot):
+    geometry, train, t, valid, tv = spot
+    r = fit_segment(train.points[:5], train.normals[:5], t[:5], valid.points[:3], valid.normals[:3], tv[:3], SMALL,
+                    np.array(geometry.mesh.bounds), FitSettings(epochs=3))
+    assert np.isfinite(r.val_mae)
+
+
+def test_nan_samples_are_rejected(spot):
+    geometry, train, t, valid, tv = spot
+    bad = t[:10].copy()
+    bad[3, 2] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        fit_segment(train.points[:10], train.normals[:10], bad, valid.points, valid.normals, tv, SMALL, np.array(geometry.mesh.bounds))
+
+
+def test_right_sizing_stops_at_the_first_size_that_meets_the_target():
+    calls = []
+
+    class Fake:
+        def __init__(self, arch, mae):
+            self.arch, self.val_mae, self.seconds = arch, mae, 0.0
+
+    maes = iter([0.02, 0.008, 0.003, 0.001])
+    ladder = [Architecture(hidden=h, layers=2) for h in (8, 16, 32, 64)]
+
+    def fit(arch):
+        calls.append(arch.hidden)
+        return Fake(arch, next(maes))
+
+    chosen, tried = right_size(fit, ladder, target=0.005, log=lambda *_: None)
+    assert chosen.arch.hidden == 32 and calls == [8, 16, 32] and len(tried) == 3
+    assert all(a["flops"] > 0 for a in tried)
+
+
+def test_flops_grow_with_size():
+    assert SMALL.flops_per_fragment() < Architecture(64, 4).flops_per_fragment() < Architecture(128, 4).flops_per_fragment()
+    k64 = Architecture(64, 4)
+    assert k64.weight_count() == sum(v.size for k, v in TransferMLP(k64, np.array([[-1] * 3, [1] * 3]), np.ones(16), np.zeros(16)).arrays().items() if k.startswith(("layer", "out_w", "out_b")))

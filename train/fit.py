@@ -1,0 +1,211 @@
+"""Fitting one segment's network: L1 loss, Adam, warm-up + cosine learning rate, early stop
+on the held-out validation samples, deterministic for a seed.  Right-sizing walks a ladder of
+sizes and keeps the smallest network that meets the error target.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from .network import Architecture, TransferMLP, target_scaling
+
+__all__ = [
+    "FitSettings",
+    "FitResult",
+    "fit_segment",
+    "right_size",
+    "DEFAULT_LADDER",
+    "PAPER_SIZES",
+    "shaded_error",
+    "bf16_supported",
+]
+
+# Smallest first.  Each rung is (hidden k, layers l, position frequencies F).
+DEFAULT_LADDER = (
+    Architecture(hidden=16, layers=2, pos_freqs=4),
+    Architecture(hidden=32, layers=2, pos_freqs=5),
+    Architecture(hidden=32, layers=3, pos_freqs=6),
+    Architecture(hidden=48, layers=3, pos_freqs=6),
+    Architecture(hidden=64, layers=3, pos_freqs=6),
+    Architecture(hidden=64, layers=4, pos_freqs=6),
+    Architecture(hidden=128, layers=4, pos_freqs=6),
+)
+PAPER_SIZES = (Architecture(hidden=64, layers=4), Architecture(hidden=128, layers=4))
+
+
+@dataclass
+class FitSettings:
+    epochs: int = 60  # at most; early stopping usually ends sooner
+    batch: int = 8192
+    lr: float = 3e-3
+    warmup_epochs: float = 1.0
+    patience: int = 8  # epochs without a 0.5 % better validation MAE
+    seed: int = 0
+    bf16: bool | None = None  # None: use bf16 autocast where the CPU has native bf16
+    max_seconds: float | None = None  # wall-clock budget per fit
+
+
+@dataclass
+class FitResult:
+    model: TransferMLP
+    arch: Architecture
+    val_mae: float  # mean absolute error of the coefficients on held-out samples
+    shaded: dict[str, float]  # env name -> relative MAE of dot(T, L) on held-out samples
+    epochs: int
+    seconds: float
+    history: list[dict] = field(default_factory=list)
+
+
+def bf16_supported() -> bool:
+    """True where the CPU has native bf16 dot products (AVX512-BF16 or AMX)."""
+    try:
+        flags = open("/proc/cpuinfo").read()
+    except OSError:
+        return False
+    return (" avx512_bf16" in flags or " amx_bf16" in flags) and torch.backends.mkldnn.is_available()
+
+
+def shaded_error(pred: np.ndarray, truth: np.ndarray, lights: dict[str, np.ndarray]) -> dict[str, float]:
+    """Relative MAE of the diffuse shading ``T @ L`` per env map: mean|dT L| / mean|T L|."""
+    out = {}
+    for name, light in lights.items():
+        ref = truth.astype(np.float64) @ light
+        err = pred.astype(np.float64) @ light - ref
+        out[name] = float(np.abs(err).mean() / max(np.abs(ref).mean(), 1e-12))
+    return out
+
+
+def _as_input(points: np.ndarray, normals: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(np.concatenate([points, normals], axis=1), dtype=np.float32))
+
+
+def _predict(model: TransferMLP, x: torch.Tensor, batch: int = 65536) -> np.ndarray:
+    with torch.inference_mode():
+        return torch.cat([model(x[i : i + batch]) for i in range(0, len(x), batch)]).numpy()
+
+
+def fit_segment(
+    points: np.ndarray,
+    normals: np.ndarray,
+    transfer: np.ndarray,
+    val_points: np.ndarray,
+    val_normals: np.ndarray,
+    val_transfer: np.ndarray,
+    arch: Architecture,
+    bounds: np.ndarray,
+    settings: FitSettings | None = None,
+    *,
+    lights: dict[str, np.ndarray] | None = None,
+    progress=None,
+) -> FitResult:
+    """Train one network on a segment's samples (own + margin), validate on held-out samples.
+
+    Parameters
+    ----------
+    points, normals : (N, 3) training inputs; transfer : (N, n) targets
+    val_points, val_normals : (M, 3); val_transfer : (M, n) held-out samples (M >= 1)
+    arch : network size; bounds : (2, 3) box the encoding normalises to
+    lights : env name -> (n, 3) SH lighting for the shaded error
+    progress : callable(epoch, train_loss, val_mae) or None
+    """
+    settings = settings or FitSettings()
+    for name, a in (("points", points), ("normals", normals), ("transfer", transfer)):
+        if not np.isfinite(a).all():
+            raise ValueError(f"training {name} contain NaN or Inf")
+    if len(points) == 0 or len(val_points) == 0:
+        raise ValueError("a segment needs at least one training and one validation sample")
+    torch.manual_seed(settings.seed)
+    gen = torch.Generator().manual_seed(settings.seed)
+    scale, offset = target_scaling(transfer)
+    model = TransferMLP(arch, bounds, scale, offset)
+    x = _as_input(points, normals)
+    y = torch.from_numpy(np.ascontiguousarray(transfer, dtype=np.float32))
+    xv = _as_input(val_points, val_normals)
+    yv = np.asarray(val_transfer, dtype=np.float32)
+    # L1 on the transfer itself, computed through the scaled tanh output
+    inv_scale = torch.from_numpy(1.0 / scale)
+    y_scaled = (y - torch.from_numpy(offset)) * inv_scale
+
+    n = len(x)
+    batch = min(settings.batch, n)
+    steps_per_epoch = max(1, math.ceil(n / batch))
+    total_steps = settings.epochs * steps_per_epoch
+    warmup = max(1, int(settings.warmup_epochs * steps_per_epoch))
+    opt = torch.optim.Adam(model.parameters(), lr=settings.lr)
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt,
+        lambda s: min(1.0, (s + 1) / warmup) * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(s / total_steps, 1.0)))),
+    )
+    use_bf16 = bf16_supported() if settings.bf16 is None else settings.bf16
+    scale_t = torch.from_numpy(scale)
+
+    best = (math.inf, None, 0)
+    history = []
+    t0 = time.perf_counter()
+    epoch = 0
+    for epoch in range(1, settings.epochs + 1):
+        model.train()
+        perm = torch.randperm(n, generator=gen)
+        total = 0.0
+        for i in range(0, n, batch):
+            idx = perm[i : i + batch]
+            features = model.encode(x[idx])  # fp32: sin/cos of 2^k pi x needs the precision
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=use_bf16):
+                pre = model.trunk(features)
+            out = torch.tanh(pre.float())
+            loss = ((out - y_scaled[idx]).abs() * scale_t).mean()
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            sched.step()
+            total += loss.detach().item() * len(idx)
+        model.eval()
+        val_mae = float(np.abs(_predict(model, xv) - yv).mean())
+        history.append({"epoch": epoch, "train_l1": total / n, "val_mae": val_mae})
+        if progress is not None:
+            progress(epoch, total / n, val_mae)
+        if val_mae < best[0] * (1 - 5e-3):
+            best = (val_mae, copy.deepcopy(model.state_dict()), epoch)
+        elif val_mae < best[0]:
+            best = (val_mae, copy.deepcopy(model.state_dict()), best[2])
+        if epoch - best[2] >= settings.patience:
+            break
+        if settings.max_seconds is not None and time.perf_counter() - t0 > settings.max_seconds:
+            break
+    model.load_state_dict(best[1])
+    model.eval()
+    pred = _predict(model, xv)
+    return FitResult(
+        model=model,
+        arch=arch,
+        val_mae=float(np.abs(pred - yv).mean()),
+        shaded=shaded_error(pred, yv, lights or {}),
+        epochs=epoch,
+        seconds=time.perf_counter() - t0,
+        history=history,
+    )
+
+
+def right_size(fit, ladder=DEFAULT_LADDER, target: float = 0.004, log=print) -> tuple[FitResult, list[dict]]:
+    """Smallest rung of ``ladder`` whose validation MAE meets ``target``.
+
+    ``fit(arch) -> FitResult`` trains one size.  Returns the chosen fit (the best one tried if
+    no rung meets the target) and one record per size tried.
+    """
+    tried = []
+    best = None
+    for arch in ladder:
+        result = fit(arch)
+        tried.append({"arch": arch.label(), "val_mae": result.val_mae, "flops": arch.flops_per_fragment(), "seconds": result.seconds})
+        log(f"  {arch.label():>12}: val MAE {result.val_mae:.5f} ({result.seconds:.1f} s)")
+        if best is None or result.val_mae < best.val_mae:
+            best = result
+        if result.val_mae <= target:
+            return result, tried
+    return best, tried

@@ -1,0 +1,150 @@
+"""The transfer network ``sigma(position, normal) -> T`` (Dhawal, KT, Narayanan 2022).
+
+    x  = clip((p - centre) * inv_half_extent, -2, 2)     position in the segment's box, ~[-1, 1]
+    n  = normal / max(|normal|, 1e-8)
+    ax = x @ B_p,  an = n @ B_n                           B: block-diagonal 2^k * pi, k < F
+    f  = [x, sin(ax), cos(ax), n, sin(an), cos(an)]       (6 + 6 F_p + 6 F_n features)
+    h  = leaky_relu(W_0 f + b_0); h = leaky_relu(W_i h + b_i), i < layers
+    T  = tanh(W_out h + b_out) * out_scale + out_offset   (bands^2 coefficients)
+
+The targets are mapped into [-0.9, 0.9] by ``out_scale``/``out_offset`` (stored in the model),
+so tanh never has to saturate to reach a real transfer value.  Clipping the normalised
+position keeps the output finite and bounded far outside the segment's box.
+
+:meth:`TransferMLP.arrays` gives every parameter as numpy, named as the ONNX initialisers;
+the exporter (:mod:`prt.export.onnx_model`) builds the graph from those arrays alone.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from ..export.onnx_model import LEAKY_SLOPE, NORMAL_EPS, POSITION_CLIP
+
+__all__ = ["Architecture", "TransferMLP", "frequency_matrix", "target_scaling", "TARGET_RANGE"]
+
+TARGET_RANGE = 0.9  # scaled targets live in [-0.9, 0.9], where tanh' >= 0.19
+
+
+@dataclass(frozen=True)
+class Architecture:
+    """Size of one segment network."""
+
+    hidden: int = 64
+    layers: int = 4
+    pos_freqs: int = 6
+    normal_freqs: int = 2
+    bands: int = 4
+
+    @property
+    def input_dim(self) -> int:
+        return 6 + 6 * self.pos_freqs + 6 * self.normal_freqs
+
+    @property
+    def outputs(self) -> int:
+        return self.bands * self.bands
+
+    def flops_per_fragment(self) -> int:
+        """Multiply-adds count 2; encoding: 3 per sin/cos argument and ~20 per sin/cos."""
+        k, d, o = self.hidden, self.input_dim, self.outputs
+        mlp = 2 * (d * k + (self.layers - 1) * k * k + k * o) + self.layers * k + 2 * o
+        n_trig = 6 * (self.pos_freqs + self.normal_freqs)
+        encoding = 9 + 3 * n_trig + 20 * n_trig
+        return int(mlp + encoding + 20 * o)  # tanh of each output
+
+    def weight_count(self) -> int:
+        k, d, o = self.hidden, self.input_dim, self.outputs
+        return d * k + k + (self.layers - 1) * (k * k + k) + k * o + o
+
+    def as_dict(self) -> dict:
+        return {**asdict(self), "input_dim": self.input_dim}
+
+    def label(self) -> str:
+        return f"k{self.hidden}-l{self.layers}-f{self.pos_freqs}"
+
+
+def frequency_matrix(freqs: int) -> np.ndarray:
+    """(3, 3 * freqs) float32: column ``3 k + i`` holds ``2^k pi`` on row ``i``."""
+    b = np.zeros((3, 3 * freqs), dtype=np.float32)
+    for k in range(freqs):
+        for i in range(3):
+            b[i, 3 * k + i] = (2.0**k) * math.pi
+    return b
+
+
+class TransferMLP(nn.Module):
+    """One segment's network.  ``forward(x)`` takes ``x`` (N, 6) = [position, normal]."""
+
+    def __init__(self, arch: Architecture, bounds: np.ndarray, out_scale: np.ndarray, out_offset: np.ndarray):
+        super().__init__()
+        self.arch = arch
+        bounds = np.asarray(bounds, dtype=np.float64)
+        centre = (bounds[0] + bounds[1]) / 2
+        half = np.maximum((bounds[1] - bounds[0]) / 2, 1e-3)  # a flat segment still gets a box
+        self.register_buffer("centre", torch.tensor(centre, dtype=torch.float32))
+        self.register_buffer("inv_half", torch.tensor(1.0 / half, dtype=torch.float32))
+        self.register_buffer("pos_freq", torch.from_numpy(frequency_matrix(arch.pos_freqs)))
+        self.register_buffer("normal_freq", torch.from_numpy(frequency_matrix(arch.normal_freqs)))
+        self.register_buffer("out_scale", torch.tensor(out_scale, dtype=torch.float32))
+        self.register_buffer("out_offset", torch.tensor(out_offset, dtype=torch.float32))
+        sizes = [arch.input_dim] + [arch.hidden] * arch.layers
+        self.hidden = nn.ModuleList(nn.Linear(a, b) for a, b in zip(sizes[:-1], sizes[1:]))
+        self.out = nn.Linear(arch.hidden, arch.outputs)
+        for layer in self.hidden:  # He init suits leaky-relu
+            nn.init.kaiming_uniform_(layer.weight, a=LEAKY_SLOPE, nonlinearity="leaky_relu")
+            nn.init.zeros_(layer.bias)
+        nn.init.xavier_uniform_(self.out.weight)
+        nn.init.zeros_(self.out.bias)
+
+    def encode(self, x: torch.Tensor) -> torch.Tensor:
+        p, n = x[:, :3], x[:, 3:6]
+        p = torch.clamp((p - self.centre) * self.inv_half, -POSITION_CLIP, POSITION_CLIP)
+        n = n / torch.clamp(torch.linalg.vector_norm(n, dim=1, keepdim=True), min=NORMAL_EPS)
+        ap = p @ self.pos_freq
+        an = n @ self.normal_freq
+        return torch.cat([p, torch.sin(ap), torch.cos(ap), n, torch.sin(an), torch.cos(an)], dim=1)
+
+    def trunk(self, features: torch.Tensor) -> torch.Tensor:
+        """The MLP on encoded features, before tanh (bf16 autocast may run this part)."""
+        h = features
+        for layer in self.hidden:
+            h = nn.functional.leaky_relu(layer(h), LEAKY_SLOPE)
+        return self.out(h)
+
+    def preactivation(self, x: torch.Tensor) -> torch.Tensor:
+        """Network output before tanh."""
+        return self.trunk(self.encode(x))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.tanh(self.preactivation(x)) * self.out_scale + self.out_offset
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Every constant of the graph as float32 numpy, keyed by its ONNX initialiser name."""
+        out = {
+            "enc_centre": self.centre,
+            "enc_inv_half": self.inv_half,
+            "enc_pos_freq": self.pos_freq,
+            "enc_normal_freq": self.normal_freq,
+            "out_scale": self.out_scale,
+            "out_offset": self.out_offset,
+            "out_weight": self.out.weight.T,
+            "out_bias": self.out.bias,
+        }
+        for i, layer in enumerate(self.hidden):
+            out[f"layer{i}_weight"] = layer.weight.T  # (in, out): x @ W
+            out[f"layer{i}_bias"] = layer.bias
+        return {k: v.detach().cpu().numpy().astype(np.float32) for k, v in out.items()}
+
+
+def target_scaling(transfer: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-coefficient ``(scale, offset)`` that map ``transfer`` (N, n) into [-0.9, 0.9]."""
+    t = np.asarray(transfer, dtype=np.float64)
+    lo, hi = t.min(axis=0), t.max(axis=0)
+    offset = (hi + lo) / 2
+    scale = np.maximum((hi - lo) / 2, 1e-4) / TARGET_RANGE
+    return scale.astype(np.float32), offset.astype(np.float32)
