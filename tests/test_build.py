@@ -1,0 +1,109 @@
+"""prt-train end to end on small scenes: stages, caching, manifest, analytic segments, bad input."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import trimesh
+
+from prt.runtime.manifest import load_manifest
+
+DATA = Path(__file__).parent / "data"
+QUICK = ["--samples", 4000, "--validation", 1500, "--rays", 64, "--epochs", 4, "--batch", 512, "--no-progress"]
+
+
+def prt_train(*args):
+    return subprocess.run([sys.executable, "-m", "prt.train.train_cli", *map(str, args)], capture_output=True, text=True)
+
+
+@pytest.fixture(scope="module")
+def spot_build(tmp_path_factory):
+    out = tmp_path_factory.mktemp("spot")
+    proc = prt_train(DATA / "spot.obj", "-o", out, *QUICK, "--segments", 3, "--hidden", 16, "--layers", 2, "--no-analytic")
+    assert proc.returncode == 0, proc.stderr
+    return out, proc
+
+
+def test_build_writes_a_loadable_scene(spot_build):
+    out, proc = spot_build
+    manifest = load_manifest(out / "scene.json")
+    assert manifest.sh_bands == 4 and manifest.geometry["type"] == "mesh"
+    assert len(manifest.segments) >= 1
+    rng = np.random.default_rng(0)
+    for seg in manifest.segments:
+        assert seg.kind == "network" and seg.model.is_file() and seg.glsl.is_file()
+        assert seg.architecture["hidden"] == 16 and seg.architecture["layers"] == 2
+        sess = ort.InferenceSession(str(seg.model), providers=["CPUExecutionProvider"])
+        y = sess.run(None, {"x": rng.normal(size=(7, 6)).astype(np.float32)})[0]
+        assert y.shape == (7, 16) and np.isfinite(y).all()
+    with np.load(out / "geometry.npz") as g:
+        assert g["faces"].shape[1] == 3 and np.abs(g["vertices"]).max() <= 1.0 + 1e-6
+    report = json.loads((out / "build.json").read_text())
+    assert report["memory"]["weight_bytes"] > 0
+    assert report["memory"]["vertex_storage_bytes"] == report["memory"]["vertices"] * 64
+    # the table names every segment and the memory comparison
+    assert "k16-l2" in proc.stdout and "per-vertex" in proc.stdout
+
+
+def test_rerun_reuses_every_stage(spot_build):
+    out, _ = spot_build
+    before = {p: p.stat().st_mtime_ns for p in (out / "train").glob("*.npz")}
+    again = prt_train(DATA / "spot.obj", "-o", out, *QUICK, "--segments", 3, "--hidden", 16, "--layers", 2, "--no-analytic")
+    assert again.returncode == 0, again.stderr
+    assert "up to date" in again.stdout and "cached" in again.stdout
+    assert before == {p: p.stat().st_mtime_ns for p in (out / "train").glob("*.npz")}
+
+
+def test_unshadowed_segments_need_no_network(tmp_path):
+    sphere = trimesh.creation.icosphere(subdivisions=4)
+    sphere.export(tmp_path / "ball.ply")
+    out = tmp_path / "ball"
+    proc = prt_train(tmp_path / "ball.ply", "-o", out, *QUICK, "--segments", 2, "--target", 0.01)
+    assert proc.returncode == 0, proc.stderr
+    manifest = load_manifest(out / "scene.json")
+    assert all(seg.kind == "analytic" and seg.model is None for seg in manifest.segments)
+    assert manifest.memory["weight_bytes"] == 0
+    assert "analytic" in proc.stdout
+
+
+def test_spec_file_and_its_errors(tmp_path):
+    spec = {"geometry": "sphere_plane", "samples": 3000, "validation": 1000, "rays": 32, "epochs": 2,
+            "batch": 512, "segments": 2, "fixed": {"hidden": 8, "layers": 1, "pos_freqs": 2}}
+    (tmp_path / "ok.json").write_text(json.dumps(spec))
+    proc = prt_train(tmp_path / "ok.json", "-o", tmp_path / "ok", "--no-progress", "--no-analytic")
+    assert proc.returncode == 0, proc.stderr
+    m = load_manifest(tmp_path / "ok" / "scene.json")
+    assert m.geometry["type"] == "sdf" and (tmp_path / "ok" / "scene_sdf.glsl").is_file()
+    assert {s.architecture["hidden"] for s in m.segments} == {8}
+
+    bad = {
+        "typo.json": ({**spec, "sampels": 10}, "sampels"),
+        "type.json": ({**spec, "rays": "many"}, "rays"),
+        "ladder.json": ({**spec, "fixed": {"hidden": 8, "depth": 2}}, "fixed.depth"),
+        "json.json": (None, "line 1"),
+    }
+    for name, (content, field) in bad.items():
+        (tmp_path / name).write_text(json.dumps(content) if content is not None else "{oops")
+        proc = prt_train(tmp_path / name, "-o", tmp_path / "x")
+        assert proc.returncode == 2, proc.stderr
+        line = proc.stderr.strip()
+        assert "\n" not in line and field in line and name in line, line
+
+
+def test_bad_inputs_fail_in_one_line(tmp_path):
+    (tmp_path / "file").write_text("x")
+    cases = [
+        ["no_such_sdf", "-o", tmp_path / "a"],
+        [DATA / "spot.obj", "-o", tmp_path / "file" / "out"],
+        [DATA / "spot.obj", "-o", tmp_path / "b", "--hidden", 16],
+    ]
+    for args in cases:
+        proc = prt_train(*args, "--no-progress")
+        assert proc.returncode == 2, proc.stderr
+        assert len(proc.stderr.strip().splitlines()) == 1 and "Traceback" not in proc.stderr

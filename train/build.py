@@ -1,0 +1,420 @@
+"""The whole build: precompute -> train (right-sized per segment) -> export (ONNX, GLSL, manifest).
+
+Each stage is cached in the output folder and resumes after an interruption:
+
+    OUTDIR/precompute/          samples, ground-truth transfer, segments (prt.train.precompute)
+    OUTDIR/train/segNNN.json    per-segment fit: chosen size, errors, sizes tried (+ .npz weights)
+    OUTDIR/segments/segNNN.onnx one network per segment, and segNNN.glsl generated from it
+    OUTDIR/geometry.npz         the normalised mesh (or scene_sdf.glsl for an SDF scene)
+    OUTDIR/scene.json           the manifest the runtime loads
+    OUTDIR/build.json           the report: per-segment table, memory, timings
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..runtime import sh
+from ..runtime.errors import SpecError
+from ..runtime.files import atomic_save_npz, atomic_write_bytes, atomic_write_json
+from .fit import DEFAULT_LADDER, FitSettings, fit_segment, right_size
+from .network import Architecture
+from .precompute import PrecomputeSettings, load_precompute, run_precompute
+
+__all__ = ["BuildSpec", "load_spec", "run_build", "analytic_transfer", "ENV_LIGHTS"]
+
+ENV_LIGHTS = ("potsdamer", "interior", "studio")
+TRAIN_FORMAT = 1
+
+
+@dataclass
+class BuildSpec:
+    """Everything a build does.  Defaults reproduce the paper's setting where it has one."""
+
+    geometry: str = ""
+    name: str = ""
+    # precompute
+    samples: int = 1_000_000
+    validation: int = 0
+    rays: int = 512
+    bands: int = 4
+    seed: int = 0
+    segments: int = 8
+    delta: float = 0.05
+    merge: bool = True
+    merge_tolerance: float = 0.01
+    by_object: bool = True
+    # training
+    epochs: int = 100
+    batch: int = 8192
+    lr: float = 1e-2
+    patience: int = 10
+    bf16: bool | None = None
+    target: float = 0.0025  # validation coefficient MAE a right-sized network must reach
+    ladder: list[dict] | None = None  # [{hidden, layers, pos_freqs, normal_freqs}], small to large
+    fixed: dict | None = None  # force one size for every network segment
+    analytic: bool = True  # let unshadowed segments skip the network
+    # export
+    glsl_layout: str = "auto"
+    material: dict = field(default_factory=lambda: {"type": "diffuse", "albedo": [0.8, 0.8, 0.8]})
+
+    def precompute_settings(self) -> PrecomputeSettings:
+        return PrecomputeSettings(
+            samples=self.samples,
+            validation=self.validation,
+            rays=self.rays,
+            bands=self.bands,
+            seed=self.seed,
+            segments=self.segments,
+            by_object=self.by_object,
+            merge=self.merge,
+            merge_tolerance=self.merge_tolerance,
+            delta=self.delta,
+        )
+
+    def fit_settings(self) -> FitSettings:
+        return FitSettings(epochs=self.epochs, batch=self.batch, lr=self.lr, patience=self.patience, seed=self.seed, bf16=self.bf16)
+
+    def architectures(self) -> list[Architecture]:
+        """The sizes to try, smallest first (one when ``fixed``)."""
+        if self.fixed is not None:
+            return [_architecture(self.fixed, self.bands, "fixed")]
+        if self.ladder is not None:
+            return [_architecture(a, self.bands, f"ladder[{i}]") for i, a in enumerate(self.ladder)]
+        return [dataclasses.replace(a, bands=self.bands) for a in DEFAULT_LADDER]
+
+
+def _architecture(d: dict, bands: int, where: str) -> Architecture:
+    allowed = {"hidden", "layers", "pos_freqs", "normal_freqs"}
+    if not isinstance(d, dict):
+        raise SpecError(f"{where}: expected an object with {sorted(allowed)}")
+    extra = set(d) - allowed
+    if extra:
+        raise SpecError(f"{where}.{sorted(extra)[0]}: unknown field (known: {', '.join(sorted(allowed))})")
+    for key, value in d.items():
+        if not isinstance(value, int) or isinstance(value, bool) or value < (0 if key.endswith("freqs") else 1):
+            raise SpecError(f"{where}.{key}: expected a {'non-negative' if key.endswith('freqs') else 'positive'} integer, got {value!r}")
+    base = Architecture()
+    return Architecture(
+        hidden=d.get("hidden", base.hidden),
+        layers=d.get("layers", base.layers),
+        pos_freqs=d.get("pos_freqs", base.pos_freqs),
+        normal_freqs=d.get("normal_freqs", base.normal_freqs),
+        bands=bands,
+    )
+
+
+_TYPES = {f.name: f.type for f in dataclasses.fields(BuildSpec)}
+
+
+def load_spec(path) -> BuildSpec:
+    """Read a build spec (JSON).  Errors name the file and the field."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise SpecError(f"{path}: no such file") from None
+    except json.JSONDecodeError as exc:
+        raise SpecError(f"{path}: not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})") from None
+    if not isinstance(data, dict):
+        raise SpecError(f"{path}: expected a JSON object at the top level")
+    try:
+        spec = spec_from_dict(data)
+    except SpecError as exc:
+        raise SpecError(f"{path}: {exc}") from None
+    geometry = Path(spec.geometry)
+    if not geometry.is_absolute() and (path.parent / geometry).exists():
+        spec.geometry = str(path.parent / geometry)
+    return spec
+
+
+def spec_from_dict(data: dict) -> BuildSpec:
+    known = set(_TYPES)
+    for key, value in data.items():
+        if key not in known:
+            raise SpecError(f"{key}: unknown field (known: {', '.join(sorted(known))})")
+        kind = _TYPES[key]
+        ok = {
+            "str": isinstance(value, str),
+            "int": isinstance(value, int) and not isinstance(value, bool),
+            "float": isinstance(value, (int, float)) and not isinstance(value, bool),
+            "bool": isinstance(value, bool),
+            "bool | None": value is None or isinstance(value, bool),
+            "list[dict] | None": value is None or isinstance(value, list),
+            "dict | None": value is None or isinstance(value, dict),
+            "dict": isinstance(value, dict),
+        }[kind]
+        if not ok:
+            raise SpecError(f"{key}: expected {kind}, got {type(value).__name__} {value!r}")
+    if "geometry" not in data:
+        raise SpecError("geometry: missing (a mesh file or a built-in SDF scene name)")
+    spec = BuildSpec(**data)
+    for key in ("samples", "rays", "bands", "segments", "epochs", "batch", "patience"):
+        if getattr(spec, key) < 1:
+            raise SpecError(f"{key}: must be positive, got {getattr(spec, key)}")
+    if spec.glsl_layout not in ("auto", "const", "texture"):
+        raise SpecError(f"glsl_layout: expected 'auto', 'const' or 'texture', got {spec.glsl_layout!r}")
+    spec.architectures()  # validates ladder / fixed
+    return spec
+
+
+def analytic_transfer(normals: np.ndarray, bands: int = 4) -> np.ndarray:
+    """Transfer of an unshadowed point: the clamped cosine / pi turned to the normal. (N, bands^2)"""
+    lam = sh.zonal_to_band_factors(sh.clamped_cosine(bands)) / np.pi
+    return (sh.basis(np.asarray(normals, dtype=np.float64), bands) * sh.band_factors_to_coeff_scale(lam)).astype(np.float32)
+
+
+def _env_lights(bands: int) -> dict[str, np.ndarray]:
+    from ..runtime.envmap import load_envmap_sh
+    from ..runtime.envmaps import bundled_envmap_path
+
+    return {name: load_envmap_sh(bundled_envmap_path(name), bands) for name in ENV_LIGHTS}
+
+
+def _hash(*parts) -> str:
+    return hashlib.sha1(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress: bool = True, log=print) -> dict:
+    """Run (or resume) a build; returns the report written to ``build.json``."""
+    import torch
+
+    from ..export.manifest import write_manifest
+    from ..export.onnx_model import build_model, save_model
+    from .geometry import load_geometry
+
+    t_start = time.perf_counter()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    if threads:
+        torch.set_num_threads(threads)
+    geometry = load_geometry(spec.geometry)
+    name = spec.name or Path(spec.geometry).stem
+    log(geometry.summary())
+
+    # -- stage 1: precompute
+    t0 = time.perf_counter()
+    pre_summary = run_precompute(geometry, out / "precompute", spec.precompute_settings(), threads=threads, progress=progress, log=log)
+    data = load_precompute(out / "precompute")
+    precompute_s = time.perf_counter() - t0
+    samples, valid, members = data["samples"], data["validation"], data["members"]
+    seg_json = data["segments"]
+    lights = _env_lights(spec.bands)
+
+    # -- stage 2: train, one segment at a time, each cached
+    t0 = time.perf_counter()
+    fit_settings = spec.fit_settings()
+    archs = spec.architectures()
+    segments = []
+    for seg in seg_json["segments"]:
+        s = seg["id"]
+        key = _hash(pre_summary["key"], s, asdict(fit_settings), [a.as_dict() for a in archs], spec.target, spec.analytic, TRAIN_FORMAT)
+        record_path = out / "train" / f"seg{s:03d}.json"
+        weights_path = out / "train" / f"seg{s:03d}.npz"
+        if record_path.is_file():
+            record = json.loads(record_path.read_text())
+            if record.get("key") == key and (record["kind"] == "analytic" or weights_path.is_file()):
+                log(f"segment {s}: cached ({record['kind']}{', ' + record['arch_label'] if record['kind'] == 'network' else ''})")
+                segments.append(record)
+                continue
+        record = _train_segment(spec, s, seg, samples, valid, members[s], archs, fit_settings, lights, progress, log)
+        record["key"] = key
+        if record["kind"] == "network":
+            atomic_save_npz(weights_path, **record.pop("arrays"))
+        atomic_write_json(record_path, record)
+        segments.append(record)
+    train_s = time.perf_counter() - t0
+
+    # -- stage 3: export
+    t0 = time.perf_counter()
+    manifest_segments, weight_bytes = _export_segments(spec, out, segments, build_model, save_model)
+    geometry_entry = _export_geometry(geometry, out)
+    vertex_bytes = int(len(geometry.mesh.vertices) * spec.bands**2 * 4)
+    manifest = {
+        "format": "prt-scene",
+        "version": 1,
+        "name": name,
+        "generator": "prt-train 0.1.0",
+        "sh_bands": spec.bands,
+        "geometry": geometry_entry,
+        "segmentation": {
+            "roots": seg_json["roots"],
+            "nodes": seg_json["nodes"],
+            "leaf_segment": seg_json["leaf_segment"],
+        },
+        "segments": manifest_segments,
+        "lighting": {"envmap": None, "sh": lights["potsdamer"].tolist()},
+        "material": spec.material,
+        "camera": {"eye": [0.0, 0.6, 3.2], "target": [0.0, 0.0, 0.0], "up": [0.0, 1.0, 0.0], "fov": 40.0},
+        "memory": {"weight_bytes": weight_bytes, "vertex_storage_bytes": vertex_bytes},
+    }
+    write_manifest(out / "scene.json", manifest)
+    export_s = time.perf_counter() - t0
+
+    report = {
+        "name": name,
+        "source": geometry.source,
+        "spec": asdict(spec),
+        "segments": [{k: v for k, v in r.items() if k not in ("key", "history")} for r in segments],
+        "memory": {
+            "weight_bytes": weight_bytes,
+            "vertex_storage_bytes": vertex_bytes,
+            "vertices": int(len(geometry.mesh.vertices)),
+        },
+        "timings": {
+            "precompute_s": precompute_s,
+            "train_s": train_s,
+            "export_s": export_s,
+            "total_s": time.perf_counter() - t_start,
+            "transfer_rays_per_s": pre_summary["timings"]["rays_per_s"],
+        },
+    }
+    atomic_write_json(out / "build.json", report)
+    return report
+
+
+def _validation_split(s, valid, own_idx, seed):
+    """Held-out samples of segment ``s``; if the validation set has too few, hold out 10 % of its own."""
+    vsel = np.flatnonzero(valid["segment"] == s)
+    if len(vsel) >= 32:
+        return vsel, None
+    rng = np.random.default_rng([seed, 0x5E6, s])
+    n_hold = max(1, len(own_idx) // 10)
+    held = rng.choice(own_idx, size=min(n_hold, max(len(own_idx) - 1, 1)), replace=False)
+    return None, held
+
+
+def _train_segment(spec, s, seg, samples, valid, member_idx, archs, fit_settings, lights, progress, log) -> dict:
+    own_idx = member_idx[samples["segment"][member_idx] == s]
+    vsel, held = _validation_split(s, valid, own_idx, spec.seed)
+    if held is not None:
+        train_idx = np.setdiff1d(member_idx, held)
+        vp, vn, vt = samples["points"][held], samples["normals"][held], samples["transfer"][held]
+        note = f"validation set had {int((valid['segment'] == s).sum())} samples here; held out {len(held)} of its own"
+    else:
+        train_idx = member_idx
+        vp, vn, vt = valid["points"][vsel], valid["normals"][vsel], valid["transfer"][vsel]
+        note = ""
+    p, n, t = samples["points"][train_idx], samples["normals"][train_idx], samples["transfer"][train_idx]
+    bounds = np.array([p.min(axis=0), p.max(axis=0)])
+    bounds = bounds + np.array([[-1.0], [1.0]]) * 0.01 * np.maximum(bounds[1] - bounds[0], 1e-3)
+    base = {
+        "id": s,
+        "samples": int(len(own_idx)),
+        "margin_samples": int(len(member_idx) - len(own_idx)),
+        "validation_samples": int(len(vt)),
+        "bounds": bounds.tolist(),
+        "note": note,
+    }
+    if spec.analytic:
+        pred = analytic_transfer(vn, spec.bands)
+        mae = float(np.abs(pred - vt).mean())
+        if mae <= spec.target:
+            from .fit import shaded_error
+
+            log(f"segment {s}: analytic (unshadowed; validation MAE {mae:.5f} <= {spec.target})")
+            return {**base, "kind": "analytic", "val_mae": mae, "shaded": shaded_error(pred, vt, lights), "tried": [], "flops_per_fragment": 0, "weight_bytes": 0}
+
+    log(f"segment {s}: {len(train_idx):,} training samples ({base['margin_samples']:,} margin), {len(vt):,} held out")
+
+    def fit(arch):
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=fit_settings.epochs, desc=f"  seg {s} {arch.label()}", unit="epoch", leave=False, mininterval=0.5)
+
+        def on_epoch(epoch, train_l1, val_mae):
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(val_mae=f"{val_mae:.5f}", refresh=False)
+
+        try:
+            return fit_segment(p, n, t, vp, vn, vt, arch, bounds, fit_settings, lights=lights, progress=on_epoch)
+        finally:
+            if bar is not None:
+                bar.close()
+
+    result, tried = right_size(fit, archs, target=spec.target, log=log)
+    arch = result.arch
+    return {
+        **base,
+        "kind": "network",
+        "arch": arch.as_dict(),
+        "arch_label": arch.label(),
+        "val_mae": result.val_mae,
+        "shaded": result.shaded,
+        "epochs": result.epochs,
+        "train_s": result.seconds,
+        "tried": tried,
+        "met_target": result.val_mae <= spec.target,
+        "flops_per_fragment": arch.flops_per_fragment(),
+        "weight_bytes": arch.weight_count() * 4,
+        "arrays": result.model.arrays(),
+        "history": result.history,
+    }
+
+
+def _export_segments(spec, out, segments, build_model, save_model):
+    from ..export.glsl import generate_glsl
+
+    entries = []
+    weight_bytes = 0
+    for record in segments:
+        s = record["id"]
+        entry = {
+            "id": s,
+            "kind": record["kind"],
+            "bounds": record["bounds"],
+            "samples": record["samples"],
+            "validation": {"coeff_mae": record["val_mae"], "shaded_mae": record["shaded"]},
+        }
+        if record["kind"] == "network":
+            with np.load(out / "train" / f"seg{s:03d}.npz") as f:
+                arrays = dict(f)
+            onnx_rel = f"segments/seg{s:03d}.onnx"
+            glsl_rel = f"segments/seg{s:03d}.glsl"
+            save_model(build_model(arrays, record["arch"], name=f"segment{s}"), out / onnx_rel)
+            source = generate_glsl(out / onnx_rel, function_name=f"seg{s}_transfer", layout=spec.glsl_layout)
+            atomic_write_bytes(out / glsl_rel, source.encode())
+            entry.update(
+                {
+                    "model": onnx_rel,
+                    "glsl": glsl_rel,
+                    "architecture": {k: record["arch"][k] for k in ("hidden", "layers", "pos_freqs", "normal_freqs", "input_dim")},
+                    "flops_per_fragment": record["flops_per_fragment"],
+                    "weight_bytes": record["weight_bytes"],
+                }
+            )
+            weight_bytes += record["weight_bytes"]
+        entries.append(entry)
+    return entries, weight_bytes
+
+
+def _export_geometry(geometry, out) -> dict:
+    to_source = np.asarray(geometry.to_source, dtype=np.float64).tolist()
+    if geometry.sdf is not None:
+        atomic_write_bytes(out / "scene_sdf.glsl", geometry.sdf.glsl("scene_sdf").encode())
+        return {"type": "sdf", "name": geometry.sdf.name, "glsl": "scene_sdf.glsl", "to_source": to_source}
+    mesh = geometry.mesh
+    atomic_save_npz(
+        out / "geometry.npz",
+        vertices=np.asarray(mesh.vertices, dtype=np.float32),
+        faces=np.asarray(mesh.faces, dtype=np.uint32),
+        object_ids=np.asarray(geometry.object_ids, dtype=np.int32),
+        two_sided=np.asarray(geometry.two_sided, dtype=bool),
+    )
+    return {
+        "type": "mesh",
+        "file": "geometry.npz",
+        "to_source": to_source,
+        "triangles": int(len(mesh.faces)),
+        "objects": list(geometry.object_names),
+    }
