@@ -89,6 +89,8 @@ class SegmentInfo:
         Absolute, resolved path of the ONNX model; None for analytic segments.
     glsl : Path or None
         Absolute, resolved path of the generated GLSL, if any.
+    glsl_weights : Path or None
+        ``.npy`` (H, W, 4) float32 weight texture for GLSL generated with the texture layout.
     bounds : ndarray, shape (2, 3)
         ``[min, max]`` corners of the box the network's input encoding normalises to.
     architecture : dict or None
@@ -112,6 +114,7 @@ class SegmentInfo:
     weight_bytes: int
     samples: int
     validation: dict
+    glsl_weights: Path | None = None
 
     @property
     def is_network(self) -> bool:
@@ -338,7 +341,7 @@ def _path_fields(data: dict) -> list[tuple[list[str | int], str]]:
     key = "file" if geometry["type"] == "mesh" else "glsl"
     fields: list[tuple[list[str | int], str]] = [(["geometry", key], geometry[key])]
     for i, seg in enumerate(data["segments"]):
-        fields += [(["segments", i, k], seg[k]) for k in ("model", "glsl") if k in seg]
+        fields += [(["segments", i, k], seg[k]) for k in ("model", "glsl", "glsl_weights") if k in seg]
     envmap = data["lighting"].get("envmap")
     if envmap is not None:
         fields.append((["lighting", "envmap"], envmap))
@@ -460,6 +463,7 @@ def load_manifest(path: str | Path) -> Manifest:
             kind=s["kind"],
             model=files.get(f"segments[{i}].model"),
             glsl=files.get(f"segments[{i}].glsl"),
+            glsl_weights=files.get(f"segments[{i}].glsl_weights"),
             bounds=np.asarray(s["bounds"], dtype=np.float64),
             architecture=dict(s["architecture"]) if "architecture" in s else None,
             flops_per_fragment=s.get("flops_per_fragment", 0),

@@ -74,13 +74,17 @@ def test_unshadowed_segments_need_no_network(tmp_path):
 
 def test_spec_file_and_its_errors(tmp_path):
     spec = {"geometry": "sphere_plane", "samples": 3000, "validation": 1000, "rays": 32, "epochs": 2,
-            "batch": 512, "segments": 2, "fixed": {"hidden": 8, "layers": 1, "pos_freqs": 2}}
+            "batch": 512, "segments": 2, "fixed": {"hidden": 8, "layers": 1, "pos_freqs": 2}, "glsl_layout": "texture"}
     (tmp_path / "ok.json").write_text(json.dumps(spec))
     proc = prt_train(tmp_path / "ok.json", "-o", tmp_path / "ok", "--no-progress", "--no-analytic")
     assert proc.returncode == 0, proc.stderr
     m = load_manifest(tmp_path / "ok" / "scene.json")
     assert m.geometry["type"] == "sdf" and (tmp_path / "ok" / "scene_sdf.glsl").is_file()
     assert {s.architecture["hidden"] for s in m.segments} == {8}
+    for seg in m.segments:  # texture layout: the weights travel as a texture file
+        texture = np.load(seg.glsl_weights)
+        assert texture.ndim == 3 and texture.shape[2] == 4 and np.isfinite(texture).all()
+        assert "_weights" in seg.glsl.read_text()
 
     bad = {
         "typo.json": ({**spec, "sampels": 10}, "sampels"),

@@ -23,7 +23,7 @@ import numpy as np
 
 from ..runtime import sh
 from ..runtime.errors import SpecError
-from ..runtime.files import atomic_save_npz, atomic_write_bytes, atomic_write_json
+from ..runtime.files import atomic_save_npy, atomic_save_npz, atomic_write_bytes, atomic_write_json
 from .fit import DEFAULT_LADDER, FitSettings, fit_segment, right_size
 from .network import Architecture
 from .precompute import PrecomputeSettings, load_precompute, run_precompute
@@ -363,7 +363,7 @@ def _train_segment(spec, s, seg, samples, valid, member_idx, archs, fit_settings
 
 
 def _export_segments(spec, out, segments, build_model, save_model):
-    from ..export.glsl import generate_glsl
+    from ..export.glsl import choose_layout, generate_glsl, weight_texture
 
     entries = []
     weight_bytes = 0
@@ -382,8 +382,15 @@ def _export_segments(spec, out, segments, build_model, save_model):
             onnx_rel = f"segments/seg{s:03d}.onnx"
             glsl_rel = f"segments/seg{s:03d}.glsl"
             save_model(build_model(arrays, record["arch"], name=f"segment{s}"), out / onnx_rel)
-            source = generate_glsl(out / onnx_rel, function_name=f"seg{s}_transfer", layout=spec.glsl_layout)
+            layout = spec.glsl_layout
+            if layout == "auto":
+                layout = choose_layout(record["arch"])
+            source = generate_glsl(out / onnx_rel, function_name=f"seg{s}_transfer", layout=layout)
             atomic_write_bytes(out / glsl_rel, source.encode())
+            if layout == "texture":  # the runtime uploads these weights; it cannot read ONNX initialisers
+                weights_rel = f"segments/seg{s:03d}_weights.npy"
+                atomic_save_npy(out / weights_rel, weight_texture(out / onnx_rel)[0])
+                entry["glsl_weights"] = weights_rel
             entry.update(
                 {
                     "model": onnx_rel,
