@@ -5,10 +5,12 @@ install:
 	@bash scripts/bootstrap.sh
 
 demo: install
-	.venv/bin/prt-precompute creature -o demo_out --samples 20000 --rays 256 --segments 4
+	.venv/bin/prt-runtime --headless --frames 30 --out demo_out
 
 test: install
 	.venv/bin/python -m pytest -q
 
 bench: install
-	.venv/bin/python bench/precompute_bench.py
+	.venv/bin/python bench/precompute_bench.py --json docs/benchmarks/precompute_bunny.json
+	.venv/bin/python bench/train_bench.py --json docs/benchmarks/train_bunny.json
+	.venv/bin/python bench/runtime_bench.py --json docs/benchmarks/runtime.json

@@ -1,13 +1,27 @@
 """prt.runtime: everything needed to render a trained scene.  Depends on numpy, onnxruntime
 and moderngl only; it never imports torch (a test enforces this).
 
-- :mod:`prt.runtime.sh`      real spherical harmonics: basis, env-map projection, rotation,
-                             Gaunt tensor, clamped-cosine and Phong band factors, windowing.
-- :mod:`prt.runtime.envmap`  reading HDR environment maps (.hdr, .exr).
-- :mod:`prt.runtime.gl`      headless OpenGL contexts (EGL).
-- :mod:`prt.runtime.errors`  the exception types.
+- :class:`Scene`, :class:`Renderer`  the embedding API (:mod:`prt.runtime.renderer`)
+- :mod:`prt.runtime.sh`          real spherical harmonics: basis, env-map projection, rotation,
+                                 Gaunt tensor, clamped-cosine and Phong band factors, windowing
+- :mod:`prt.runtime.shading`     diffuse and glossy PRT shading (numpy twin of the shaders)
+- :mod:`prt.runtime.manifest`    scene.json: schema validation, confined paths
+- :mod:`prt.runtime.gbuffer`     the G-buffer pass (rasterised meshes, sphere-traced SDFs)
+- :mod:`prt.runtime.onnx_backend` packed per-segment inference with ONNX Runtime
+- :mod:`prt.runtime.envmap`      reading HDR environment maps (.hdr, .exr)
+- :mod:`prt.runtime.gl`          headless OpenGL contexts (EGL)
+- :mod:`prt.runtime.errors`      the exception types
 """
 
 from .errors import EnvmapError, GeometryError, GLContextError, InputError, PRTError, SpecError
 
-__all__ = ["PRTError", "InputError", "GeometryError", "EnvmapError", "SpecError", "GLContextError"]
+__all__ = ["Scene", "Renderer", "PRTError", "InputError", "GeometryError", "EnvmapError", "SpecError", "GLContextError"]
+
+
+def __getattr__(name: str):
+    # Scene and Renderer pull in moderngl; load them on first use so `prt.runtime.sh` stays light.
+    if name in ("Scene", "Renderer"):
+        from . import renderer
+
+        return getattr(renderer, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

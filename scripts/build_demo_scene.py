@@ -10,6 +10,7 @@ geometry.npz, segments/*) into runtime/data/demo.  Takes about two minutes on 2 
 from __future__ import annotations
 
 import argparse
+import json
 import shutil
 import sys
 from pathlib import Path
@@ -24,9 +25,16 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--work", type=Path, default=Path("/tmp/prt-demo-build"))
     args = p.parse_args(argv)
+    spec = args.work.parent / "prt-demo-spec.json"
+    spec.parent.mkdir(parents=True, exist_ok=True)
+    spec.write_text(json.dumps({
+        "geometry": str(ROOT / "tests" / "data" / "spot.obj"),
+        "material": {"type": "diffuse", "albedo": [0.6, 0.6, 0.6]},
+        "camera": {"eye": [1.6, 0.9, -2.8], "target": [0.0, 0.0, 0.0], "up": [0.0, 1.0, 0.0], "fov": 40.0},
+    }))  # fmt: skip
     rc = prt_train(
         [
-            str(ROOT / "tests" / "data" / "spot.obj"),
+            str(spec),
             "-o", str(args.work),
             "--name", "spot",
             "--samples", "300000",

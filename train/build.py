@@ -63,7 +63,8 @@ class BuildSpec:
     analytic: bool = True  # let unshadowed segments skip the network
     # export
     glsl_layout: str = "auto"
-    material: dict = field(default_factory=lambda: {"type": "diffuse", "albedo": [0.8, 0.8, 0.8]})
+    material: dict = field(default_factory=lambda: {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]})
+    camera: dict = field(default_factory=lambda: {"eye": [0.0, 0.6, 3.2], "target": [0.0, 0.0, 0.0], "up": [0.0, 1.0, 0.0], "fov": 40.0})
 
     def precompute_settings(self) -> PrecomputeSettings:
         return PrecomputeSettings(
@@ -252,7 +253,7 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
         "segments": manifest_segments,
         "lighting": {"envmap": None, "sh": lights["potsdamer"].tolist()},
         "material": spec.material,
-        "camera": {"eye": [0.0, 0.6, 3.2], "target": [0.0, 0.0, 0.0], "up": [0.0, 1.0, 0.0], "fov": 40.0},
+        "camera": spec.camera,
         "memory": {"weight_bytes": weight_bytes, "vertex_storage_bytes": vertex_bytes},
     }
     write_manifest(out / "scene.json", manifest)

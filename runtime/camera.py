@@ -1,0 +1,220 @@
+"""A perspective look-at camera: view and projection matrices, per-pixel rays, orbiting.
+
+Conventions (shared by every pass of the runtime):
+
+- Matrices are row-major numpy arrays acting on column vectors (``clip = P @ V @ [p, 1]``);
+  upload them to GLSL transposed (GLSL matrices are column-major).
+- The projection is OpenGL's: the camera looks down its -Z axis, visible depths map to
+  normalised device z in ``[-1, 1]`` (near -> -1, far -> +1).
+- Images are (H, W, C) arrays with row 0 at the TOP; pixel ``(row, col)`` has its centre at
+  ``ndc = ((col + 0.5) / W * 2 - 1, 1 - (row + 0.5) / H * 2)``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+__all__ = ["Camera"]
+
+# Relative tolerance below which two directions count as parallel.
+_PARALLEL_TOL = 1e-9
+
+
+def _vec3(value: Any, what: str) -> np.ndarray:
+    """``value`` as a finite float64 (3,) array, or ValueError naming it."""
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise ValueError(f"Camera: {what} must be 3 finite numbers, got {value!r}")
+    return arr
+
+
+def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+    """(3, 3) rotation by ``angle`` radians about the unit ``axis`` (right-handed, Rodrigues)."""
+    x, y, z = axis
+    k = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return np.eye(3) + math.sin(angle) * k + (1.0 - math.cos(angle)) * (k @ k)
+
+
+@dataclass(frozen=True, eq=False)
+class Camera:
+    """Perspective camera looking from ``eye`` at ``target``.
+
+    Parameters
+    ----------
+    eye, target : array_like, shape (3,)
+        Camera position and the point it looks at (scene units); they must differ.
+    up : array_like, shape (3,)
+        Approximate up direction; must not be parallel to ``target - eye``.
+    fov_y : float
+        Vertical field of view in degrees, in (0, 180).
+    near, far : float
+        Clip distances along the view axis, ``0 < near < far``.
+
+    Raises
+    ------
+    ValueError
+        If the parameters do not define a view.
+    """
+
+    eye: np.ndarray
+    target: np.ndarray
+    up: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
+    fov_y: float = 40.0
+    near: float = 0.05
+    far: float = 50.0
+
+    def __post_init__(self) -> None:
+        # Frozen dataclass: normalised copies are stored through object.__setattr__.
+        eye, target, up = _vec3(self.eye, "eye"), _vec3(self.target, "target"), _vec3(self.up, "up")
+        view = target - eye
+        distance = float(np.linalg.norm(view))
+        if distance < _PARALLEL_TOL:
+            raise ValueError(f"Camera: eye and target coincide at {eye.tolist()}")
+        if np.linalg.norm(np.cross(view, up)) <= _PARALLEL_TOL * distance * max(np.linalg.norm(up), 1.0):
+            raise ValueError(f"Camera: up {up.tolist()} is zero or parallel to the view direction")
+        fov_y, near, far = float(self.fov_y), float(self.near), float(self.far)
+        if not 0.0 < fov_y < 180.0:
+            raise ValueError(f"Camera: fov_y must be in (0, 180) degrees, got {self.fov_y!r}")
+        if not (0.0 < near < far and math.isfinite(far)):
+            raise ValueError(f"Camera: need 0 < near < far, got near={self.near!r}, far={self.far!r}")
+        for name, value in (("eye", eye), ("target", target), ("up", up)):
+            value.flags.writeable = False
+            object.__setattr__(self, name, value)
+        object.__setattr__(self, "fov_y", fov_y)
+        object.__setattr__(self, "near", near)
+        object.__setattr__(self, "far", far)
+
+    # ----------------------------------------------------------------- construction
+
+    @classmethod
+    def from_manifest(cls, camera: Any, near: float = 0.05, far: float = 50.0) -> "Camera":
+        """The camera stored in a manifest.
+
+        Parameters
+        ----------
+        camera : dict or Manifest
+            ``Manifest.camera`` (``eye``, ``target``, ``up``, ``fov`` in degrees), or the
+            manifest itself.
+        near, far : float
+            Clip distances (the manifest does not store them).
+
+        Returns
+        -------
+        Camera
+        """
+        camera = getattr(camera, "camera", camera)
+        return cls(camera["eye"], camera["target"], camera["up"], camera["fov"], near, far)
+
+    def orbit(self, angle: float, axis: Any = None) -> "Camera":
+        """This camera rotated about ``target`` by ``angle`` radians.
+
+        Parameters
+        ----------
+        angle : float
+            Rotation angle in radians (right-handed about ``axis``).
+        axis : array_like, shape (3,), optional
+            Rotation axis through ``target``; defaults to ``up``.  ``eye`` and ``up`` are
+            both rotated, so the distance to the target and the roll are kept.
+
+        Returns
+        -------
+        Camera
+        """
+        axis = self.up if axis is None else _vec3(axis, "axis")
+        length = float(np.linalg.norm(axis))
+        if length == 0.0:
+            raise ValueError("Camera.orbit: axis must be non-zero")
+        rot = _rotation(axis / length, float(angle))
+        eye = self.target + rot @ (self.eye - self.target)
+        return Camera(eye, self.target, rot @ self.up, self.fov_y, self.near, self.far)
+
+    # ----------------------------------------------------------------- basis
+
+    @property
+    def forward(self) -> np.ndarray:
+        """(3,) unit view direction, from ``eye`` towards ``target``."""
+        view = self.target - self.eye
+        return view / np.linalg.norm(view)
+
+    @property
+    def right(self) -> np.ndarray:
+        """(3,) unit direction of increasing image column."""
+        r = np.cross(self.forward, self.up)
+        return r / np.linalg.norm(r)
+
+    @property
+    def true_up(self) -> np.ndarray:
+        """(3,) unit direction towards the top of the image (``up`` made orthogonal to the view)."""
+        return np.cross(self.right, self.forward)
+
+    # ----------------------------------------------------------------- matrices
+
+    def view(self) -> np.ndarray:
+        """(4, 4) float64 world -> camera matrix (camera at the origin, looking down -Z, +Y up)."""
+        r, u, f = self.right, self.true_up, self.forward
+        m = np.eye(4)
+        m[0, :3], m[1, :3], m[2, :3] = r, u, -f
+        m[:3, 3] = -m[:3, :3] @ self.eye
+        return m
+
+    def projection(self, aspect: float) -> np.ndarray:
+        """(4, 4) float64 OpenGL perspective matrix.
+
+        Parameters
+        ----------
+        aspect : float
+            Image width / height.
+        """
+        aspect = float(aspect)
+        if not (aspect > 0.0 and math.isfinite(aspect)):
+            raise ValueError(f"Camera.projection: aspect must be positive, got {aspect!r}")
+        f = 1.0 / math.tan(math.radians(self.fov_y) / 2.0)
+        n, fa = self.near, self.far
+        m = np.zeros((4, 4))
+        m[0, 0] = f / aspect
+        m[1, 1] = f
+        m[2, 2] = (fa + n) / (n - fa)
+        m[2, 3] = 2.0 * fa * n / (n - fa)
+        m[3, 2] = -1.0
+        return m
+
+    def view_projection(self, aspect: float) -> np.ndarray:
+        """(4, 4) float64 ``projection(aspect) @ view()``: world -> clip space."""
+        return self.projection(aspect) @ self.view()
+
+    def ray_directions(self, width: int, height: int) -> np.ndarray:
+        """Unit world-space directions of the rays through the pixel centres.
+
+        Parameters
+        ----------
+        width, height : int
+            Image size in pixels.
+
+        Returns
+        -------
+        ndarray of float64, shape (height, width, 3)
+            Row 0 is the top of the image; every ray starts at ``eye``.
+        """
+        width, height = int(width), int(height)
+        if width < 1 or height < 1:
+            raise ValueError(f"Camera.ray_directions: size must be positive, got {width}x{height}")
+        half_y = math.tan(math.radians(self.fov_y) / 2.0)
+        half_x = half_y * width / height
+        x = ((np.arange(width) + 0.5) / width * 2.0 - 1.0) * half_x
+        y = (1.0 - (np.arange(height) + 0.5) / height * 2.0) * half_y
+        d = (
+            self.forward[None, None, :]
+            + x[None, :, None] * self.right[None, None, :]
+            + y[:, None, None] * self.true_up[None, None, :]
+        )
+        return d / np.linalg.norm(d, axis=2, keepdims=True)
+
+    def __repr__(self) -> str:
+        return (
+            f"Camera(eye={self.eye.tolist()}, target={self.target.tolist()}, up={self.up.tolist()}, "
+            f"fov_y={self.fov_y}, near={self.near}, far={self.far})"
+        )

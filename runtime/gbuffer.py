@@ -1,0 +1,529 @@
+"""The G-buffer pass: per pixel scene-space position, normal, segment id and depth.
+
+The first pass of a frame.  Mesh scenes are rasterised; SDF scenes are sphere traced in one
+full-screen pass writing the same targets, so the later passes never know which it was.
+
+Render targets (RGBA32F, ``width x height``, plus a depth texture):
+
+- attachment 0 (:attr:`GBufferPass.position_texture`): ``position.xyz, covered`` with
+  covered 1.0 on geometry and 0.0 on background;
+- attachment 1 (:attr:`GBufferPass.normal_texture`): ``normal.xyz, segment`` with a unit
+  normal facing the camera (``dot(n, eye - p) >= 0``) and the segment id as a float;
+- background is ``(0, 0, 0, 0)`` and ``(0, 0, 0, -1)``; depth is GL's window depth in
+  ``[0, 1]`` (1 on background), written by both paths from the hit's clip-space depth.
+
+Faces: two-sided faces (open surfaces) show the side facing the camera, their normal
+flipped accordingly; back faces of closed surfaces are discarded in the fragment shader
+(not culled by GL, which would hide two-sided faces from behind too).
+
+Segments are computed in the shader (``shaders/segment_lookup.glsl``) by the rule of
+:func:`prt.runtime.manifest.segment_of`: descend the object's k-d tree, or, for an object
+without a root, take the segment whose box is nearest to the point.  Nearest-box is applied
+per fragment, exactly as ``segment_of`` does per point, so both agree everywhere.  SDF
+scenes are object id 0.
+
+Read-backs are (H, W, ...) arrays with row 0 at the top of the image.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import moderngl
+import numpy as np
+
+from ..shaders import source as shader_source
+from .camera import Camera
+from .errors import GeometryError, SpecError
+from .manifest import Manifest
+
+__all__ = ["GBuffer", "GBufferPass", "segment_tables", "load_mesh"]
+
+# Half size of the box every scene lies in ([-1, 1]^3), padded so surfaces on it are found.
+SCENE_BOX = 1.001
+# Uniform vectors the G-buffer shaders need besides the segment tables (matrices, camera).
+_OTHER_UNIFORM_VECTORS = 24
+# Largest object id the root table (one uniform slot per id up to it) is built for.
+_MAX_OBJECT_ID = 1 << 16
+
+# One vertex of the unindexed mesh buffer, matching gbuffer_mesh.vert's inputs.
+_VERTEX = np.dtype([("position", "<f4", 3), ("normal", "<f4", 3), ("info", "<i4", 2)])
+
+
+@dataclass
+class GBuffer:
+    """A G-buffer read back to the CPU; row 0 is the top of the image.
+
+    Attributes
+    ----------
+    position : ndarray of float32, shape (H, W, 3)
+        Scene-space position; zeros on background.
+    normal : ndarray of float32, shape (H, W, 3)
+        Unit normal facing the camera; zeros on background.
+    segment : ndarray of int32, shape (H, W)
+        Segment id; -1 on background.
+    covered : ndarray of bool, shape (H, W)
+        True where geometry was hit.
+    depth : ndarray of float32, shape (H, W), or None
+        GL window depth in [0, 1] (1 on background), when asked for.
+    """
+
+    position: np.ndarray
+    normal: np.ndarray
+    segment: np.ndarray
+    covered: np.ndarray
+    depth: np.ndarray | None = None
+
+
+# --------------------------------------------------------------------------- segment tables
+
+
+def _float32_at_most(value: float) -> np.float32:
+    """Largest float32 <= value, so ``p <= split`` decides alike in float32 and float64."""
+    f = np.float32(value)
+    return np.nextafter(f, np.float32(-np.inf)) if float(f) > value else f
+
+
+def segment_tables(manifest: Manifest, object_ids: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """The k-d tree of ``manifest`` as the uniform arrays of ``segment_lookup.glsl``.
+
+    Parameters
+    ----------
+    manifest : Manifest
+    object_ids : ndarray of int, optional
+        Object ids the geometry uses; the root table then covers them too (as -1, the
+        nearest-box rule, when the manifest gives them no root).
+
+    Returns
+    -------
+    dict
+        ``nodes`` (N, 4) float32: inner ``(axis, split, left, right)``, leaf
+        ``(-1, 0, segment, segment)``; ``roots`` (M,) int32: root node per object id
+        ``0 .. M-1``, -1 without one; ``segment_min``, ``segment_max`` (S, 3) float32 boxes.
+    """
+    seg = manifest.segmentation
+    nodes = np.zeros((len(seg["nodes"]), 4), dtype=np.float32)
+    for i, node in enumerate(seg["nodes"]):
+        if "leaf" in node:
+            segment = seg["leaf_segment"][node["leaf"]]
+            nodes[i] = (-1.0, 0.0, segment, segment)
+        else:
+            nodes[i] = (node["axis"], _float32_at_most(node["split"]), node["left"], node["right"])
+    largest = max(seg["roots"])
+    if object_ids is not None and len(object_ids):
+        largest = max(largest, int(np.max(object_ids)))
+    if largest > _MAX_OBJECT_ID:
+        message = f"object id {largest} exceeds {_MAX_OBJECT_ID}, the root table's limit"
+        raise SpecError(f"{manifest.path}: segmentation: {message}")
+    roots = np.full(largest + 1, -1, dtype=np.int32)
+    for obj, root in seg["roots"].items():
+        roots[obj] = root
+    bounds = manifest.bounds.astype(np.float32)
+    return {"nodes": nodes, "roots": roots, "segment_min": bounds[:, 0], "segment_max": bounds[:, 1]}
+
+
+def _lookup_defines(tables: dict[str, np.ndarray]) -> str:
+    """The #defines ``segment_lookup.glsl`` needs for these tables."""
+    return (
+        f"#define PRT_KD_NODES {len(tables['nodes'])}\n"
+        f"#define PRT_KD_OBJECTS {len(tables['roots'])}\n"
+        f"#define PRT_SEGMENTS {len(tables['segment_min'])}\n"
+    )
+
+
+def _check_uniform_budget(ctx: moderngl.Context, tables: dict[str, np.ndarray], source: str) -> None:
+    """SpecError if the tables do not fit the fragment stage's uniform vectors."""
+    # Every array element takes one vec4 slot in the default uniform block, whatever its type.
+    needed = len(tables["nodes"]) + len(tables["roots"]) + 2 * len(tables["segment_min"])
+    available = int(ctx.info.get("GL_MAX_FRAGMENT_UNIFORM_VECTORS", 256)) - _OTHER_UNIFORM_VECTORS
+    if needed > available:
+        raise SpecError(
+            f"{source}: segmentation: the k-d tree needs {needed} fragment uniform vectors "
+            f"({len(tables['nodes'])} nodes, {len(tables['roots'])} object ids, "
+            f"{len(tables['segment_min'])} segments), this GPU offers {available}"
+        )
+
+
+def _set_tables(program: moderngl.Program, tables: dict[str, np.ndarray]) -> None:
+    """Upload the segment tables; uniforms the compiler dropped are skipped."""
+    uniforms = {
+        "prt_kd_nodes": tables["nodes"],
+        "prt_kd_roots": tables["roots"],
+        "prt_segment_min": tables["segment_min"],
+        "prt_segment_max": tables["segment_max"],
+    }
+    for name, values in uniforms.items():
+        if name in program:
+            program[name].write(np.ascontiguousarray(values).tobytes())
+
+
+# --------------------------------------------------------------------------- mesh
+
+
+def load_mesh(path: str | Path) -> dict[str, np.ndarray]:
+    """Read and check a ``geometry.npz`` (as written by the build).
+
+    Parameters
+    ----------
+    path : str or Path
+
+    Returns
+    -------
+    dict
+        ``vertices`` (V, 3) float32, ``faces`` (F, 3) int64, ``object_ids`` (F,) int32
+        (zeros if the file has none), ``two_sided`` (F,) bool (False if absent).
+
+    Raises
+    ------
+    GeometryError
+        If the file cannot be read or its arrays are malformed.
+    """
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {key: data[key] for key in data.files}
+    except (OSError, ValueError) as exc:
+        raise GeometryError(f"{path}: cannot read mesh ({' '.join(str(exc).split())})") from None
+    for key in ("vertices", "faces"):
+        if key not in arrays:
+            raise GeometryError(f"{path}: no '{key}' array")
+    vertices = arrays["vertices"]
+    faces = arrays["faces"]
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or vertices.dtype.kind not in "fiu":
+        what = f"{vertices.shape} {vertices.dtype}"
+        raise GeometryError(f"{path}: vertices must be (V, 3) numbers, got {what}")
+    if not np.all(np.isfinite(vertices)):
+        raise GeometryError(f"{path}: vertices contain NaN or Inf")
+    if faces.ndim != 2 or faces.shape[1] != 3 or faces.dtype.kind not in "iu" or len(faces) == 0:
+        what = f"{faces.shape} {faces.dtype}"
+        raise GeometryError(f"{path}: faces must be (F, 3) integers with F >= 1, got {what}")
+    faces = faces.astype(np.int64)
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise GeometryError(f"{path}: faces index vertices outside 0..{len(vertices) - 1}")
+    n_faces = len(faces)
+    object_ids = arrays.get("object_ids", np.zeros(n_faces, dtype=np.int32))
+    two_sided = arrays.get("two_sided", np.zeros(n_faces, dtype=bool))
+    if object_ids.shape != (n_faces,) or object_ids.dtype.kind not in "iu" or object_ids.min() < 0:
+        raise GeometryError(f"{path}: object_ids must be ({n_faces},) non-negative integers")
+    if two_sided.shape != (n_faces,):
+        raise GeometryError(f"{path}: two_sided must have shape ({n_faces},), got {two_sided.shape}")
+    return {
+        "vertices": vertices.astype(np.float32),
+        "faces": faces,
+        "object_ids": object_ids.astype(np.int32),
+        "two_sided": two_sided.astype(bool),
+    }
+
+
+def _mesh_vertices(mesh: dict[str, np.ndarray]) -> np.ndarray:
+    """(3F,) unindexed vertex records: corner position, face normal, (object id, two-sided)."""
+    corners = mesh["vertices"][mesh["faces"]].astype(np.float64)  # (F, 3, 3)
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    length = np.linalg.norm(normal, axis=1, keepdims=True)
+    # Degenerate faces keep a zero normal; the fragment shader substitutes one.
+    normal = np.divide(normal, length, out=np.zeros_like(normal), where=length > 0.0)
+    records = np.empty((len(corners), 3), dtype=_VERTEX)
+    records["position"] = mesh["vertices"][mesh["faces"]]
+    records["normal"] = normal[:, None, :]
+    records["info"] = np.stack([mesh["object_ids"], mesh["two_sided"].astype(np.int32)], axis=1)[:, None, :]
+    return records.reshape(-1)
+
+
+def _insert_after_version(main: str, *parts: str) -> str:
+    """``main`` with ``parts`` inserted after its ``#version`` line (line numbers kept by #line)."""
+    first, _, rest = main.partition("\n")
+    if not first.startswith("#version"):
+        raise ValueError("shader source must start with a #version line")
+    return "\n".join([first, *parts, "#line 2", rest])
+
+
+def _strip_version(glsl: str) -> str:
+    """``glsl`` without a leading ``#version`` line (an included file must not repeat it)."""
+    stripped = glsl.lstrip()
+    return stripped.partition("\n")[2] if stripped.startswith("#version") else glsl
+
+
+def _bind_again(ctx: moderngl.Context, fbo) -> None:
+    """Bind ``fbo`` again, or the default framebuffer if it is None or was released meanwhile."""
+    if fbo is None or isinstance(fbo.mglo, moderngl.InvalidObject):
+        fbo = ctx.detect_framebuffer(0)
+    fbo.use()
+
+
+# --------------------------------------------------------------------------- the pass
+
+
+class GBufferPass:
+    """Renders the G-buffer of one scene at a fixed resolution.
+
+    GPU resources (targets, geometry buffer or SDF program, segment tables) are built once
+    here; :meth:`render` only sets the camera uniforms and draws.
+
+    Parameters
+    ----------
+    ctx : moderngl.Context
+        OpenGL 3.3+ context.
+    manifest : Manifest
+        The scene; its geometry is a mesh (``geometry.npz``) or an SDF (GLSL defining
+        ``float scene_sdf(vec3 p)``).
+    width, height : int
+        Target size in pixels.
+    max_steps : int
+        Sphere-tracing step budget per pixel (SDF scenes).
+    hit_eps : float
+        Sphere-tracing hit threshold per unit of ray length: a ray hits at parameter ``t``
+        when the distance drops below ``hit_eps * t`` (SDF scenes).
+
+    Attributes
+    ----------
+    position_texture, normal_texture : moderngl.Texture
+        The RGBA32F targets (see the module docstring), for later passes to sample.
+    depth_texture : moderngl.Texture
+        The depth target.
+    kind : str
+        ``"mesh"`` or ``"sdf"``.
+
+    Raises
+    ------
+    GeometryError
+        If the mesh file is malformed.
+    SpecError
+        If the segment tables exceed the GPU's uniform limits.
+    moderngl.Error
+        If a shader (e.g. the scene's SDF GLSL) does not compile.
+
+    Notes
+    -----
+    The textures keep GL's row order (row 0 at the bottom); read-backs are flipped.
+
+    SDF sphere tracing (``shaders/gbuffer_sdf.frag``): a ray starts where it enters the
+    box ``[-SCENE_BOX, SCENE_BOX]^3`` or at the near plane, whichever is later, and misses
+    once it leaves the box or passes the far plane.  A ray that runs out of steps counts
+    as a hit if the last distance is within the pixel's footprint (grazing rays).  The
+    normal is the tetrahedral difference gradient of ``scene_sdf``.  A ray starting inside
+    the solid passes through it, as the mesh pass discards back faces of closed surfaces.
+    """
+
+    def __init__(
+        self,
+        ctx: moderngl.Context,
+        manifest: Manifest,
+        width: int,
+        height: int,
+        *,
+        max_steps: int = 256,
+        hit_eps: float = 1e-4,
+    ) -> None:
+        width, height = int(width), int(height)
+        if width < 1 or height < 1:
+            raise ValueError(f"GBufferPass: size must be positive, got {width}x{height}")
+        self.ctx = ctx
+        self.width, self.height = width, height
+        self.kind = manifest.geometry["type"]
+        self._released = False
+        self._vbo = None
+        self._vao = self._program = None
+        self._fbo = self._normal_fbo = None
+        self.position_texture = self.normal_texture = self.depth_texture = None
+        try:
+            self._build_targets()
+            if self.kind == "mesh":
+                self._build_mesh(manifest)
+            else:
+                self._build_sdf(manifest, int(max_steps), float(hit_eps))
+        except BaseException:
+            self.release()  # whatever was created before the failure
+            raise
+
+        # Staging for read-backs: both targets as GL gives them (bottom row first).
+        self._staging = np.empty((2, height, width, 4), dtype=np.float32)
+        self._packed = np.empty((height * width, 8), dtype=np.float32)
+
+    def _build_targets(self) -> None:
+        size = (self.width, self.height)
+        self.position_texture = self._target_texture(size)
+        self.normal_texture = self._target_texture(size)
+        self.depth_texture = self.ctx.depth_texture(size)
+        self._fbo = self.ctx.framebuffer([self.position_texture, self.normal_texture], self.depth_texture)
+        # Lets the normal target alone be cleared to its own background value (segment -1).
+        self._normal_fbo = self.ctx.framebuffer([self.normal_texture])
+
+    def _target_texture(self, size: tuple[int, int]) -> moderngl.Texture:
+        texture = self.ctx.texture(size, 4, dtype="f4")
+        # Positions and ids must never be blended between texels.
+        texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        return texture
+
+    def _build_mesh(self, manifest: Manifest) -> None:
+        mesh = load_mesh(manifest.geometry["path"])
+        tables = segment_tables(manifest, mesh["object_ids"])
+        _check_uniform_budget(self.ctx, tables, str(manifest.path))
+        fragment = _insert_after_version(
+            shader_source("gbuffer_mesh.frag"), _lookup_defines(tables), shader_source("segment_lookup.glsl")
+        )
+        vertex = shader_source("gbuffer_mesh.vert")
+        self._program = self.ctx.program(vertex_shader=vertex, fragment_shader=fragment)
+        _set_tables(self._program, tables)
+        self._vbo = self.ctx.buffer(_mesh_vertices(mesh).tobytes())
+        self._vao = self.ctx.vertex_array(
+            self._program, [(self._vbo, "3f 3f 2i", "in_position", "in_normal", "in_info")]
+        )
+        self._vertices = 3 * len(mesh["faces"])
+
+    def _build_sdf(self, manifest: Manifest, max_steps: int, hit_eps: float) -> None:
+        if max_steps < 1 or not hit_eps > 0.0:
+            message = f"need max_steps >= 1 and hit_eps > 0, got {max_steps} and {hit_eps}"
+            raise ValueError(f"GBufferPass: {message}")
+        path = Path(manifest.geometry["path"])
+        try:
+            scene_glsl = path.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise GeometryError(f"{path}: cannot read SDF GLSL ({' '.join(str(exc).split())})") from None
+        tables = segment_tables(manifest, np.zeros(1, dtype=np.int32))
+        _check_uniform_budget(self.ctx, tables, str(manifest.path))
+        defines = (
+            f"#define PRT_MAX_STEPS {max_steps}\n"
+            f"#define PRT_HIT_EPS {hit_eps!r}\n"
+            f"#define PRT_SCENE_BOX {SCENE_BOX!r}\n" + _lookup_defines(tables)
+        )
+        fragment = _insert_after_version(
+            shader_source("gbuffer_sdf.frag"),
+            defines,
+            shader_source("segment_lookup.glsl"),
+            _strip_version(scene_glsl),
+        )
+        vertex = shader_source("fullscreen.vert")
+        self._program = self.ctx.program(vertex_shader=vertex, fragment_shader=fragment)
+        _set_tables(self._program, tables)
+        self._vbo = None
+        self._vao = self.ctx.vertex_array(self._program, [])
+        self._vertices = 3
+
+    def _set(self, name: str, value) -> None:
+        """Set a uniform if the compiler kept it."""
+        if name in self._program:
+            self._program[name].write(np.ascontiguousarray(value, dtype=np.float32).tobytes())
+
+    # ----------------------------------------------------------------- drawing
+
+    def render(self, camera: Camera) -> None:
+        """Draw the G-buffer seen by ``camera`` into the targets.
+
+        The framebuffer bound before the call is bound again; depth testing, blending and
+        face culling are left disabled (the GL defaults).
+        """
+        self._check_alive()
+        aspect = self.width / self.height
+        # GLSL matrices are column-major: upload the transpose of the row-major numpy matrix.
+        self._set("u_view_projection", camera.view_projection(aspect).T)
+        self._set("u_eye", camera.eye)
+        if self.kind == "sdf":
+            half_y = np.tan(np.radians(camera.fov_y) / 2.0)
+            self._set("u_forward", camera.forward)
+            self._set("u_right", camera.right * half_y * aspect)
+            self._set("u_up", camera.true_up * half_y)
+            self._set("u_size", (self.width, self.height))
+            self._set("u_near", camera.near)
+            self._set("u_far", camera.far)
+            self._set("u_pixel_angle", 2.0 * half_y / self.height)
+        previous = self.ctx.fbo
+        # Culling stays off: back faces of closed surfaces are discarded in the shader.
+        self.ctx.disable(moderngl.BLEND | moderngl.CULL_FACE)
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        self.ctx.depth_func = "<"
+        try:
+            self._fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+            # Clearing the main target sets both attachments alike; the normal's w needs -1.
+            self._normal_fbo.clear(0.0, 0.0, 0.0, -1.0)
+            # use() after the clears: it also restores the depth mask, which a clear of the
+            # depth-less normal framebuffer turns off.
+            self._fbo.use()
+            self._vao.render(moderngl.TRIANGLES, vertices=self._vertices)
+        finally:
+            self.ctx.disable(moderngl.DEPTH_TEST)
+            _bind_again(self.ctx, previous)
+
+    # ----------------------------------------------------------------- read-back
+
+    def _read_targets(self) -> np.ndarray:
+        """(2, H, W, 4) view of both targets, rows flipped to top-first (no copy)."""
+        self._check_alive()
+        for attachment in (0, 1):
+            self._fbo.read_into(self._staging[attachment], components=4, attachment=attachment, dtype="f4")
+        return self._staging[:, ::-1]
+
+    def read_packed(self, out: np.ndarray | None = None) -> np.ndarray:
+        """Both targets interleaved per pixel in one contiguous array.
+
+        Parameters
+        ----------
+        out : ndarray of float32, shape (H * W, 8), optional
+            C-contiguous array to fill; by default an internal buffer that the next call
+            overwrites.
+
+        Returns
+        -------
+        ndarray of float32, shape (H * W, 8)
+            Rows are pixels in row-major order from the TOP-left (row ``i // W`` from the
+            top, column ``i % W``); columns ``pos.x, pos.y, pos.z, covered, n.x, n.y, n.z,
+            segment``.
+        """
+        shape = (self.height * self.width, 8)
+        if out is None:
+            out = self._packed
+        elif out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
+            raise ValueError(f"out must be a C-contiguous {shape} float32 array")
+        targets = self._read_targets()
+        # One strided copy interleaves the targets and flips the rows together.
+        np.copyto(out.reshape(self.height, self.width, 2, 4), targets.transpose(1, 2, 0, 3))
+        return out
+
+    def read(self, depth: bool = False) -> GBuffer:
+        """Read the G-buffer back into new numpy arrays (row 0 at the top).
+
+        Parameters
+        ----------
+        depth : bool
+            Also read the depth target.
+
+        Returns
+        -------
+        GBuffer
+        """
+        position, normal = self._read_targets()
+        depth_image = None
+        if depth:
+            raw = self._fbo.read(attachment=-1, components=1, dtype="f4")
+            depth_image = np.frombuffer(raw, dtype=np.float32).reshape(self.height, self.width)[::-1].copy()
+        return GBuffer(
+            position=np.ascontiguousarray(position[..., :3]),
+            normal=np.ascontiguousarray(normal[..., :3]),
+            segment=normal[..., 3].astype(np.int32),
+            covered=position[..., 3] > 0.5,
+            depth=depth_image,
+        )
+
+    # ----------------------------------------------------------------- lifetime
+
+    def _check_alive(self) -> None:
+        if self._released:
+            raise RuntimeError("GBufferPass: used after release()")
+
+    def release(self) -> None:
+        """Free the GPU resources; the pass cannot be used afterwards.  Safe to call twice."""
+        if self._released:
+            return
+        self._released = True
+        resources = [
+            self._vao, self._program, self._vbo,
+            self._normal_fbo, self._fbo, self.position_texture, self.normal_texture, self.depth_texture,
+        ]  # fmt: skip
+        for resource in resources:
+            if resource is not None:
+                resource.release()
+
+    def __enter__(self) -> "GBufferPass":
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.release()

@@ -1,0 +1,401 @@
+"""The embedding API: :class:`Scene` and :class:`Renderer`.
+
+A frame runs three stages, each timed (milliseconds in :attr:`Renderer.timings`):
+
+1. G-buffer (``gbuffer``): position, normal, segment id per pixel (rasterised or sphere traced).
+2. Transfer, by the chosen backend:
+   - ``"onnx"`` (the analogue of the paper's CUDA path): read the G-buffer back (``readback``),
+     pack covered fragments by segment (``pack``), run each segment's ONNX model on its batch
+     (``inference``), scatter and upload the transfer image (``scatter``, ``upload``);
+   - ``"glsl"``: a full-screen pass evaluates each fragment's network in the fragment shader
+     (``network``), from GLSL generated out of the ONNX weights.
+3. Shading (``shade``): the same shader for both backends reads the transfer and shades
+   (diffuse, or glossy via the Gaunt light matrix and the Phong lobe), then ``readout``.
+
+Transfer depends only on the geometry and the camera: when only the light, the material or
+the backend's shading inputs change, :meth:`Renderer.render` re-shades the cached transfer and
+runs no network (``stats["network_runs"]`` does not move).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+from string import Template
+
+import moderngl
+import numpy as np
+
+from ..shaders import source as shader_source
+from . import sh
+from .camera import Camera
+from .errors import GLContextError, InputError, PRTError
+from .gbuffer import GBufferPass
+from .gl import create_context
+from .manifest import Manifest, load_manifest
+from .onnx_backend import OnnxTransfer
+from .shading import Lighting, Material, glsl_source, shader_uniforms, to_srgb8
+
+__all__ = ["Scene", "Renderer", "BACKENDS", "demo_scene_path", "ShaderCompileError"]
+
+BACKENDS = ("onnx", "glsl")
+
+
+class ShaderCompileError(PRTError):
+    """A generated or bundled shader failed to compile; the message names the source file."""
+
+
+def demo_scene_path() -> Path:
+    """The bundled demo scene (Spot, public domain, small networks)."""
+    from importlib import resources
+
+    return Path(str(resources.files(__package__).joinpath("data", "demo", "scene.json")))
+
+
+class Scene:
+    """A loaded, validated scene manifest.
+
+    ``Scene.load(path)`` accepts a ``scene.json`` or its folder; ``Scene.load()`` opens the
+    bundled demo scene.
+    """
+
+    def __init__(self, manifest: Manifest):
+        self.manifest = manifest
+
+    @classmethod
+    def load(cls, path=None) -> "Scene":
+        return cls(load_manifest(demo_scene_path() if path is None else path))
+
+    @property
+    def name(self) -> str:
+        return self.manifest.name
+
+    @property
+    def path(self) -> Path:
+        return self.manifest.path
+
+    @property
+    def network_segments(self) -> list:
+        return [s for s in self.manifest.segments if s.kind == "network"]
+
+    def __repr__(self) -> str:
+        m = self.manifest
+        return f"Scene({m.name!r}, {m.geometry['type']}, {len(m.segments)} segments, {len(self.network_segments)} networks)"
+
+
+class Renderer:
+    """Renders a :class:`Scene` headlessly (or into a window's context).
+
+    Parameters
+    ----------
+    scene : Scene
+    width, height : image size in pixels
+    backend : ``"onnx"`` or ``"glsl"``
+    providers : ONNX Runtime execution providers (default: CUDA where present, else CPU)
+    threads : CPU threads for the ONNX backend (default: all cores)
+    ctx : an existing moderngl context (e.g. a window's); default: a headless EGL context
+    """
+
+    def __init__(self, scene: Scene, width: int = 512, height: int = 512, backend: str = "onnx", *,
+                 providers=None, threads: int | None = None, ctx: moderngl.Context | None = None):
+        if backend not in BACKENDS:
+            raise InputError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        if width < 1 or height < 1:
+            raise InputError(f"image size must be positive, got {width}x{height}")
+        self.scene = scene
+        self.width, self.height = int(width), int(height)
+        self._own_ctx = ctx is None
+        self.ctx = ctx if ctx is not None else create_context()
+        m = scene.manifest
+        if m.sh_bands != 4:
+            raise InputError(f"{m.path}: the renderer's shaders handle 4 SH bands, the scene has {m.sh_bands}")
+        self.gbuffer = GBufferPass(self.ctx, m, self.width, self.height)
+        self._providers, self._threads = providers, threads
+        self._onnx: OnnxTransfer | None = None
+        self._glsl: _GlslTransfer | None = None
+        size = (self.width, self.height)
+        self._t_textures = [self._float_texture(size) for _ in range(4)]
+        self._t_fbo = self.ctx.framebuffer(self._t_textures)
+        self._wide = self._float_texture((4 * self.width, self.height))
+        self._out_texture = self._float_texture(size)
+        self._out_fbo = self.ctx.framebuffer([self._out_texture])
+        self._image = np.empty((self.height, self.width, 4), dtype=np.float32)
+        self._transfer_image = np.zeros((self.height * self.width, 16), dtype=np.float32)
+        self._shade_programs = {
+            wide: self._program(_shade_source(wide), f"shade_pass.frag (wide={wide})") for wide in (True, False)
+        }
+        self._vao = {k: self.ctx.vertex_array(p, []) for k, p in self._shade_programs.items()}
+
+        self.camera = Camera.from_manifest(m.camera)
+        lighting = m.lighting
+        if lighting.get("envmap") is not None:
+            self.lighting = Lighting.from_envmap(lighting["envmap"], rotation=lighting.get("rotation"))
+        elif lighting.get("sh") is not None:
+            self.lighting = Lighting.from_sh(lighting["sh"], rotation=lighting.get("rotation"))
+        else:
+            from .envmaps import bundled_envmap_path
+
+            self.lighting = Lighting.from_envmap(bundled_envmap_path("potsdamer"))
+        mat = m.material
+        self.material = Material(kind=mat.get("type", "diffuse"), **{k: mat[k] for k in ("albedo", "specular", "exponent") if mat.get(k) is not None})
+        self.backend = backend
+        self.timings: dict[str, float] = {}
+        self.stats = {"frames": 0, "network_runs": 0, "relight_frames": 0}
+        self._transfer_valid = False
+        self._transfer_wide = True
+
+    # ------------------------------------------------------------------ settings
+
+    def set_camera(self, eye=(0.0, 0.6, 3.2), target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov: float = 40.0) -> None:
+        """Place the camera (scene units; ``fov`` is the vertical field of view in degrees)."""
+        try:
+            self.camera = Camera(eye=eye, target=target, up=up, fov_y=fov)
+        except ValueError as exc:
+            raise InputError(f"camera: {exc}") from None
+        self._transfer_valid = False
+
+    def set_camera_object(self, camera: Camera) -> None:
+        self.camera = camera
+        self._transfer_valid = False
+
+    def set_envmap(self, envmap, rotation=None) -> None:
+        """Light with an equirectangular ``.hdr``/``.exr`` file, or a bundled map by name
+        (``potsdamer``, ``interior``, ``studio``); ``rotation`` is a 3x3 matrix."""
+        from .envmaps import BUNDLED_ENVMAPS, bundled_envmap_path
+
+        path = bundled_envmap_path(envmap) if isinstance(envmap, str) and envmap in BUNDLED_ENVMAPS else envmap
+        self.lighting = Lighting.from_envmap(path, rotation=rotation)
+
+    def set_lighting_sh(self, coeffs, rotation=None) -> None:
+        """Light with SH coefficients (16, 3)."""
+        self.lighting = Lighting.from_sh(coeffs, rotation=rotation)
+
+    def set_material(self, kind: str = "diffuse", **params) -> None:
+        """``"diffuse"`` (albedo) or ``"glossy"`` (albedo, specular, exponent)."""
+        try:
+            self.material = Material(kind=kind, **params)
+        except TypeError as exc:
+            raise InputError(f"material: {exc}") from None
+
+    def set_backend(self, backend: str) -> None:
+        if backend not in BACKENDS:
+            raise InputError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        if backend != self.backend:
+            self.backend = backend
+            self._transfer_valid = False
+
+    # ------------------------------------------------------------------ frames
+
+    def render(self) -> np.ndarray:
+        """One frame: (H, W, 3) float32 linear radiance, row 0 at the top, background 0."""
+        timings: dict[str, float] = {}
+        t_frame = time.perf_counter()
+        if not self._transfer_valid:
+            self._compute_transfer(timings)
+            self.stats["network_runs"] += 1
+        else:
+            self.stats["relight_frames"] += 1
+        t0 = time.perf_counter()
+        self._shade()
+        self.ctx.finish()
+        t1 = time.perf_counter()
+        self._out_fbo.read_into(self._image, components=4, dtype="f4")
+        image = np.ascontiguousarray(self._image[::-1, :, :3])
+        t2 = time.perf_counter()
+        timings["shade"] = 1e3 * (t1 - t0)
+        timings["readout"] = 1e3 * (t2 - t1)
+        timings["frame"] = 1e3 * (t2 - t_frame)
+        self.timings = timings
+        self.stats["frames"] += 1
+        return image
+
+    def render_srgb(self, exposure: float = 1.0) -> np.ndarray:
+        """One frame tone-mapped for display: (H, W, 3) uint8 sRGB."""
+        return to_srgb8(self.render(), exposure)
+
+    def render_transfer(self) -> np.ndarray:
+        """The transfer image of the current view: (H, W, 16) float32, row 0 at the top."""
+        if not self._transfer_valid:
+            self._compute_transfer({})
+            self.stats["network_runs"] += 1
+        if self._transfer_wide:
+            return self._transfer_image.reshape(self.height, self.width, 16).copy()
+        parts = []
+        for tex in self._t_textures:
+            a = np.frombuffer(tex.read(), dtype=np.float32).reshape(self.height, self.width, 4)
+            parts.append(a[::-1])
+        return np.concatenate(parts, axis=2)
+
+    def gbuffer_image(self):
+        """The G-buffer of the current view (see :class:`prt.runtime.gbuffer.GBuffer`)."""
+        self.gbuffer.render(self.camera)
+        return self.gbuffer.read()
+
+    # ------------------------------------------------------------------ stages
+
+    def _compute_transfer(self, timings: dict) -> None:
+        t0 = time.perf_counter()
+        self.gbuffer.render(self.camera)
+        if self.backend == "onnx":
+            self.ctx.finish()
+            t1 = time.perf_counter()
+            packed = self.gbuffer.read_packed()
+            t2 = time.perf_counter()
+            onnx = self._onnx_backend()
+            segment = packed[:, 7].astype(np.int32)
+            onnx.compute(packed, segment, out=self._transfer_image, columns=(0, 1, 2, 4, 5, 6))
+            t3 = time.perf_counter()
+            self._wide.write(self._transfer_image)
+            t4 = time.perf_counter()
+            timings.update({"gbuffer": 1e3 * (t1 - t0), "readback": 1e3 * (t2 - t1), **onnx.timings, "upload": 1e3 * (t4 - t3)})
+            timings["pack"] += 1e3 * (t3 - t2) - sum(onnx.timings.values())  # the segment-id column
+            self._transfer_wide = True
+        else:
+            self.ctx.finish()
+            t1 = time.perf_counter()
+            self._glsl_backend().run(self._t_fbo, self.gbuffer)
+            self.ctx.finish()
+            t2 = time.perf_counter()
+            timings.update({"gbuffer": 1e3 * (t1 - t0), "network": 1e3 * (t2 - t1)})
+            self._transfer_wide = False
+        self._transfer_valid = True
+
+    def _shade(self) -> None:
+        wide = self._transfer_wide
+        program = self._shade_programs[wide]
+        for name, value in shader_uniforms(self.lighting, self.material).items():
+            if name in program:
+                program[name].write(np.ascontiguousarray(value).tobytes())
+        program["u_eye"].value = tuple(float(v) for v in self.camera.eye)
+        textures = [(self.gbuffer.position_texture, 0), (self.gbuffer.normal_texture, 1)]
+        if wide:
+            textures.append((self._wide, 2))
+            program["u_transfer"].value = 2
+        else:
+            for k, tex in enumerate(self._t_textures):
+                textures.append((tex, 2 + k))
+                program[f"u_t{k}"].value = 2 + k
+        program["u_position"].value = 0
+        program["u_normal"].value = 1
+        _draw_fullscreen(self.ctx, self._out_fbo, self._vao[wide], textures)
+
+    def _onnx_backend(self) -> OnnxTransfer:
+        if self._onnx is None:
+            self._onnx = OnnxTransfer(self.scene.manifest, providers=self._providers, threads=self._threads)
+        return self._onnx
+
+    def _glsl_backend(self) -> "_GlslTransfer":
+        if self._glsl is None:
+            self._glsl = _GlslTransfer(self.ctx, self.scene.manifest)
+        return self._glsl
+
+    @property
+    def network_calls(self) -> int:
+        """How often a network stage ran (both backends)."""
+        return self.stats["network_runs"]
+
+    # ------------------------------------------------------------------ plumbing
+
+    def _float_texture(self, size):
+        tex = self.ctx.texture(size, 4, dtype="f4")
+        tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        return tex
+
+    def _program(self, fragment: str, name: str) -> moderngl.Program:
+        return compile_program(self.ctx, fragment, name)
+
+    def close(self) -> None:
+        """Release GPU resources and ONNX sessions (also on ``with`` exit)."""
+        if self._onnx is not None:
+            self._onnx.close()
+            self._onnx = None
+        if self._glsl is not None:
+            self._glsl.release()
+            self._glsl = None
+        self.gbuffer.release()
+        for obj in [*self._t_textures, self._t_fbo, self._wide, self._out_texture, self._out_fbo, *self._vao.values(), *self._shade_programs.values()]:
+            obj.release()
+        self._vao, self._shade_programs = {}, {}
+        if self._own_ctx:
+            self.ctx.release()
+
+    def __enter__(self) -> "Renderer":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _draw_fullscreen(ctx, fbo, vao, textures) -> None:
+    """Clear ``fbo`` and draw one full-screen triangle with ``textures`` ((texture, unit) pairs) bound."""
+    for tex, unit in textures:
+        tex.use(unit)
+    fbo.use()
+    ctx.disable(moderngl.DEPTH_TEST | moderngl.BLEND | moderngl.CULL_FACE)
+    fbo.clear(0.0, 0.0, 0.0, 0.0)
+    vao.render(moderngl.TRIANGLES, vertices=3)
+
+
+def _shade_source(wide: bool) -> str:
+    defines = "#define PRT_TRANSFER_WIDE\n" if wide else ""
+    return "#version 330\n" + defines + glsl_source() + "\n" + shader_source("shade_pass.frag")
+
+
+def compile_program(ctx, fragment: str, name: str, vertex: str | None = None) -> moderngl.Program:
+    """Compile a full-screen program; a failure becomes one line naming ``name`` and the driver's message."""
+    try:
+        return ctx.program(vertex_shader=vertex or shader_source("fullscreen.vert"), fragment_shader=fragment)
+    except moderngl.Error as exc:
+        lines = [ln.strip() for ln in str(exc).splitlines() if "error" in ln.lower()]
+        raise ShaderCompileError(f"{name}: GLSL compile failed: {(lines or [str(exc).strip()])[0][:300]}") from None
+
+
+class _GlslTransfer:
+    """All network segments' generated GLSL in one full-screen program, compiled once per scene."""
+
+    def __init__(self, ctx, manifest: Manifest):
+        self.ctx = ctx
+        parts, cases, self._weights = [], [], []
+        lam = sh.zonal_to_band_factors(sh.clamped_cosine(4)) / np.pi
+        analytic_scale = sh.band_factors_to_coeff_scale(lam).astype(np.float32).reshape(4, 4)
+        for seg in manifest.segments:
+            if seg.kind == "analytic":
+                cases.append(f"            case {seg.id}: prt_analytic_transfer(ns.xyz, t); break;")
+                continue
+            if seg.glsl is None:
+                raise InputError(f"{manifest.path}: segments[{seg.id}] has no generated GLSL (needed by the glsl backend)")
+            try:
+                parts.append(f"// ---- {seg.glsl.name}\n" + seg.glsl.read_text())
+            except OSError as exc:
+                raise InputError(f"{seg.glsl}: cannot read ({exc.strerror})") from None
+            cases.append(f"            case {seg.id}: seg{seg.id}_transfer(p.xyz, ns.xyz, t); break;")
+            if seg.glsl_weights is not None:
+                self._weights.append((f"seg{seg.id}_transfer_weights", np.load(seg.glsl_weights)))
+        body = Template(shader_source("transfer_pass.frag")).substitute(dispatch="\n".join(cases))
+        source = "#version 330\n" + shader_source("sh_basis.glsl") + "\n" + "\n".join(parts) + "\n" + body
+        t0 = time.perf_counter()
+        self.program = compile_program(ctx, source, f"{manifest.path.parent / 'segments'}/*.glsl (transfer pass)")
+        self.compile_s = time.perf_counter() - t0
+        if "u_analytic_scale" in self.program:  # optimised away when no segment is analytic
+            self.program["u_analytic_scale"].write(analytic_scale.tobytes())
+        self.program["u_position"].value = 0
+        self.program["u_normal"].value = 1
+        self._textures = []
+        for unit, (name, data) in enumerate(self._weights, start=2):
+            tex = ctx.texture((data.shape[1], data.shape[0]), 4, data=np.ascontiguousarray(data, dtype=np.float32).tobytes(), dtype="f4")
+            tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+            self._textures.append((tex, unit))
+            if name in self.program:
+                self.program[name].value = unit
+        self.vao = ctx.vertex_array(self.program, [])
+
+    def run(self, fbo, gbuffer) -> None:
+        textures = ((gbuffer.position_texture, 0), (gbuffer.normal_texture, 1), *self._textures)
+        _draw_fullscreen(self.ctx, fbo, self.vao, textures)
+
+    def release(self) -> None:
+        for tex, _ in self._textures:
+            tex.release()
+        self.vao.release()
+        self.program.release()

@@ -1,0 +1,170 @@
+"""The interactive viewer window (pygame + the window's OpenGL context).
+
+Controls (also printed on ``h``):
+  left drag        orbit the camera          wheel        zoom
+  right drag / [ ] rotate the light          n / p        next / previous env map
+  b                toggle backend onnx/glsl  g            diffuse / glossy
+  + / -            Phong exponent x2 / /2    e / E        exposure up / down
+  s                screenshot (PNG)          h            help          q / Esc   quit
+FPS and stage timings are shown in the window title.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .errors import PRTError
+
+__all__ = ["run_window", "HELP"]
+
+HELP = __doc__.split("Controls (also printed on ``h``):\n", 1)[1]
+ENVMAPS = ("potsdamer", "interior", "studio")
+
+_BLIT_FRAGMENT = """#version 330
+uniform sampler2D u_image;
+uniform float u_exposure;
+out vec4 f_color;
+void main() {
+    vec3 c = texelFetch(u_image, ivec2(gl_FragCoord.xy), 0).rgb;
+    f_color = vec4(prt_tonemap(c, u_exposure), 1.0);
+}
+"""
+
+
+def _rotation_y(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def run_window(scene, width: int, height: int, args, providers=None) -> int:
+    """Open the viewer window; returns the exit code."""
+    try:
+        import pygame
+    except ImportError:
+        raise PRTError('the viewer window needs pygame (pip install "prt-runtime[viewer]"); or pass --headless') from None
+    import moderngl
+
+    from .renderer import Renderer, compile_program
+    from .shading import to_srgb8
+
+    pygame.init()
+    pygame.display.gl_set_attribute(pygame.GL_CONTEXT_MAJOR_VERSION, 3)
+    pygame.display.gl_set_attribute(pygame.GL_CONTEXT_MINOR_VERSION, 3)
+    pygame.display.gl_set_attribute(pygame.GL_CONTEXT_PROFILE_MASK, pygame.GL_CONTEXT_PROFILE_CORE)
+    try:
+        pygame.display.set_mode((width, height), pygame.OPENGL | pygame.DOUBLEBUF)
+        ctx = moderngl.create_context()
+    except Exception as exc:  # pygame.error or moderngl.Error: no usable window context
+        pygame.quit()
+        raise PRTError(f"cannot open an OpenGL 3.3 window ({' '.join(str(exc).split())}); pass --headless") from None
+    screen = ctx.detect_framebuffer()
+    renderer = Renderer(scene, width, height, backend=args.backend, providers=providers, threads=args.threads, ctx=ctx)
+    from .cli import _apply_options
+
+    _apply_options(renderer, args)
+    blit = compile_program(ctx, _BLIT_FRAGMENT.replace("out vec4 f_color;", "out vec4 f_color;\n" + _tonemap_glsl()), "viewer blit")
+    blit_vao = ctx.vertex_array(blit, [])
+    envmap_index = ENVMAPS.index(args.envmap) if args.envmap in ENVMAPS else 0
+    light_angle = 0.0
+    exposure = args.exposure
+    base_camera = renderer.camera
+    yaw, pitch, zoom = 0.0, 0.0, 1.0
+    dragging = None
+    print(HELP)
+    frame_times = []
+    running = True
+    try:
+        while running:
+            camera_dirty = False
+            for event in pygame.event.get():
+                if event.type == pygame.QUIT:
+                    running = False
+                elif event.type == pygame.MOUSEBUTTONDOWN and event.button in (1, 3):
+                    dragging = event.button
+                elif event.type == pygame.MOUSEBUTTONUP:
+                    dragging = None
+                elif event.type == pygame.MOUSEMOTION and dragging == 1:
+                    yaw -= event.rel[0] * 0.01
+                    pitch = float(np.clip(pitch + event.rel[1] * 0.01, -1.4, 1.4))
+                    camera_dirty = True
+                elif event.type == pygame.MOUSEMOTION and dragging == 3:
+                    light_angle += event.rel[0] * 0.01
+                    _relight(renderer, envmap_index, light_angle)
+                elif event.type == pygame.MOUSEWHEEL:
+                    zoom = float(np.clip(zoom * (0.9 if event.y > 0 else 1.1), 0.2, 5.0))
+                    camera_dirty = True
+                elif event.type == pygame.KEYDOWN:
+                    key = event.unicode
+                    if event.key == pygame.K_ESCAPE or key == "q":
+                        running = False
+                    elif key == "h":
+                        print(HELP)
+                    elif key in "[]" and key:
+                        light_angle += 0.1 if key == "]" else -0.1
+                        _relight(renderer, envmap_index, light_angle)
+                    elif key in ("n", "p"):
+                        envmap_index = (envmap_index + (1 if key == "n" else -1)) % len(ENVMAPS)
+                        _relight(renderer, envmap_index, light_angle)
+                    elif key == "b":
+                        renderer.set_backend("glsl" if renderer.backend == "onnx" else "onnx")
+                    elif key == "g":
+                        m = renderer.material
+                        if m.kind == "diffuse":
+                            renderer.set_material("glossy", albedo=m.albedo, specular=(0.3, 0.3, 0.3), exponent=m.exponent)
+                        else:
+                            renderer.set_material("diffuse", albedo=m.albedo)
+                    elif key in ("+", "=", "-"):
+                        m = renderer.material
+                        e = float(np.clip(m.exponent * (2.0 if key != "-" else 0.5), 1.0, 1024.0))
+                        renderer.set_material(m.kind, albedo=m.albedo, specular=m.specular, exponent=e)
+                    elif key in ("e", "E"):
+                        exposure *= 1.25 if key == "e" else 0.8
+                    elif key == "s":
+                        path = Path(f"prt_screenshot_{time.strftime('%Y%m%d_%H%M%S')}.png")
+                        import imageio.v3 as iio
+
+                        iio.imwrite(path, to_srgb8(renderer.render(), exposure))
+                        print(f"screenshot: {path}")
+            if camera_dirty:
+                cam = base_camera.orbit(yaw)
+                axis = np.cross(cam.forward, cam.true_up)
+                cam = cam.orbit(pitch, axis=axis)
+                eye = cam.target + (cam.eye - cam.target) * zoom
+                renderer.set_camera(eye=eye, target=cam.target, up=base_camera.up, fov=cam.fov_y)
+            t0 = time.perf_counter()
+            renderer.render()
+            renderer._out_texture.use(0)
+            blit["u_image"].value = 0
+            blit["u_exposure"].value = exposure
+            screen.use()
+            ctx.disable(moderngl.DEPTH_TEST | moderngl.BLEND)
+            blit_vao.render(moderngl.TRIANGLES, vertices=3)
+            pygame.display.flip()
+            frame_times.append(time.perf_counter() - t0)
+            if len(frame_times) >= 10:
+                fps = 1.0 / float(np.median(frame_times))
+                stages = " ".join(f"{k} {v:.0f}" for k, v in renderer.timings.items() if k != "frame")
+                pygame.display.set_caption(
+                    f"prt-runtime {scene.name} [{renderer.backend}, {renderer.material.kind}, {ENVMAPS[envmap_index]}] {fps:.1f} FPS | {stages} ms"
+                )
+                frame_times.clear()
+    finally:
+        renderer.close()
+        pygame.quit()
+    return 0
+
+
+def _relight(renderer, envmap_index: int, angle: float) -> None:
+    renderer.set_envmap(ENVMAPS[envmap_index], rotation=_rotation_y(angle))
+
+
+def _tonemap_glsl() -> str:
+    """The ``prt_tonemap`` function of shading.glsl (and what it needs), without the uniforms."""
+    from ..shaders import source as shader_source
+
+    text = shader_source("shading.glsl")
+    start = text.index("vec3 prt_tonemap")
+    return "const float PRT_TONEMAP_MAX = 1.0e4;\n" + text[start:]

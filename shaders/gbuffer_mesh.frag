@@ -1,0 +1,39 @@
+#version 330
+// G-buffer of a triangle mesh, fragment stage (runtime/gbuffer.py inserts the #defines and
+// segment_lookup.glsl after the #version line).
+//   attachment 0: position.xyz, covered (1)
+//   attachment 1: unit normal facing the camera, segment id
+// Back faces of closed surfaces are discarded here rather than culled by GL, because
+// two-sided faces of the same draw must stay visible from both sides.
+
+uniform vec3 u_eye;  // camera position, scene space
+
+in vec3 v_position;
+flat in vec3 v_normal;
+flat in ivec2 v_info;
+
+layout(location = 0) out vec4 o_position;
+layout(location = 1) out vec4 o_normal;
+
+void main() {
+    bool two_sided = v_info.y != 0;
+    if (!two_sided && !gl_FrontFacing) {
+        discard;
+    }
+    // The near plane keeps every fragment away from the eye, so to_eye is never zero.
+    vec3 to_eye = normalize(u_eye - v_position);
+    vec3 n = v_normal;
+    if (!(dot(n, n) > 0.0)) {
+        n = to_eye;  // degenerate face: any unit vector facing the camera
+    } else if (dot(n, to_eye) < 0.0) {
+        // Two-sided: show the side facing the camera.  Closed and front facing: only
+        // rounding at grazing angles gets here, so drop the component pointing away.
+        n = two_sided ? -n : n - dot(n, to_eye) * to_eye;
+        if (!(dot(n, n) > 1e-12)) {
+            n = to_eye;
+        }
+    }
+    n = normalize(n);
+    o_position = vec4(v_position, 1.0);
+    o_normal = vec4(n, float(prt_segment(v_info.x, v_position)));
+}

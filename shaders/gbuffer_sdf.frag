@@ -1,0 +1,98 @@
+#version 330
+// G-buffer of an SDF scene: one full-screen pass (vertex stage fullscreen.vert) sphere
+// traces the pixel's ray and writes the same targets as the mesh pass (gbuffer_mesh.frag).
+// runtime/gbuffer.py inserts after the #version line: the #defines PRT_MAX_STEPS,
+// PRT_HIT_EPS (hit threshold per unit of ray length), PRT_SCENE_BOX (half size of the box
+// holding the scene) and those of segment_lookup.glsl, then segment_lookup.glsl and the
+// scene's GLSL defining float scene_sdf(vec3 p).  The scene is object id 0.
+
+uniform vec3 u_eye;               // ray origin, scene space
+uniform vec3 u_forward;           // unit view direction
+uniform vec3 u_right;             // right * tan(fov_y / 2) * aspect: ray offset at ndc x = 1
+uniform vec3 u_up;                // image up * tan(fov_y / 2): ray offset at ndc y = 1
+uniform vec2 u_size;              // viewport size in pixels
+uniform float u_near;             // clip distances along the view axis, as rasterisation
+uniform float u_far;
+uniform float u_pixel_angle;      // pixel footprint per unit distance: 2 tan(fov_y / 2) / height
+uniform mat4 u_view_projection;   // for gl_FragDepth
+
+layout(location = 0) out vec4 o_position;
+layout(location = 1) out vec4 o_normal;
+
+// Parameters (t_in, t_out) where the ray o + t d enters and leaves the box [-b, b]^3.
+vec2 prt_ray_box(vec3 o, vec3 d, float b) {
+    // Components of exactly zero would divide by zero; a tiny stand-in gives the same slabs.
+    vec3 safe = mix(d, vec3(1e-20), lessThan(abs(d), vec3(1e-20)));
+    vec3 t1 = (vec3(-b) - o) / safe;
+    vec3 t2 = (vec3(b) - o) / safe;
+    vec3 lo = min(t1, t2);
+    vec3 hi = max(t1, t2);
+    return vec2(max(max(lo.x, lo.y), lo.z), min(min(hi.x, hi.y), hi.z));
+}
+
+// Outward gradient direction by the tetrahedral difference (4 taps), not normalised.
+vec3 prt_sdf_gradient(vec3 p, float h) {
+    const vec2 k = vec2(1.0, -1.0);
+    return k.xyy * scene_sdf(p + k.xyy * h) + k.yyx * scene_sdf(p + k.yyx * h)
+         + k.yxy * scene_sdf(p + k.yxy * h) + k.xxx * scene_sdf(p + k.xxx * h);
+}
+
+void main() {
+    vec2 ndc = gl_FragCoord.xy / u_size * 2.0 - 1.0;
+    vec3 rd = normalize(u_forward + ndc.x * u_right + ndc.y * u_up);
+    // Clip like the rasteriser: view-axis depth in [near, far] is t * dot(rd, forward).
+    float cos_axis = dot(rd, u_forward);
+    vec2 box = prt_ray_box(u_eye, rd, PRT_SCENE_BOX);
+    float t = max(box.x, u_near / cos_axis);
+    float t_end = min(box.y, u_far / cos_axis);
+    if (!(t <= t_end)) {
+        discard;
+    }
+
+    // A ray starting inside the solid (camera inside it) passes through to its exit, as
+    // the mesh pass discards the back faces of closed surfaces.
+    bool inside = scene_sdf(u_eye + t * rd) < 0.0;
+    bool hit = false;
+    float dist = 0.0;
+    for (int i = 0; i < PRT_MAX_STEPS; ++i) {
+        dist = scene_sdf(u_eye + t * rd);
+        float eps = PRT_HIT_EPS * t;
+        if (inside) {
+            inside = dist <= eps;
+            t += max(abs(dist), eps);
+        } else if (dist < eps) {
+            hit = true;
+            break;
+        } else {
+            t += dist;
+        }
+        if (t > t_end) {
+            break;
+        }
+    }
+    // Out of steps (grazing rays creep along a surface): a hit if within the pixel's cone.
+    if (!hit && !inside && t <= t_end && dist < u_pixel_angle * t) {
+        hit = true;
+    }
+    if (!hit) {
+        discard;
+    }
+
+    vec3 p = u_eye + t * rd;
+    vec3 to_eye = -rd;
+    vec3 n = prt_sdf_gradient(p, max(2e-4, PRT_HIT_EPS * t));
+    if (!(dot(n, n) > 1e-30)) {
+        n = to_eye;  // flat spot of the field: any unit vector facing the camera
+    }
+    n = normalize(n);
+    if (dot(n, to_eye) < 0.0) {
+        // Only grazing hits get here: drop the component pointing away from the camera.
+        n -= dot(n, to_eye) * to_eye;
+        n = dot(n, n) > 1e-12 ? normalize(n) : to_eye;
+    }
+
+    vec4 clip = u_view_projection * vec4(p, 1.0);
+    gl_FragDepth = clamp(0.5 * clip.z / clip.w + 0.5, 0.0, 1.0);
+    o_position = vec4(p, 1.0);
+    o_normal = vec4(n, float(prt_segment(0, p)));
+}

@@ -1,0 +1,198 @@
+"""The runtime end to end: both backends agree, relighting runs no network, no NaN, clear errors."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from prt.runtime import EnvmapError, InputError, SpecError
+from prt.runtime.renderer import Renderer, Scene, ShaderCompileError, demo_scene_path
+
+SIZE = 96
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    """Linear-radiance PSNR with the reference's peak as signal."""
+    mse = float(((a.astype(np.float64) - b) ** 2).mean())
+    return float("inf") if mse == 0 else 10 * np.log10(float(b.max()) ** 2 / mse)
+
+
+@pytest.fixture(scope="module")
+def sdf_scene(tmp_path_factory):
+    """A small SDF scene with network and analytic segments, built by prt-train."""
+    out = tmp_path_factory.mktemp("sdf")
+    proc = subprocess.run(
+        [sys.executable, "-m", "prt.train.train_cli", "sphere_plane", "-o", str(out), "--samples", "6000",
+         "--validation", "1500", "--rays", "64", "--epochs", "3", "--batch", "1024", "--segments", "4",
+         "--hidden", "8", "--layers", "1", "--target", "0.02", "--no-progress"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    return out / "scene.json"
+
+
+def scenes(sdf_scene):
+    return {"demo": Scene.load(), "sdf": Scene.load(sdf_scene)}
+
+
+@pytest.mark.parametrize("material", ["diffuse", "glossy"])
+def test_backends_render_the_same_image(sdf_scene, material):
+    for name, scene in scenes(sdf_scene).items():
+        images = {}
+        for backend in ("onnx", "glsl"):
+            with Renderer(scene, SIZE, SIZE, backend=backend) as r:
+                if material == "glossy":
+                    r.set_material("glossy", albedo=(0.5, 0.5, 0.5), specular=(0.4, 0.4, 0.4), exponent=16)
+                images[backend] = r.render()
+        assert images["onnx"].max() > 0.05, name  # something was lit
+        assert psnr(images["glsl"], images["onnx"]) >= 60.0, (name, material)
+
+
+def test_relighting_reuses_the_transfer_without_running_a_network(monkeypatch):
+    from prt.runtime import onnx_backend
+
+    with Renderer(Scene.load(), SIZE, SIZE, backend="onnx") as r:
+        first = r.render()
+        calls = []
+        original = onnx_backend.OnnxTransfer.compute
+        monkeypatch.setattr(onnx_backend.OnnxTransfer, "compute", lambda *a, **k: calls.append(1) or original(*a, **k))
+        runs = r.stats["network_runs"]
+        r.set_envmap("studio")
+        studio = r.render()
+        r.set_material("glossy", albedo=(0.5, 0.5, 0.5), specular=(0.3, 0.3, 0.3), exponent=8)
+        r.render()
+        r.set_lighting_sh(np.tile([[np.sqrt(4 * np.pi)]] + [[0.0]] * 15, (1, 3)))
+        r.render()
+        assert calls == [] and r.stats["network_runs"] == runs and r.stats["relight_frames"] == 3
+        assert not np.allclose(first, studio)
+        # the relit frame equals a full frame with the same light
+        r.set_material("diffuse", albedo=(0.6, 0.6, 0.6))
+        r.set_envmap("studio")
+        relit = r.render()
+        r.set_camera_object(r.camera)  # invalidates the transfer
+        full = r.render()
+        assert calls == [1]
+        assert np.array_equal(relit, full)
+
+
+def test_white_furnace_gives_the_albedo_on_unshadowed_surfaces(tmp_path):
+    import trimesh
+
+    trimesh.creation.icosphere(subdivisions=4).export(tmp_path / "ball.ply")
+    proc = subprocess.run(
+        [sys.executable, "-m", "prt.train.train_cli", str(tmp_path / "ball.ply"), "-o", str(tmp_path / "ball"),
+         "--samples", "3000", "--validation", "1000", "--rays", "64", "--target", "0.01", "--no-progress"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    light = np.zeros((16, 3))
+    light[0] = np.sqrt(4 * np.pi)
+    for backend in ("onnx", "glsl"):
+        with Renderer(Scene.load(tmp_path / "ball"), SIZE, SIZE, backend=backend) as r:
+            r.set_lighting_sh(light)
+            r.set_material("diffuse", albedo=(0.25, 0.5, 0.75))
+            image = r.render()
+            covered = r.gbuffer_image().covered
+        assert covered.sum() > 1000
+        assert np.allclose(image[covered], [0.25, 0.5, 0.75], atol=2e-4)
+        assert (image[~covered] == 0).all()
+
+
+@pytest.mark.parametrize("backend", ["onnx", "glsl"])
+def test_no_nan_reaches_a_pixel(sdf_scene, backend):
+    for scene in scenes(sdf_scene).values():
+        with Renderer(scene, 64, 48, backend=backend) as r:
+            views = [
+                dict(eye=(0, 0.6, 3.2)),
+                dict(eye=(0, 0, 5), target=(0, 0, 10)),  # looking away: all background
+                dict(eye=(0.0, 0.0, 0.05), target=(0, 0, -1)),  # inside the object
+                dict(eye=(0, 5, 0.001), target=(0, 0, 0)),  # almost straight down
+            ]
+            for view in views:
+                r.set_camera(**view)
+                for kind in ("diffuse", "glossy"):
+                    r.set_material(kind)
+                    image = r.render()
+                    assert np.isfinite(image).all() and (image >= 0).all()
+            r.set_camera(eye=(0, 0, 5), target=(0, 0, 10))
+            assert (r.render() == 0).all()
+
+
+def copy_demo(tmp_path) -> Path:
+    dst = tmp_path / "demo"
+    shutil.copytree(demo_scene_path().parent, dst)
+    return dst
+
+
+def test_bad_models_shaders_and_envmaps_raise_specific_errors(tmp_path):
+    import onnx
+    from onnx import TensorProto, helper
+
+    scene_dir = copy_demo(tmp_path)
+    # corrupt ONNX file
+    (scene_dir / "segments" / "seg000.onnx").write_bytes(b"not a model")
+    with Renderer(Scene.load(scene_dir), 32, 32) as r, pytest.raises(InputError, match="seg000.onnx"):
+        r.render()
+    # a model with the wrong input shape
+    graph = helper.make_graph(
+        [helper.make_node("Identity", ["x"], ["y"])], "g",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["N", 5])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, ["N", 5])],
+    )  # fmt: skip
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    onnx.save(model, scene_dir / "segments" / "seg000.onnx")
+    with Renderer(Scene.load(scene_dir), 32, 32) as r, pytest.raises(InputError, match=r"\[N, 6\]"):
+        r.render()
+    # a generated shader that does not compile: the message names the shader and the driver's error
+    scene_dir = copy_demo(tmp_path / "b")
+    glsl = scene_dir / "segments" / "seg001.glsl"
+    glsl.write_text(glsl.read_text() + "\nthis is not glsl;\n")
+    with Renderer(Scene.load(scene_dir), 32, 32, backend="glsl") as r, pytest.raises(ShaderCompileError) as err:
+        r.render()
+    assert "transfer pass" in str(err.value) and "error" in str(err.value).lower() and "\n" not in str(err.value)
+    # env map not found / not readable
+    with Renderer(Scene.load(), 32, 32) as r:
+        with pytest.raises(EnvmapError, match="nope.hdr"):
+            r.set_envmap(tmp_path / "nope.hdr")
+        with pytest.raises(EnvmapError):
+            r.set_envmap("no_such_bundled_map")
+    # a manifest path escaping its folder
+    manifest = (scene_dir / "scene.json").read_text().replace('"segments/seg000.onnx"', '"../../outside.onnx"')
+    (scene_dir / "scene.json").write_text(manifest)
+    with pytest.raises(SpecError, match="escapes"):
+        Scene.load(scene_dir)
+
+
+def test_viewer_cli_headless_frames_and_errors(tmp_path):
+    out = tmp_path / "frames"
+    proc = subprocess.run(
+        [sys.executable, "-m", "prt.runtime.cli", "--headless", "--frames", "3", "--size", "48x32", "--out", str(out)],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert "FPS" in proc.stdout and "inference" in proc.stdout
+    import imageio.v3 as iio
+
+    frames = sorted(out.glob("frame_*.png"))
+    assert len(frames) == 3 and iio.imread(frames[0]).shape == (32, 48, 3)
+    for args in (["nope.json", "--headless"], ["--headless", "--size", "0"], ["--headless", "--envmap", "missing.hdr"]):
+        proc = subprocess.run([sys.executable, "-m", "prt.runtime.cli", *args, "--out", str(tmp_path / "x")], capture_output=True, text=True)
+        assert proc.returncode == 2, (args, proc.stderr)
+        assert len(proc.stderr.strip().splitlines()) == 1 and "Traceback" not in proc.stderr
+
+
+def test_readme_embedding_example_runs():
+    """The example in README.md, executed as written (with the bundled demo scene)."""
+    readme = (Path(__file__).parents[1] / "README.md").read_text()
+    code = readme.split("```python\nfrom prt.runtime import Scene, Renderer", 1)[1].split("```", 1)[0]
+    code = "from prt.runtime import Scene, Renderer" + code
+    namespace: dict = {}
+    exec(compile(code, "README.md", "exec"), namespace)
+    image = namespace["image"]
+    assert image.ndim == 3 and image.shape[2] == 3 and np.isfinite(image).all() and image.max() > 0
