@@ -6,7 +6,7 @@ Inference: each network segment's batch is cut into cache-sized slices that a sm
 threads feeds to the segment's session concurrently (one intra-op thread per call, spinning
 off), which keeps two cores busy without thread pools fighting each other.  Analytic
 (unshadowed) segments skip the network: their transfer is the clamped cosine turned to the
-normal.  The result is scattered into an (H * W, n) transfer image.
+normal.  The result is one transfer row per covered pixel, in pixel order.
 """
 
 from __future__ import annotations
@@ -47,7 +47,6 @@ class OnnxTransfer:
     providers : execution providers in order of preference (default: CUDA if present, CPU)
     threads : concurrent inference calls (default: all cores)
     slice_rows : rows per inference call (small enough that activations stay in cache)
-    precision : "fp32" (the exported models); other precisions are made by the benchmark
     """
 
     def __init__(self, manifest, providers=None, threads: int | None = None, slice_rows: int = 4096):
@@ -88,52 +87,50 @@ class OnnxTransfer:
             self._pool = None
         self.sessions.clear()
 
-    def compute(self, inputs: np.ndarray, segment: np.ndarray, out: np.ndarray | None = None, columns=(0, 1, 2, 3, 4, 5)) -> np.ndarray:
-        """Transfer for every pixel.
+    def compute(self, inputs: np.ndarray, segment: np.ndarray, columns=(0, 1, 2, 3, 4, 5)):
+        """Transfer of every covered pixel.
 
         Parameters
         ----------
         inputs : (P, C) float32 per-pixel data (e.g. the packed G-buffer)
         segment : (P,) int, segment id per pixel, -1 for background
-        out : optional (P, n) float32 to fill (background rows are zeroed)
         columns : the six columns of ``inputs`` holding position xyz and normal xyz
 
         Returns
         -------
-        (P, n) float32; timings in ``self.timings`` (ms): pack, inference, scatter
+        covered : (M,) int64, indices of the covered pixels (segment >= 0), ascending
+        transfer : (M, n) float32, the transfer of each covered pixel
+        Timings (ms) of the last call are in ``self.timings``: pack, inference, scatter.
         """
         t0 = time.perf_counter()
-        P = len(segment)
-        if out is None:
-            out = np.zeros((P, self.n), dtype=np.float32)
-        else:
-            out.fill(0.0)
         covered = np.flatnonzero(segment >= 0)
         seg_cov = segment[covered]
         cols = np.asarray(columns, dtype=np.intp)[None, :]
         batches = []
         for s in np.unique(seg_cov):
-            idx = covered[seg_cov == s]
-            batches.append((int(s), idx, inputs[idx[:, None], cols]))  # one gather, contiguous (len, 6)
+            rows = np.flatnonzero(seg_cov == s)  # positions within ``covered``
+            x = inputs[covered[rows][:, None], cols]  # one gather, contiguous (len, 6)
+            batches.append((int(s), rows, x))
         t1 = time.perf_counter()
         jobs = []
-        for s, idx, x in batches:
+        for s, rows, x in batches:
             if s in self.analytic:
                 continue
             if s not in self.sessions:
                 raise InputError(f"segment {s} appears in the G-buffer but the scene has no such segment")
             for a in range(0, len(x), self.slice_rows):
-                jobs.append((s, idx, x, a))
+                jobs.append((s, rows, x, a))
         results = self._run(jobs)
-        analytic = [(s, idx, x) for s, idx, x in batches if s in self.analytic]
         t2 = time.perf_counter()
-        for (s, idx, x, a), y in zip(jobs, results):
-            out[idx[a : a + self.slice_rows]] = y
-        for s, idx, x in analytic:
-            out[idx] = analytic_transfer(x[:, 3:6], self.bands)
+        transfer = np.empty((len(covered), self.n), dtype=np.float32)
+        for (s, rows, x, a), y in zip(jobs, results):
+            transfer[rows[a : a + self.slice_rows]] = y
+        for s, rows, x in batches:
+            if s in self.analytic:
+                transfer[rows] = analytic_transfer(x[:, 3:6], self.bands)
         t3 = time.perf_counter()
         self.timings = {"pack": 1e3 * (t1 - t0), "inference": 1e3 * (t2 - t1), "scatter": 1e3 * (t3 - t2)}
-        return out
+        return covered, transfer
 
     def _run(self, jobs):
         if not jobs:

@@ -6,11 +6,13 @@ A frame runs three stages, each timed (milliseconds in :attr:`Renderer.timings`)
 2. Transfer, by the chosen backend:
    - ``"onnx"`` (the analogue of the paper's CUDA path): read the G-buffer back (``readback``),
      pack covered fragments by segment (``pack``), run each segment's ONNX model on its batch
-     (``inference``), scatter and upload the transfer image (``scatter``, ``upload``);
+     (``inference``), gather the results per covered pixel (``scatter``);
    - ``"glsl"``: a full-screen pass evaluates each fragment's network in the fragment shader
      (``network``), from GLSL generated out of the ONNX weights.
-3. Shading (``shade``): the same shader for both backends reads the transfer and shades
-   (diffuse, or glossy via the Gaunt light matrix and the Phong lobe), then ``readout``.
+3. Shading (``shade``), one definition with two twins tested against each other: the ONNX
+   backend's transfer is on the CPU, so it shades the covered pixels there with
+   :func:`prt.runtime.shading.shade` (numpy); the GLSL backend's transfer is on the GPU, so a
+   full-screen pass shades with ``shading.glsl``.  Then the image is assembled (``readout``).
 
 Transfer depends only on the geometry and the camera: when only the light, the material or
 the backend's shading inputs change, :meth:`Renderer.render` re-shades the cached transfer and
@@ -35,7 +37,7 @@ from .gbuffer import GBufferPass
 from .gl import create_context
 from .manifest import Manifest, load_manifest
 from .onnx_backend import OnnxTransfer
-from .shading import Lighting, Material, glsl_source, shader_uniforms, to_srgb8
+from .shading import Lighting, Material, glsl_source, shade, shader_uniforms, to_srgb8
 
 __all__ = ["Scene", "Renderer", "BACKENDS", "demo_scene_path", "ShaderCompileError"]
 
@@ -117,17 +119,20 @@ class Renderer:
         size = (self.width, self.height)
         self._t_textures = [self._float_texture(size) for _ in range(4)]
         self._t_fbo = self.ctx.framebuffer(self._t_textures)
-        self._wide = self._float_texture((4 * self.width, self.height))
         self._out_texture = self._float_texture(size)
         self._out_fbo = self.ctx.framebuffer([self._out_texture])
         self._image = np.empty((self.height, self.width, 4), dtype=np.float32)
-        self._transfer_image = np.zeros((self.height * self.width, 16), dtype=np.float32)
-        self._shade_programs = {
-            wide: self._program(_shade_source(wide), f"shade_pass.frag (wide={wide})") for wide in (True, False)
-        }
-        self._vao = {k: self.ctx.vertex_array(p, []) for k, p in self._shade_programs.items()}
+        self._shade_program = self._program(_shade_source(), "shade_pass.frag")
+        self._vao = self.ctx.vertex_array(self._shade_program, [])
+        # ONNX backend state: covered pixels, their transfer, and the image being assembled
+        self._covered = np.zeros(0, dtype=np.int64)
+        self._transfer_cov = np.zeros((0, 16), dtype=np.float32)
+        self._geometry_cov: tuple[np.ndarray, np.ndarray] | None = None
+        self._packed: np.ndarray | None = None
+        self._cpu_image = np.zeros((self.height * self.width, 3), dtype=np.float32)
 
         self.camera = Camera.from_manifest(m.camera)
+        self._envmap_sh: dict[str, np.ndarray] = {}
         lighting = m.lighting
         if lighting.get("envmap") is not None:
             self.lighting = Lighting.from_envmap(lighting["envmap"], rotation=lighting.get("rotation"))
@@ -143,7 +148,7 @@ class Renderer:
         self.timings: dict[str, float] = {}
         self.stats = {"frames": 0, "network_runs": 0, "relight_frames": 0}
         self._transfer_valid = False
-        self._transfer_wide = True
+        self._transfer_on_cpu = True
 
     # ------------------------------------------------------------------ settings
 
@@ -164,8 +169,13 @@ class Renderer:
         (``potsdamer``, ``interior``, ``studio``); ``rotation`` is a 3x3 matrix."""
         from .envmaps import BUNDLED_ENVMAPS, bundled_envmap_path
 
+        from .envmap import load_envmap_sh
+
         path = bundled_envmap_path(envmap) if isinstance(envmap, str) and envmap in BUNDLED_ENVMAPS else envmap
-        self.lighting = Lighting.from_envmap(path, rotation=rotation)
+        key = str(Path(path).resolve()) if Path(path).exists() else str(path)
+        if key not in self._envmap_sh:  # turning the light must not re-read and re-project the file
+            self._envmap_sh[key] = load_envmap_sh(path, self.scene.manifest.sh_bands)
+        self.lighting = Lighting.from_sh(self._envmap_sh[key], rotation=rotation)
 
     def set_lighting_sh(self, coeffs, rotation=None) -> None:
         """Light with SH coefficients (16, 3)."""
@@ -197,11 +207,17 @@ class Renderer:
         else:
             self.stats["relight_frames"] += 1
         t0 = time.perf_counter()
-        self._shade()
-        self.ctx.finish()
-        t1 = time.perf_counter()
-        self._out_fbo.read_into(self._image, components=4, dtype="f4")
-        image = np.ascontiguousarray(self._image[::-1, :, :3])
+        if self._transfer_on_cpu:
+            radiance = self._shade_cpu()
+            t1 = time.perf_counter()
+            self._cpu_image[self._covered] = radiance
+            image = self._cpu_image.reshape(self.height, self.width, 3).copy()
+        else:
+            self._shade_gl()
+            self.ctx.finish()
+            t1 = time.perf_counter()
+            self._out_fbo.read_into(self._image, components=4, dtype="f4")
+            image = np.ascontiguousarray(self._image[::-1, :, :3])
         t2 = time.perf_counter()
         timings["shade"] = 1e3 * (t1 - t0)
         timings["readout"] = 1e3 * (t2 - t1)
@@ -219,8 +235,10 @@ class Renderer:
         if not self._transfer_valid:
             self._compute_transfer({})
             self.stats["network_runs"] += 1
-        if self._transfer_wide:
-            return self._transfer_image.reshape(self.height, self.width, 16).copy()
+        if self._transfer_on_cpu:
+            full = np.zeros((self.height * self.width, 16), dtype=np.float32)
+            full[self._covered] = self._transfer_cov
+            return full.reshape(self.height, self.width, 16)
         parts = []
         for tex in self._t_textures:
             a = np.frombuffer(tex.read(), dtype=np.float32).reshape(self.height, self.width, 4)
@@ -244,13 +262,14 @@ class Renderer:
             t2 = time.perf_counter()
             onnx = self._onnx_backend()
             segment = packed[:, 7].astype(np.int32)
-            onnx.compute(packed, segment, out=self._transfer_image, columns=(0, 1, 2, 4, 5, 6))
+            covered, transfer = onnx.compute(packed, segment, columns=(0, 1, 2, 4, 5, 6))
             t3 = time.perf_counter()
-            self._wide.write(self._transfer_image)
-            t4 = time.perf_counter()
-            timings.update({"gbuffer": 1e3 * (t1 - t0), "readback": 1e3 * (t2 - t1), **onnx.timings, "upload": 1e3 * (t4 - t3)})
+            self._cpu_image[self._covered] = 0.0  # the previous view's pixels
+            self._covered, self._transfer_cov = covered, transfer
+            self._packed, self._geometry_cov = packed, None
+            timings.update({"gbuffer": 1e3 * (t1 - t0), "readback": 1e3 * (t2 - t1), **onnx.timings})
             timings["pack"] += 1e3 * (t3 - t2) - sum(onnx.timings.values())  # the segment-id column
-            self._transfer_wide = True
+            self._transfer_on_cpu = True
         else:
             self.ctx.finish()
             t1 = time.perf_counter()
@@ -258,27 +277,33 @@ class Renderer:
             self.ctx.finish()
             t2 = time.perf_counter()
             timings.update({"gbuffer": 1e3 * (t1 - t0), "network": 1e3 * (t2 - t1)})
-            self._transfer_wide = False
+            self._transfer_on_cpu = False
         self._transfer_valid = True
 
-    def _shade(self) -> None:
-        wide = self._transfer_wide
-        program = self._shade_programs[wide]
+    def _shade_cpu(self) -> np.ndarray:
+        """Radiance of the covered pixels (M, 3) from the cached transfer (numpy twin of the shader)."""
+        if self.material.kind == "diffuse":  # the common case, in float32: T @ (albedo * L)
+            light = (self.lighting.sh * np.asarray(self.material.albedo)).astype(np.float32)
+            return np.maximum(self._transfer_cov @ light, 0.0)
+        if self._geometry_cov is None:
+            rows = self._packed[self._covered]
+            self._geometry_cov = (rows[:, 4:7], self.camera.eye[None, :] - rows[:, 0:3])
+        normals, view_dirs = self._geometry_cov
+        return shade(self._transfer_cov, normals, view_dirs, self.lighting, self.material)
+
+    def _shade_gl(self) -> None:
+        program = self._shade_program
         for name, value in shader_uniforms(self.lighting, self.material).items():
             if name in program:
                 program[name].write(np.ascontiguousarray(value).tobytes())
         program["u_eye"].value = tuple(float(v) for v in self.camera.eye)
         textures = [(self.gbuffer.position_texture, 0), (self.gbuffer.normal_texture, 1)]
-        if wide:
-            textures.append((self._wide, 2))
-            program["u_transfer"].value = 2
-        else:
-            for k, tex in enumerate(self._t_textures):
-                textures.append((tex, 2 + k))
-                program[f"u_t{k}"].value = 2 + k
+        for k, tex in enumerate(self._t_textures):
+            textures.append((tex, 2 + k))
+            program[f"u_t{k}"].value = 2 + k
         program["u_position"].value = 0
         program["u_normal"].value = 1
-        _draw_fullscreen(self.ctx, self._out_fbo, self._vao[wide], textures)
+        _draw_fullscreen(self.ctx, self._out_fbo, self._vao, textures)
 
     def _onnx_backend(self) -> OnnxTransfer:
         if self._onnx is None:
@@ -314,9 +339,8 @@ class Renderer:
             self._glsl.release()
             self._glsl = None
         self.gbuffer.release()
-        for obj in [*self._t_textures, self._t_fbo, self._wide, self._out_texture, self._out_fbo, *self._vao.values(), *self._shade_programs.values()]:
+        for obj in [*self._t_textures, self._t_fbo, self._out_texture, self._out_fbo, self._vao, self._shade_program]:
             obj.release()
-        self._vao, self._shade_programs = {}, {}
         if self._own_ctx:
             self.ctx.release()
 
@@ -337,9 +361,8 @@ def _draw_fullscreen(ctx, fbo, vao, textures) -> None:
     vao.render(moderngl.TRIANGLES, vertices=3)
 
 
-def _shade_source(wide: bool) -> str:
-    defines = "#define PRT_TRANSFER_WIDE\n" if wide else ""
-    return "#version 330\n" + defines + glsl_source() + "\n" + shader_source("shade_pass.frag")
+def _shade_source() -> str:
+    return "#version 330\n" + glsl_source() + "\n" + shader_source("shade_pass.frag")
 
 
 def compile_program(ctx, fragment: str, name: str, vertex: str | None = None) -> moderngl.Program:

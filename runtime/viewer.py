@@ -67,6 +67,7 @@ def run_window(scene, width: int, height: int, args, providers=None) -> int:
     _apply_options(renderer, args)
     blit = compile_program(ctx, _BLIT_FRAGMENT.replace("out vec4 f_color;", "out vec4 f_color;\n" + _tonemap_glsl()), "viewer blit")
     blit_vao = ctx.vertex_array(blit, [])
+    display = ctx.texture((width, height), 3, dtype="f4")
     envmap_index = ENVMAPS.index(args.envmap) if args.envmap in ENVMAPS else 0
     light_angle = 0.0
     exposure = args.exposure
@@ -76,6 +77,7 @@ def run_window(scene, width: int, height: int, args, providers=None) -> int:
     print(HELP)
     frame_times = []
     running = True
+    image = renderer.render()
     try:
         while running:
             camera_dirty = False
@@ -126,7 +128,7 @@ def run_window(scene, width: int, height: int, args, providers=None) -> int:
                         path = Path(f"prt_screenshot_{time.strftime('%Y%m%d_%H%M%S')}.png")
                         import imageio.v3 as iio
 
-                        iio.imwrite(path, to_srgb8(renderer.render(), exposure))
+                        iio.imwrite(path, to_srgb8(image, exposure))
                         print(f"screenshot: {path}")
             if camera_dirty:
                 cam = base_camera.orbit(yaw)
@@ -135,8 +137,9 @@ def run_window(scene, width: int, height: int, args, providers=None) -> int:
                 eye = cam.target + (cam.eye - cam.target) * zoom
                 renderer.set_camera(eye=eye, target=cam.target, up=base_camera.up, fov=cam.fov_y)
             t0 = time.perf_counter()
-            renderer.render()
-            renderer._out_texture.use(0)
+            image = renderer.render()
+            display.write(np.ascontiguousarray(image[::-1]))  # GL rows run bottom-up
+            display.use(0)
             blit["u_image"].value = 0
             blit["u_exposure"].value = exposure
             screen.use()
@@ -152,6 +155,7 @@ def run_window(scene, width: int, height: int, args, providers=None) -> int:
                 )
                 frame_times.clear()
     finally:
+        display.release()
         renderer.close()
         pygame.quit()
     return 0
