@@ -27,9 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-SHARED_BUNNY = ROOT.parent / "shared" / "data" / "meshes" / "stanford_bunny_hr.obj"
-BUNDLED_SPOT = ROOT / "tests" / "data" / "spot.obj"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import default_mesh, write_figures  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -47,13 +46,7 @@ def main(argv=None) -> int:
     p.add_argument("--json", type=Path, default=None, help="write the figures here")
     args = p.parse_args(argv)
 
-    mesh_path = args.mesh
-    if mesh_path is None:
-        if SHARED_BUNNY.is_file():
-            mesh_path = SHARED_BUNNY
-        else:
-            print(f"note: {SHARED_BUNNY} not found (no ../shared here); using the bundled Spot cow")
-            mesh_path = BUNDLED_SPOT
+    mesh_path = default_mesh(args.mesh)
     geometry = load_geometry(str(mesh_path))
     print(f"mesh: {mesh_path.name}: {len(geometry.mesh.faces):,} triangles; {args.samples:,} samples x {args.rays} rays; {args.threads} threads")
 
@@ -109,9 +102,7 @@ def main(argv=None) -> int:
         f"end-to-end {e2e_rate / 1e6:.2f} Mrays/s = {100 * e2e_rate / raw_rate:.0f} % of raw Embree "
         f"{raw_rate / 1e6:.2f} Mrays/s (target >= 85 %); {args.samples:,} x {args.rays} in {e2e_s:.1f} s (target <= 60 s)"
     )
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(figures, indent=2) + "\n")
+    write_figures(args.json, figures)
     return 0
 
 

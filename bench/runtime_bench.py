@@ -21,6 +21,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import write_figures  # noqa: E402
 
 
 def build_default_scene(work: Path) -> Path:
@@ -90,9 +92,7 @@ def main(argv=None) -> int:
             f"{b}: {res['fps']} FPS, network {res['network_ms']} ms of {res['frame_ms']} ms "
             f"({100 * res['outside_network_share']:.0f} % outside; target <= 15 %), relight-only {res['relight_speedup']}x faster (target >= 20x)"
         )
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(figures, indent=2) + "\n")
+    write_figures(args.json, figures)
     return 0
 
 

@@ -23,9 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-SHARED_BUNNY = ROOT.parent / "shared" / "data" / "meshes" / "stanford_bunny_hr.obj"
-BUNDLED_SPOT = ROOT / "tests" / "data" / "spot.obj"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import default_mesh, write_figures  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -39,13 +38,7 @@ def main(argv=None) -> int:
     p.add_argument("--json", type=Path, default=None)
     p.add_argument("--no-fp32", action="store_true", help="skip the fp32 reference run")
     args = p.parse_args(argv)
-    mesh = args.mesh
-    if mesh is None:
-        if SHARED_BUNNY.is_file():
-            mesh = SHARED_BUNNY
-        else:
-            print(f"note: {SHARED_BUNNY} not found (no ../shared here); using the bundled Spot cow")
-            mesh = BUNDLED_SPOT
+    mesh = default_mesh(args.mesh)
 
     runs = {}
     variants = [("bf16", None)] if bf16_supported() else []
@@ -82,9 +75,7 @@ def main(argv=None) -> int:
     best = min(runs.values(), key=lambda r: r["train_s"])
     print(json.dumps(figures, indent=2))
     print(f"fastest: {best['train_s']} s per scene (target <= 300 s)")
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(figures, indent=2) + "\n")
+    write_figures(args.json, figures)
     return 0
 
 

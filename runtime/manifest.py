@@ -182,13 +182,47 @@ class Manifest:
     @cached_property
     def _kd_arrays(self) -> tuple[np.ndarray, ...]:
         """The k-d tree as flat arrays (axis -1 marks a leaf) for vectorised descent."""
-        nodes = self.segmentation["nodes"]
-        axis = np.array([n.get("axis", -1) for n in nodes], dtype=np.int64)
-        split = np.array([n.get("split", 0.0) for n in nodes], dtype=np.float64)
-        left = np.array([n.get("left", -1) for n in nodes], dtype=np.int64)
-        right = np.array([n.get("right", -1) for n in nodes], dtype=np.int64)
-        leaf = np.array([n.get("leaf", -1) for n in nodes], dtype=np.int64)
-        return axis, split, left, right, leaf
+        return kd_arrays(self.segmentation["nodes"])
+
+
+def kd_arrays(nodes: list[dict]) -> tuple[np.ndarray, ...]:
+    """A k-d tree's nodes as flat arrays ``(axis, split, left, right, leaf)``; axis -1 marks a leaf."""
+    axis = np.array([n.get("axis", -1) for n in nodes], dtype=np.int64)
+    split = np.array([n.get("split", 0.0) for n in nodes], dtype=np.float64)
+    left = np.array([n.get("left", -1) for n in nodes], dtype=np.int64)
+    right = np.array([n.get("right", -1) for n in nodes], dtype=np.int64)
+    leaf = np.array([n.get("leaf", -1) for n in nodes], dtype=np.int64)
+    return axis, split, left, right, leaf
+
+
+def assign_segments(kd: tuple[np.ndarray, ...], roots: dict[int, int], leaf_segment: np.ndarray,
+                    bounds: np.ndarray, points: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """The segment rule shared by training and runtime (see :func:`segment_of`).
+
+    kd : :func:`kd_arrays` of the nodes; roots : object id -> root node; leaf_segment : (L,);
+    bounds : (S, 2, 3) segment boxes; points : (N, 3) float64; ids : (N,) int -> (N,) int64
+    """
+    axis, split, left, right, leaf = kd
+    node = np.full(len(points), -1, dtype=np.int64)
+    for obj, root in roots.items():
+        node[ids == obj] = root
+    # One tree level per pass over the points still at inner nodes; validation ruled out cycles.
+    active = np.flatnonzero(node >= 0)
+    while active.size:
+        current = node[active]
+        inner = axis[current] >= 0
+        active, current = active[inner], current[inner]
+        go_left = points[active, axis[current]] <= split[current]
+        node[active] = np.where(go_left, left[current], right[current])
+
+    out = np.empty(len(points), dtype=np.int64)
+    rooted = node >= 0
+    out[rooted] = np.asarray(leaf_segment)[leaf[node[rooted]]]
+    if not rooted.all():
+        p = points[~rooted][:, None, :]
+        gap = np.maximum(bounds[None, :, 0] - p, 0.0) + np.maximum(p - bounds[None, :, 1], 0.0)
+        out[~rooted] = np.argmin(np.linalg.norm(gap, axis=2), axis=1)
+    return out
 
 
 # --------------------------------------------------------------------------- messages
@@ -550,25 +584,5 @@ def segment_of(manifest: Manifest, points: Any, object_ids: Any) -> np.ndarray:
     if len(ids) and ids.dtype.kind not in "iu":
         raise InputError(f"segment_of: object_ids must be integers, got dtype {ids.dtype}")
 
-    axis, split, left, right, leaf = manifest._kd_arrays
-    node = np.full(len(points), -1, dtype=np.int64)
-    for obj, root in manifest.segmentation["roots"].items():
-        node[ids == obj] = root
-    # One tree level per pass over the points still at inner nodes; validation ruled out cycles.
-    active = np.flatnonzero(node >= 0)
-    while active.size:
-        current = node[active]
-        inner = axis[current] >= 0
-        active, current = active[inner], current[inner]
-        go_left = points[active, axis[current]] <= split[current]
-        node[active] = np.where(go_left, left[current], right[current])
-
-    out = np.empty(len(points), dtype=np.int64)
-    rooted = node >= 0
-    out[rooted] = manifest.segmentation["leaf_segment"][leaf[node[rooted]]]
-    if not rooted.all():
-        boxes = manifest.bounds
-        p = points[~rooted][:, None, :]
-        gap = np.maximum(boxes[None, :, 0] - p, 0.0) + np.maximum(p - boxes[None, :, 1], 0.0)
-        out[~rooted] = np.argmin(np.linalg.norm(gap, axis=2), axis=1)
-    return out
+    seg = manifest.segmentation
+    return assign_segments(manifest._kd_arrays, seg["roots"], seg["leaf_segment"], manifest.bounds, points, ids)

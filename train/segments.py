@@ -83,32 +83,12 @@ class Segmentation:
 
         Points of an object that received no samples go to the segment with the nearest box.
         """
-        points = np.asarray(points)
-        object_ids = np.asarray(object_ids)
-        leaf = np.full(len(points), -1, dtype=np.int64)
-        for obj, root in self.roots.items():
-            sel = np.flatnonzero(object_ids == obj)
-            self._descend(root, points, sel, leaf)
-        out = np.full(len(points), -1, dtype=np.int64)
-        ok = leaf >= 0
-        out[ok] = self.leaf_segment[leaf[ok]]
-        if not ok.all():  # an object that got no samples: the segment with the nearest box
-            p = points[~ok][:, None, :]
-            gap = np.maximum(self.bounds[None, :, 0] - p, 0) + np.maximum(p - self.bounds[None, :, 1], 0)
-            out[~ok] = np.argmin(np.linalg.norm(gap, axis=2), axis=1)
-        return out
+        from ..runtime.manifest import assign_segments, kd_arrays
 
-    def _descend(self, node: int, points: np.ndarray, sel: np.ndarray, leaf: np.ndarray) -> None:
-        stack = [(node, sel)]
-        while stack:
-            node, sel = stack.pop()
-            n = self.nodes[node]
-            if "leaf" in n:
-                leaf[sel] = n["leaf"]
-                continue
-            left = points[sel, n["axis"]] <= n["split"]
-            stack.append((n["left"], sel[left]))
-            stack.append((n["right"], sel[~left]))
+        return assign_segments(
+            kd_arrays(self.nodes), self.roots, self.leaf_segment, self.bounds,
+            np.asarray(points, dtype=np.float64), np.asarray(object_ids),
+        )  # fmt: skip
 
     def to_json(self) -> dict:
         return {
