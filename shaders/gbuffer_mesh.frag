@@ -9,7 +9,8 @@
 uniform vec3 u_eye;  // camera position, scene space
 
 in vec3 v_position;
-flat in vec3 v_normal;
+in vec3 v_normal;
+flat in vec3 v_face_normal;
 flat in ivec2 v_info;
 
 layout(location = 0) out vec4 o_position;
@@ -23,9 +24,12 @@ void main() {
     // The near plane keeps every fragment away from the eye, so to_eye is never zero.
     vec3 to_eye = normalize(u_eye - v_position);
     vec3 n = v_normal;
-    if (!(dot(n, n) > 0.0)) {
+    if (!(dot(v_face_normal, v_face_normal) > 0.0) || !(dot(n, n) > 0.0)) {
         n = to_eye;  // degenerate face: any unit vector facing the camera
-    } else if (dot(n, to_eye) < 0.0) {
+    } else if (two_sided && dot(v_face_normal, to_eye) < 0.0) {
+        n = -n;  // the back side of an open surface: its smooth normal turns with it
+    }
+    if (dot(n, to_eye) < 0.0) {
         // Two-sided: show the side facing the camera.  Closed and front facing: only
         // rounding at grazing angles gets here, so drop the component pointing away.
         n = two_sided ? -n : n - dot(n, to_eye) * to_eye;

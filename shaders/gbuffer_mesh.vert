@@ -1,20 +1,24 @@
 #version 330
 // G-buffer of a triangle mesh, vertex stage.  The vertex buffer is unindexed: every corner
-// carries its triangle's geometric normal, object id and sidedness, so they are per face.
+// carries its smooth shading normal, its triangle's geometric normal, object id and
+// sidedness (the last three per face).
 
 uniform mat4 u_view_projection;  // scene space -> clip space
 
 in vec3 in_position;  // scene space
-in vec3 in_normal;    // the face's unit normal (zero for a degenerate face)
+in vec3 in_normal;    // smooth shading normal of this corner (the face's normal across creases)
+in vec3 in_face_normal;  // the face's unit normal (zero for a degenerate face)
 in ivec2 in_info;     // (object id, two-sided ? 1 : 0)
 
 out vec3 v_position;
-flat out vec3 v_normal;
+out vec3 v_normal;
+flat out vec3 v_face_normal;
 flat out ivec2 v_info;
 
 void main() {
     v_position = in_position;
     v_normal = in_normal;
+    v_face_normal = in_face_normal;
     v_info = in_info;
     gl_Position = u_view_projection * vec4(in_position, 1.0);
 }
