@@ -41,7 +41,7 @@ def main(argv=None) -> int:
     mesh = default_mesh(args.mesh)
 
     runs = {}
-    variants = [("bf16", None)] if bf16_supported() else []
+    variants = [("bf16", True)] if bf16_supported() else []
     if not args.no_fp32 or not variants:
         variants.append(("fp32", False))
     for label, bf16 in variants:

@@ -56,7 +56,7 @@ class BuildSpec:
     batch: int = 8192
     lr: float = 1e-2
     patience: int = 10
-    bf16: bool | None = None
+    bf16: bool | None = False  # bf16 autocast: about 2x faster on AVX512-BF16, about 9 % higher error
     target: float = 0.0025  # validation coefficient MAE a right-sized network must reach
     ladder: list[dict] | None = None  # [{hidden, layers, pos_freqs, normal_freqs}], small to large
     fixed: dict | None = None  # force one size for every network segment

@@ -47,7 +47,7 @@ class FitSettings:
     warmup_epochs: float = 1.0
     patience: int = 8  # epochs without a 0.5 % better validation MAE
     seed: int = 0
-    bf16: bool | None = None  # None: use bf16 autocast where the CPU has native bf16
+    bf16: bool | None = False  # True: bf16 autocast (2x faster here, ~9 % higher error); None: where native
     max_seconds: float | None = None  # wall-clock budget per fit
 
 

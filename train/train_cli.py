@@ -46,6 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--layers", type=int, default=None, help="force l hidden layers for every network (with --hidden)")
     p.add_argument("--pos-freqs", type=int, default=None, help="with --hidden/--layers: position encoding frequencies [6]")
     p.add_argument("--target", type=float, default=None, help=f"validation MAE (SH coefficients) a right-sized network must reach [{d.target}]")
+    p.add_argument("--bf16", action="store_true", help="train the MLP layers under bf16 autocast (about 2x faster where the CPU has native bf16, slightly less accurate)")
     p.add_argument("--no-analytic", action="store_true", help="give every segment a network, even unshadowed ones")
     p.add_argument("--glsl-layout", choices=("auto", "const", "texture"), default=None, help="weights as baked mat4 constants or in a texture [auto]")
     p.add_argument("--threads", type=int, default=os.cpu_count(), help="CPU threads for ray tracing and training")
@@ -78,6 +79,8 @@ def _spec_from_args(args):
     data.update({k: v for k, v in overrides.items() if v is not None})
     if args.no_analytic:
         data["analytic"] = False
+    if args.bf16:
+        data["bf16"] = True
     if (args.hidden is None) != (args.layers is None):
         raise SpecError("--hidden and --layers go together")
     if args.hidden is not None:
