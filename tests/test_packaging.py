@@ -34,6 +34,29 @@ def test_runtime_imports_with_torch_blocked():
     assert int(out.stdout.split()[1]) >= 3  # sh, envmap, errors, ... all imported
 
 
+RENDER_WITHOUT_TRAINING_DEPS = """
+import importlib.abc, sys
+BLOCKED = ("torch", "trimesh", "embreex", "onnx", "scipy", "skimage")
+class Block(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in BLOCKED:
+            raise ImportError(name + " is blocked in this test")
+sys.meta_path.insert(0, Block())
+from prt.runtime import Scene, Renderer
+for backend in ("onnx", "glsl"):
+    with Renderer(Scene.load(), 32, 32, backend=backend) as r:
+        image = r.render()
+    assert image.max() > 0, backend
+print("rendered")
+"""
+
+
+def test_the_demo_renders_without_any_training_dependency():
+    out = subprocess.run([sys.executable, "-c", RENDER_WITHOUT_TRAINING_DEPS], capture_output=True, text=True, cwd="/")
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "rendered"
+
+
 def test_runtime_sources_never_import_torch():
     offenders = [
         str(p.relative_to(ROOT))
@@ -67,3 +90,7 @@ def test_wheel_holds_only_the_prt_package_with_shaders(wheel):
     shaders = [n for n in names if n.startswith("prt/shaders/") and not n.endswith(".py")]
     assert shaders, "no shader files in the wheel"
     assert not any(n.startswith("prt/tests/") for n in names)
+    for data in ("prt/runtime/schemas/scene.schema.json", "prt/runtime/data/demo/scene.json",
+                 "prt/runtime/data/demo/geometry.npz", "prt/runtime/data/envmaps/studio_small_03_256.hdr"):
+        assert data in names, data
+    assert any(n.startswith("prt/runtime/data/demo/segments/") and n.endswith(".onnx") for n in names)
