@@ -6,7 +6,7 @@ usage: python bench/paper_table.py [--samples 1000000] [--views 30] [--size 512]
 Builds the shared meshes (bunny, teapot, spot, daffodil plant; from ../shared/data/meshes,
 Spot falls back to the bundled copy) at the paper's two sizes (k = 64 and k = 128, l = 4) and
 at our right-sized setting (the ladder and error target of ``prt-train``), sharing one
-precompute per mesh, then runs the backend benchmark (``bench/prt_bench.py``) over all of
+precompute per mesh, then runs the backend benchmark (``prt-bench``) over all of
 them and writes ``<out>.json``, ``<out>.md`` and ``<out>.png`` plus ``docs/paper_table.md``
 with the command that made them.  Every stage is cached under --work, so an interrupted run
 resumes.  The full setting takes hours on 2 cores; smaller --samples/--views/--size give a
@@ -71,7 +71,7 @@ def main(argv=None) -> int:
             first = first or out
             scenes.append(out / "scene.json")
 
-    bench = [sys.executable, str(ROOT / "bench" / "prt_bench.py"), *map(str, scenes),
+    bench = [sys.executable, "-m", "prt.train.benchmark", *map(str, scenes),
              "--views", str(args.views), "--size", str(args.size), "--ref-rays", str(args.ref_rays),
              "--json", str(args.out.with_suffix(".json")), "--md", str(args.out.with_suffix(".md")),
              "--plot", str(args.out.with_suffix(".png"))]  # fmt: skip

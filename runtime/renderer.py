@@ -21,6 +21,7 @@ runs no network (``stats["network_runs"]`` does not move).
 
 from __future__ import annotations
 
+import functools
 import os
 import time
 from pathlib import Path
@@ -282,6 +283,12 @@ class Renderer:
 
     def _shade_cpu(self) -> np.ndarray:
         """Radiance of the covered pixels (M, 3) from the cached transfer (numpy twin of the shader)."""
+        # BLAS worker threads spinning after these small products steal the cores from ONNX
+        # Runtime's threads in the next frame; one thread is as fast for them.
+        with _blas_controller().limit(limits=1, user_api="blas"):
+            return self._shade_cpu_products()
+
+    def _shade_cpu_products(self) -> np.ndarray:
         if self.material.kind == "diffuse":  # the common case, in float32: T @ (albedo * L)
             light = (self.lighting.sh * np.asarray(self.material.albedo)).astype(np.float32)
             return np.maximum(self._transfer_cov @ light, 0.0)
@@ -349,6 +356,13 @@ class Renderer:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+@functools.lru_cache(maxsize=1)
+def _blas_controller():
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController()
 
 
 def _draw_fullscreen(ctx, fbo, vao, textures) -> None:

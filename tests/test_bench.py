@@ -1,0 +1,177 @@
+"""prt-bench (prt.train.benchmark) on a tiny scene: report keys, errors, baselines, precision variants, plot."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SIZE = 40
+VIEWS = 2
+# Largest |transfer - fp32 transfer| allowed per precision (coefficients are ~0.1-0.5).  Full
+# fp16 rounds the encoding's arguments (up to 2^5 pi |x|) to 11 bits: a few 1e-2 at worst.
+TOLERANCE = {"fp16": 5e-2, "fp16-mlp": 2e-3, "int8": 5e-2}
+
+
+from prt.train import benchmark as pb  # noqa: E402
+# The tool renders with both backends and rasterises the vertex baseline.
+pytestmark = pytest.mark.gl
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    """Spot with two tiny networks, built by prt-train in a few seconds."""
+    out = tmp_path_factory.mktemp("scene")
+    proc = subprocess.run(
+        [sys.executable, "-m", "prt.train.train_cli", str(ROOT / "tests" / "data" / "spot.obj"), "-o", str(out),
+         "--samples", "20000", "--rays", "64", "--epochs", "5", "--hidden", "16", "--layers", "2",
+         "--segments", "2", "--no-progress"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    return out / "scene.json"
+
+
+@pytest.fixture(scope="module")
+def report(tiny_scene, tmp_path_factory):
+    """The tool run end to end through main(); returns the parsed JSON and the output paths."""
+    out = tmp_path_factory.mktemp("bench")
+    paths = {"json": out / "r.json", "md": out / "r.md", "plot": out / "r.png"}
+    argv = [str(tiny_scene), "--size", str(SIZE), "--views", str(VIEWS), "--ref-rays", "64", "--warmup", "1",
+            "--gemm-size", "256", "--json", str(paths["json"]), "--md", str(paths["md"]), "--plot", str(paths["plot"])]  # fmt: skip
+    assert pb.main(argv) == 0
+    return json.loads(paths["json"].read_text()), paths
+
+
+def test_report_has_every_documented_key(report):
+    data, _ = report
+    documented = set(re.findall(r"``(\w+)``", pb.__doc__))
+    for keys in (pb.REPORT_KEYS, pb.MACHINE_KEYS, pb.SCENE_KEYS, pb.PACKING_KEYS, pb.RECORD_KEYS):
+        assert set(keys) <= documented, set(keys) - documented
+    assert set(pb.REPORT_KEYS) <= set(data)
+    assert set(pb.MACHINE_KEYS) <= set(data["machine"])
+    assert data["machine"]["machine_gflops"] > 0
+    for scene in data["scenes"]:
+        assert set(pb.SCENE_KEYS) <= set(scene)
+        for packing in scene["packing"]:
+            assert set(pb.PACKING_KEYS) <= set(packing)
+    configs = {(r["backend"], r["precision"], r["material"]) for r in data["records"]}
+    expected = {("onnx", p, m) for p in pb.PRECISIONS for m in pb.MATERIALS}
+    expected |= {(b, "fp32", m) for b in ("glsl", "vertex") for m in pb.MATERIALS}
+    assert configs == expected
+    for record in data["records"]:
+        missing = set(pb.RECORD_KEYS) - set(record)
+        assert not missing, (record["label"], missing)
+        assert record["resolution"] == f"{SIZE}x{SIZE}" and record["views"] == VIEWS
+        assert record["fps"] > 0 and record["stages_ms"]
+
+
+def test_errors_are_finite_and_plausible(report):
+    data, _ = report
+    for record in data["records"]:
+        for key in ("psnr", "psnr_whole", "mae", "ssim"):
+            assert math.isfinite(record[key]), (record["label"], key)
+        assert record["psnr"] > 10.0, record["label"]
+        assert record["psnr_whole"] >= record["psnr"]  # the black background matches exactly
+        assert 0.0 <= record["ssim"] <= 1.0
+    vertex = [r for r in data["records"] if r["backend"] == "vertex"]
+    assert vertex and all(math.isfinite(r["mae"]) for r in vertex)
+    baseline = data["scenes"][0]["vertex_baseline"]
+    assert baseline["weight_bytes"] == 16 * 4 * (baseline["vertices"] + baseline["back_vertices"])
+    assert baseline["coverage_agreement"][f"{SIZE}x{SIZE}"] > 0.99  # the same pixels as the G-buffer
+
+
+def test_reference_noise_is_reported(report):
+    data, _ = report
+    noise = data["scenes"][0]["reference"]["noise_psnr"][f"{SIZE}x{SIZE}"]
+    assert set(noise) == set(pb.MATERIALS)
+    assert all(math.isfinite(v) and v > 20.0 for v in noise.values())
+    assert data["scenes"][0]["reference"]["rays"] == 64
+
+
+def test_naive_path_runs_every_pixel_through_every_network(report):
+    data, _ = report
+    (packing,) = data["scenes"][0]["packing"]
+    assert packing["all_pixels"] == SIZE * SIZE
+    assert packing["network_segments"] >= 1
+    assert all(rows == SIZE * SIZE for rows in packing["naive_rows_per_segment"].values())
+    assert packing["naive_total_rows"] == packing["network_segments"] * SIZE * SIZE
+    assert 0 < packing["covered_pixels"] < SIZE * SIZE
+    assert packing["naive_max_abs_diff"] < 1e-4  # same networks, same answers on covered pixels
+    assert packing["naive_inference_ms"] > 0 and packing["packed_inference_ms"] > 0
+
+
+def test_pareto_front_of_hand_made_points():
+    points = [(1.0, 10.0), (2.0, 9.0), (3.0, 3.0), (1.5, 8.0), (2.0, 9.0), (0.5, 11.0), (3.0, 2.0), (0.4, 11.0)]
+    # (1.5, 8) loses to (2, 9); (3, 2) to (3, 3); (0.4, 11) to (0.5, 11); the duplicates both stay.
+    assert pb.pareto_front(points) == [5, 0, 1, 4, 2]
+    assert pb.pareto_front([(1.0, 1.0)]) == [0]
+    assert pb.pareto_front([]) == []
+
+
+def test_pareto_front_in_report_and_plot(report):
+    data, paths = report
+    assert data["pareto"] and all(data["pareto"].values())
+    for group, labels in data["pareto"].items():
+        members = [r for r in data["records"] if pb._group_key(r) == group]
+        front = {r["label"] for r in members if r["pareto"]}
+        assert front == set(labels)
+        for r in members:  # nothing on the front is beaten in both FPS and PSNR
+            if r["pareto"]:
+                assert not any(o["fps"] > r["fps"] and o["psnr"] > r["psnr"] for o in members)
+    assert paths["plot"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    table = paths["md"].read_text()
+    assert table.count(f"| {SIZE}x{SIZE} |") == len(data["records"])
+
+
+def test_precision_variants_stay_close_to_fp32(tiny_scene, tmp_path):
+    import onnxruntime as ort
+
+    from prt.runtime.manifest import load_manifest
+
+    manifest = load_manifest(tiny_scene)
+    rng = np.random.default_rng(1)
+    normals = rng.standard_normal((4096, 3))
+    x = np.concatenate([rng.uniform(-0.9, 0.9, (4096, 3)), normals / np.linalg.norm(normals, axis=1, keepdims=True)], axis=1)
+    x = x.astype(np.float32)
+
+    def run(path):
+        return ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(None, {"x": x})[0]
+
+    for precision, limit in TOLERANCE.items():
+        variant = pb.variant_manifest(manifest, precision, tmp_path)
+        for seg, original in zip(variant.segments, manifest.segments):
+            if seg.kind != "network":
+                continue
+            assert seg.model != original.model and seg.model.is_file()
+            got, want = run(seg.model), run(original.model)
+            assert got.dtype == np.float32 and got.shape == want.shape
+            assert np.abs(got - want).max() < limit, (precision, seg.id, float(np.abs(got - want).max()))
+        assert pb.model_weight_bytes(variant) < pb.model_weight_bytes(manifest)
+
+
+def test_variant_records_match_fp32_transfer(report):
+    data, _ = report
+    for r in data["records"]:
+        if r["backend"] == "onnx":
+            assert r["transfer_max_abs_diff"] < TOLERANCE.get(r["precision"], 1e-6), r["label"]
+        elif r["backend"] == "glsl":
+            assert r["transfer_max_abs_diff"] < 1e-4  # the same networks in the fragment shader
+
+
+def test_image_metrics_of_identical_images():
+    rng = np.random.default_rng(0)
+    image = rng.uniform(0, 1, (32, 32, 3))
+    covered = np.zeros((32, 32), dtype=bool)
+    covered[8:24, 8:24] = True
+    same = pb.image_metrics(image, image, covered)
+    assert same == {"mae": 0.0, "psnr": pb.PSNR_CAP, "ssim": pytest.approx(1.0), "psnr_whole": pb.PSNR_CAP}
+    darker = pb.image_metrics(image * 0.9, image, covered)
+    assert 0 < darker["mae"] and darker["psnr"] < pb.PSNR_CAP and darker["ssim"] < 1.0
