@@ -1,7 +1,8 @@
 """The paper-style table, reproduced by one command.
 
 usage: python bench/paper_table.py [--samples 1000000] [--views 30] [--size 512] [--ref-rays 1024]
-                                   [--work /tmp/prt-paper] [--out docs/benchmarks/paper]
+                                   [--backends onnx glsl vertex] [--work /tmp/prt-paper]
+                                   [--out docs/benchmarks/paper]
 
 Builds the shared meshes (bunny, teapot, spot, daffodil plant; from ../shared/data/meshes,
 Spot falls back to the bundled copy) at the paper's two sizes (k = 64 and k = 128, l = 4) and
@@ -44,6 +45,7 @@ def main(argv=None) -> int:
     p.add_argument("--views", type=int, default=30)
     p.add_argument("--size", type=int, default=512)
     p.add_argument("--ref-rays", type=int, default=1024)
+    p.add_argument("--backends", nargs="*", default=["onnx", "glsl", "vertex"], help="passed to prt-bench")
     p.add_argument("--meshes", nargs="*", default=list(MESHES), choices=list(MESHES))
     p.add_argument("--work", type=Path, default=Path("/tmp/prt-paper"))
     p.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks" / "paper")
@@ -74,7 +76,7 @@ def main(argv=None) -> int:
     bench = [sys.executable, "-m", "prt.train.benchmark", *map(str, scenes),
              "--views", str(args.views), "--size", str(args.size), "--ref-rays", str(args.ref_rays),
              "--json", str(args.out.with_suffix(".json")), "--md", str(args.out.with_suffix(".md")),
-             "--plot", str(args.out.with_suffix(".png"))]  # fmt: skip
+             "--plot", str(args.out.with_suffix(".png")), "--backends", *args.backends]  # fmt: skip
     print(f"== benchmark: {shlex.join(bench[1:])}", flush=True)
     subprocess.run(bench, check=True)
 
