@@ -1309,10 +1309,14 @@ def plot(report: dict, path: Path) -> None:
     groups = defaultdict(list)
     for r in report["records"]:
         groups[f"{r['scene']} {r['resolution']}"].append(r)
-    fig, axes = plt.subplots(1, len(groups), figsize=(8.5 * len(groups), 6.0), squeeze=False)
+    cols = min(3, len(groups))  # a grid, so a many-scene report stays readable
+    rows = -(-len(groups) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(8.5 * cols, 6.0 * rows), squeeze=False)
+    for ax in axes.flat[len(groups):]:
+        ax.set_visible(False)
     colours = {"onnx": "tab:blue", "glsl": "tab:orange", "vertex": "tab:green"}
     markers = {"diffuse": "o", "glossy": "s"}
-    for ax, (name, group) in zip(axes[0], groups.items()):
+    for ax, (name, group) in zip(axes.flat, groups.items()):
         for r in group:
             ax.scatter(r["fps"], r["psnr"], c=colours.get(r["backend"], "grey"), marker=markers[r["material"]], s=36, zorder=3)
         for material, style in (("diffuse", "-"), ("glossy", "--")):
@@ -1336,7 +1340,7 @@ def plot(report: dict, path: Path) -> None:
         ax.legend(handles=handles, fontsize=8, loc="best")
     fig.tight_layout()  # before the labels: they are placed in final display coordinates
     fig.canvas.draw()
-    for ax, group in zip(axes[0], groups.values()):
+    for ax, group in zip(axes.flat, groups.values()):
         _place_labels(fig, ax, [(r["fps"], r["psnr"], r["label"]) for r in group])
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
