@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
 
             envmap = read_envmap(args.envmap)
         geometry = load_geometry(args.input)
-        print(geometry.summary() if hasattr(geometry, "summary") else geometry.source)
+        print(geometry.summary())
         settings = PrecomputeSettings(
             samples=args.samples,
             validation=args.validation,

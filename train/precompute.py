@@ -168,7 +168,7 @@ def run_precompute(
         "format": FORMAT_VERSION,
         "key": key,
         "source": geometry.source,
-        "geometry": geometry.summary() if hasattr(geometry, "summary") else geometry.source,
+        "geometry": geometry.summary(),
         "settings": asdict(settings),
         "validation_samples": len(valid),
         "timings": timings,
