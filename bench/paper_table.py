@@ -2,6 +2,7 @@
 
 usage: python bench/paper_table.py [--samples 1000000] [--views 30] [--size 512] [--ref-rays 1024]
                                    [--backends onnx glsl vertex] [--work /tmp/prt-paper]
+                                   [--meshes bunny ...] [--sizes k64 k128 right-sized] [--build-only]
                                    [--out docs/benchmarks/paper]
 
 Builds the shared meshes (bunny, teapot, spot, daffodil plant; from ../shared/data/meshes,
@@ -47,6 +48,8 @@ def main(argv=None) -> int:
     p.add_argument("--ref-rays", type=int, default=1024)
     p.add_argument("--backends", nargs="*", default=["onnx", "glsl", "vertex"], help="passed to prt-bench")
     p.add_argument("--meshes", nargs="*", default=list(MESHES), choices=list(MESHES))
+    p.add_argument("--sizes", nargs="*", default=list(SIZES), choices=list(SIZES), help="which builds to make (all: the table)")
+    p.add_argument("--build-only", action="store_true", help="make the builds (cached under --work) and stop before the benchmark")
     p.add_argument("--work", type=Path, default=Path("/tmp/prt-paper"))
     p.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks" / "paper")
     args = p.parse_args(argv)
@@ -60,12 +63,16 @@ def main(argv=None) -> int:
             else:
                 print(f"note: {mesh} not found (no ../shared here); skipping {name}")
                 continue
-        first = None
+        # one ground truth per mesh: later sizes (and later runs) link to the first precompute made
+        first = next((args.work / name / z for z in SIZES if (args.work / name / z / "precompute").is_dir()
+                      and not (args.work / name / z / "precompute").is_symlink()), None)  # fmt: skip
         for size, flags in SIZES.items():
+            if size not in args.sizes:
+                continue
             out = args.work / name / size
-            if first is not None and not (out / "precompute").exists():
+            if first is not None and first != out and not (out / "precompute").exists():
                 out.mkdir(parents=True, exist_ok=True)
-                (out / "precompute").symlink_to((first / "precompute").resolve())  # one ground truth per mesh
+                (out / "precompute").symlink_to((first / "precompute").resolve())
             cmd = [sys.executable, "-m", "prt.train.train_cli", str(mesh), "-o", str(out), "--name", f"{name}-{size}",
                    "--samples", str(args.samples), "--rays", str(args.rays), "--no-progress", *flags]  # fmt: skip
             print(f"== {name} {size}: {shlex.join(cmd[2:])}", flush=True)
@@ -73,6 +80,9 @@ def main(argv=None) -> int:
             first = first or out
             scenes.append(out / "scene.json")
 
+    if args.build_only:
+        print(f"built {len(scenes)} scenes under {args.work}")
+        return 0
     bench = [sys.executable, "-m", "prt.train.benchmark", *map(str, scenes),
              "--views", str(args.views), "--size", str(args.size), "--ref-rays", str(args.ref_rays),
              "--json", str(args.out.with_suffix(".json")), "--md", str(args.out.with_suffix(".md")),
