@@ -57,7 +57,10 @@ def test_report_has_every_documented_key(report):
         assert set(keys) <= documented, set(keys) - documented
     assert set(pb.REPORT_KEYS) <= set(data)
     assert set(pb.MACHINE_KEYS) <= set(data["machine"])
-    assert data["machine"]["machine_gflops"] > 0
+    machine = data["machine"]
+    assert machine["gemm_numpy_gflops"] > 0 and machine["gemm_onnxruntime_gflops"] > 0
+    # the limit is the faster library, so no network stage is measured against a slow BLAS
+    assert machine["machine_gflops"] == max(machine["gemm_numpy_gflops"], machine["gemm_onnxruntime_gflops"])
     for scene in data["scenes"]:
         assert set(pb.SCENE_KEYS) <= set(scene)
         for packing in scene["packing"]:
@@ -164,6 +167,16 @@ def test_variant_records_match_fp32_transfer(report):
             assert r["transfer_max_abs_diff"] < TOLERANCE.get(r["precision"], 1e-6), r["label"]
         elif r["backend"] == "glsl":
             assert r["transfer_max_abs_diff"] < 1e-4  # the same networks in the fragment shader
+
+
+def test_onnxruntime_gemm_limit_counts_the_flops_of_a_product():
+    """Two sizes 2x apart take ~8x the time: the GFLOP/s figure stays within a factor of 4.
+
+    A formula that forgot a power of n (or timed the session set-up) would drift by 2x-8x.
+    """
+    small, large = pb.ort_gemm_gflops(256, repeats=5), pb.ort_gemm_gflops(512, repeats=5)
+    assert small > 0 and large > 0
+    assert 0.25 < large / small < 8.0
 
 
 def test_image_metrics_of_identical_images():
