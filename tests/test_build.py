@@ -72,6 +72,25 @@ def test_unshadowed_segments_need_no_network(tmp_path):
     assert "analytic" in proc.stdout
 
 
+def test_match_right_sizes_against_a_reference_size(tmp_path):
+    out = tmp_path / "match"
+    proc = prt_train(DATA / "spot.obj", "-o", out, *QUICK, "--segments", 2, "--match", "32x2", "--match-tolerance", 0.5)
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads((out / "build.json").read_text())
+    ref_flops = None
+    for seg in report["segments"]:
+        tried = seg["tried"]
+        assert tried[0]["arch"].startswith("k32-l2") and tried[0]["reference"]
+        ref_flops = tried[0]["flops"]
+        assert seg["bar"] == pytest.approx(tried[0]["val_mae"] * 1.5)
+        if seg["kind"] == "network":
+            assert seg["flops_per_fragment"] <= ref_flops and seg["val_mae"] <= seg["bar"] + 1e-12
+            assert seg["met_target"]
+        # every smaller rung tried but the last cleared the bar (the walk stops at the first miss)
+        assert all(t["val_mae"] <= seg["bar"] for t in tried[1:-1])
+    assert ref_flops is not None
+
+
 def test_spec_file_and_its_errors(tmp_path):
     spec = {"geometry": "sphere_plane", "samples": 3000, "validation": 1000, "rays": 32, "epochs": 2,
             "batch": 512, "segments": 2, "fixed": {"hidden": 8, "layers": 1, "pos_freqs": 2}, "glsl_layout": "texture"}
@@ -90,6 +109,9 @@ def test_spec_file_and_its_errors(tmp_path):
         "typo.json": ({**spec, "sampels": 10}, "sampels"),
         "type.json": ({**spec, "rays": "many"}, "rays"),
         "ladder.json": ({**spec, "fixed": {"hidden": 8, "depth": 2}}, "fixed.depth"),
+        "match.json": ({**spec, "fixed": None, "match": {"hidden": 0, "layers": 2}}, "match.hidden"),
+        "both.json": ({**spec, "match": {"hidden": 64, "layers": 4}}, "match"),
+        "tolerance.json": ({**spec, "fixed": None, "match_tolerance": 3}, "match_tolerance"),
         "json.json": (None, "line 1"),
     }
     for name, (content, field) in bad.items():
@@ -106,6 +128,7 @@ def test_bad_inputs_fail_in_one_line(tmp_path):
         ["no_such_sdf", "-o", tmp_path / "a"],
         [DATA / "spot.obj", "-o", tmp_path / "file" / "out"],
         [DATA / "spot.obj", "-o", tmp_path / "b", "--hidden", 16],
+        [DATA / "spot.obj", "-o", tmp_path / "c", "--match", "64"],
     ]
     for args in cases:
         proc = prt_train(*args, "--no-progress")

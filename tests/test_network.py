@@ -12,7 +12,7 @@ import torch
 from prt.export.onnx_model import FORMAT, build_model, read_arrays, read_metadata, save_model
 from prt.runtime import sh
 from prt.train import compute_transfer, load_geometry, sample_surface
-from prt.train.fit import FitSettings, fit_segment, right_size
+from prt.train.fit import FitSettings, fit_segment, right_size, right_size_matching
 from prt.train.network import Architecture, TransferMLP, target_scaling
 
 DATA = Path(__file__).parent / "data"
@@ -150,6 +150,46 @@ def test_right_sizing_stops_at_the_first_size_that_meets_the_target():
     chosen, tried = right_size(fit, ladder, target=0.005, log=lambda *_: None)
     assert chosen.arch.hidden == 32 and calls == [8, 16, 32] and len(tried) == 3
     assert all(a["flops"] > 0 for a in tried)
+
+
+class _FakeFit:
+    def __init__(self, arch, mae):
+        self.arch, self.val_mae, self.seconds = arch, mae, 0.0
+
+
+def _fake_fits(maes: dict):
+    calls = []
+
+    def fit(arch):
+        calls.append((arch.hidden, arch.layers))
+        return _FakeFit(arch, maes[(arch.hidden, arch.layers)])
+
+    return fit, calls
+
+
+LADDER = [Architecture(hidden=h, layers=l) for h, l in ((16, 2), (32, 2), (32, 3), (48, 3), (64, 3), (64, 4), (128, 4))]
+
+
+def test_matching_keeps_the_cheapest_size_within_tolerance_of_the_reference():
+    maes = {(16, 2): 0.009, (32, 2): 0.0030, (32, 3): 0.0021, (48, 3): 0.00204, (64, 3): 0.00201, (64, 4): 0.0020, (128, 4): 0.001}
+    fit, calls = _fake_fits(maes)
+    chosen, tried, bar = right_size_matching(fit, Architecture(64, 4), LADDER, tolerance=0.05, log=lambda *_: None)
+    assert bar == pytest.approx(0.0021)
+    # reference first, then cheaper rungs from the largest down, stopping at the first miss
+    assert calls == [(64, 4), (64, 3), (48, 3), (32, 3), (32, 2)]
+    assert (chosen.arch.hidden, chosen.arch.layers) == (32, 3)
+    assert chosen.arch.flops_per_fragment() < Architecture(64, 4).flops_per_fragment()
+    assert tried[0]["reference"] and len(tried) == 5
+
+
+def test_matching_falls_back_to_the_reference_when_nothing_smaller_is_as_good():
+    maes = {(16, 2): 0.009, (32, 2): 0.005, (32, 3): 0.004, (48, 3): 0.003, (64, 3): 0.0025, (64, 4): 0.002, (128, 4): 0.001}
+    fit, calls = _fake_fits(maes)
+    chosen, tried, _ = right_size_matching(fit, Architecture(64, 4), LADDER, tolerance=0.05, log=lambda *_: None)
+    assert (chosen.arch.hidden, chosen.arch.layers) == (64, 4)
+    assert calls == [(64, 4), (64, 3)]  # one miss ends the walk; larger rungs are never tried
+    with pytest.raises(ValueError, match="tolerance"):
+        right_size_matching(fit, Architecture(64, 4), LADDER, tolerance=-0.1)
 
 
 def test_flops_grow_with_size():

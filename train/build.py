@@ -24,7 +24,7 @@ import numpy as np
 from ..runtime import sh
 from ..runtime.errors import SpecError
 from ..runtime.files import atomic_save_npy, atomic_save_npz, atomic_write_bytes, atomic_write_json
-from .fit import DEFAULT_LADDER, FitSettings, fit_segment, right_size
+from .fit import DEFAULT_LADDER, FitSettings, fit_segment, right_size, right_size_matching
 from .network import Architecture
 from .precompute import PrecomputeSettings, load_precompute, run_precompute
 
@@ -60,6 +60,8 @@ class BuildSpec:
     target: float = 0.0025  # validation coefficient MAE a right-sized network must reach
     ladder: list[dict] | None = None  # [{hidden, layers, pos_freqs, normal_freqs}], small to large
     fixed: dict | None = None  # force one size for every network segment
+    match: dict | None = None  # right-size to this size's accuracy ({hidden, layers, ...}) instead of ``target``
+    match_tolerance: float = 0.05  # with ``match``: validation MAE may exceed the reference's by this share
     analytic: bool = True  # let unshadowed segments skip the network
     # export
     glsl_layout: str = "auto"
@@ -90,6 +92,10 @@ class BuildSpec:
         if self.ladder is not None:
             return [_architecture(a, self.bands, f"ladder[{i}]") for i, a in enumerate(self.ladder)]
         return [dataclasses.replace(a, bands=self.bands) for a in DEFAULT_LADDER]
+
+    def reference_architecture(self) -> Architecture | None:
+        """The size whose accuracy right-sizing matches (``match``), or None (absolute ``target``)."""
+        return None if self.match is None else _architecture(self.match, self.bands, "match")
 
 
 def _architecture(d: dict, bands: int, where: str) -> Architecture:
@@ -163,6 +169,12 @@ def spec_from_dict(data: dict) -> BuildSpec:
     if spec.glsl_layout not in ("auto", "const", "texture"):
         raise SpecError(f"glsl_layout: expected 'auto', 'const' or 'texture', got {spec.glsl_layout!r}")
     spec.architectures()  # validates ladder / fixed
+    if spec.match is not None:
+        if spec.fixed is not None:
+            raise SpecError("match: cannot be combined with fixed (a fixed size has nothing to right-size)")
+        spec.reference_architecture()  # validates match
+    if not 0.0 <= spec.match_tolerance <= 1.0:
+        raise SpecError(f"match_tolerance: expected a share in [0, 1], got {spec.match_tolerance}")
     return spec
 
 
@@ -216,7 +228,8 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
     segments = []
     for seg in seg_json["segments"]:
         s = seg["id"]
-        key = _hash(pre_summary["key"], s, asdict(fit_settings), [a.as_dict() for a in archs], spec.target, spec.analytic, TRAIN_FORMAT)
+        key = _hash(pre_summary["key"], s, asdict(fit_settings), [a.as_dict() for a in archs], spec.target, spec.analytic, TRAIN_FORMAT,
+                    *([spec.match, spec.match_tolerance] if spec.match is not None else []))  # fmt: skip
         record_path = out / "train" / f"seg{s:03d}.json"
         weights_path = out / "train" / f"seg{s:03d}.npz"
         if record_path.is_file():
@@ -314,14 +327,17 @@ def _train_segment(spec, s, seg, samples, valid, member_idx, archs, fit_settings
         "bounds": bounds.tolist(),
         "note": note,
     }
+    reference = spec.reference_architecture()
+    analytic = None
     if spec.analytic:
+        from .fit import shaded_error
+
         pred = analytic_transfer(vn, spec.bands)
         mae = float(np.abs(pred - vt).mean())
-        if mae <= spec.target:
-            from .fit import shaded_error
-
+        analytic = {**base, "kind": "analytic", "val_mae": mae, "shaded": shaded_error(pred, vt, lights), "tried": [], "flops_per_fragment": 0, "weight_bytes": 0}
+        if mae <= spec.target and reference is None:
             log(f"segment {s}: analytic (unshadowed; validation MAE {mae:.5f} <= {spec.target})")
-            return {**base, "kind": "analytic", "val_mae": mae, "shaded": shaded_error(pred, vt, lights), "tried": [], "flops_per_fragment": 0, "weight_bytes": 0}
+            return analytic
 
     log(f"segment {s}: {len(train_idx):,} training samples ({base['margin_samples']:,} margin), {len(vt):,} held out")
 
@@ -343,7 +359,15 @@ def _train_segment(spec, s, seg, samples, valid, member_idx, archs, fit_settings
             if bar is not None:
                 bar.close()
 
-    result, tried = right_size(fit, archs, target=spec.target, log=log)
+    if reference is not None:
+        result, tried, bar = right_size_matching(fit, reference, archs, tolerance=spec.match_tolerance, log=log)
+        if analytic is not None and analytic["val_mae"] <= min(bar, spec.target):
+            log(f"segment {s}: analytic (unshadowed; validation MAE {analytic['val_mae']:.5f} <= the bar {bar:.5f})")
+            return {**analytic, "tried": tried, "bar": bar}
+        met = result.val_mae <= bar
+    else:
+        result, tried = right_size(fit, archs, target=spec.target, log=log)
+        met, bar = result.val_mae <= spec.target, spec.target
     arch = result.arch
     return {
         **base,
@@ -355,7 +379,8 @@ def _train_segment(spec, s, seg, samples, valid, member_idx, archs, fit_settings
         "epochs": result.epochs,
         "train_s": result.seconds,
         "tried": tried,
-        "met_target": result.val_mae <= spec.target,
+        "met_target": met,
+        "bar": bar,
         "flops_per_fragment": arch.flops_per_fragment(),
         "weight_bytes": arch.weight_count() * 4,
         "arrays": result.model.arrays(),

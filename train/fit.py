@@ -21,6 +21,7 @@ __all__ = [
     "fit_segment",
     "right_size",
     "DEFAULT_LADDER",
+    "right_size_matching",
     "PAPER_SIZES",
     "shaded_error",
     "bf16_supported",
@@ -190,6 +191,37 @@ def fit_segment(
         seconds=time.perf_counter() - t0,
         history=history,
     )
+
+
+def right_size_matching(fit, reference: Architecture, ladder=DEFAULT_LADDER, tolerance: float = 0.05, log=print):
+    """The cheapest size that is as accurate as ``reference`` (e.g. the paper's k = 64, l = 4).
+
+    Trains ``reference`` first; its validation MAE times ``1 + tolerance`` is the bar.  Then walks
+    the rungs of ``ladder`` with fewer FLOPs per fragment than the reference, largest first, while
+    they clear the bar, and keeps the last (cheapest) that did.  So the result never has more
+    FLOPs than the reference nor (up to ``tolerance``) more error; when no smaller rung clears the
+    bar it is the reference fit itself, at no extra training.  A rung that misses ends the walk:
+    smaller ones are not tried (a rung is rarely more accurate than a larger one).
+
+    Returns ``(chosen FitResult, records of the sizes tried, the bar)``.
+    """
+    if tolerance < 0:
+        raise ValueError(f"tolerance must be >= 0, got {tolerance}")
+    ref = fit(reference)
+    bar = ref.val_mae * (1.0 + tolerance)
+    tried = [{"arch": reference.label(), "val_mae": ref.val_mae, "flops": reference.flops_per_fragment(), "seconds": ref.seconds, "reference": True}]
+    log(f"  {reference.label():>12}: val MAE {ref.val_mae:.5f} ({ref.seconds:.1f} s)  reference; bar {bar:.5f}")
+    chosen = ref
+    cheaper = sorted((a for a in ladder if a.flops_per_fragment() < reference.flops_per_fragment()), key=lambda a: -a.flops_per_fragment())
+    for arch in cheaper:
+        result = fit(arch)
+        ok = result.val_mae <= bar
+        tried.append({"arch": arch.label(), "val_mae": result.val_mae, "flops": arch.flops_per_fragment(), "seconds": result.seconds})
+        log(f"  {arch.label():>12}: val MAE {result.val_mae:.5f} ({result.seconds:.1f} s)  {'meets' if ok else 'misses'} the bar")
+        if not ok:
+            break
+        chosen = result
+    return chosen, tried, bar
 
 
 def right_size(fit, ladder=DEFAULT_LADDER, target: float = 0.004, log=print) -> tuple[FitResult, list[dict]]:

@@ -1,7 +1,7 @@
 """prt-train: build a deployable scene: precompute -> train -> export (ONNX, GLSL, scene.json).
 
 usage: prt-train INPUT -o OUTDIR [--samples N] [--rays R] [--segments S] [--epochs E] [--seed K]
-                 [--hidden K --layers L] [--target MAE]
+                 [--hidden K --layers L] [--target MAE | --match 64x4]
 
 INPUT is a mesh file, a built-in SDF scene name (``prt-precompute --list-sdf``) or a build spec
 (``.json``; its fields are those of :class:`prt.train.build.BuildSpec`, flags override them).
@@ -46,6 +46,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--layers", type=int, default=None, help="force l hidden layers for every network (with --hidden)")
     p.add_argument("--pos-freqs", type=int, default=None, help="with --hidden/--layers: position encoding frequencies [6]")
     p.add_argument("--target", type=float, default=None, help=f"validation MAE (SH coefficients) a right-sized network must reach [{d.target}]")
+    p.add_argument("--match", default=None, metavar="KxL", help="right-size to the accuracy of this size instead of --target: train it, then keep the cheapest smaller size on the ladder within --match-tolerance of its validation MAE (e.g. 64x4, the paper's k = 64)")
+    p.add_argument("--match-tolerance", type=float, default=None, help=f"with --match: share by which the validation MAE may exceed the reference's [{d.match_tolerance}]")
     p.add_argument("--bf16", action="store_true", help="train the MLP layers under bf16 autocast (about 2x faster where the CPU has native bf16, slightly less accurate)")
     p.add_argument("--no-analytic", action="store_true", help="give every segment a network, even unshadowed ones")
     p.add_argument("--glsl-layout", choices=("auto", "const", "texture"), default=None, help="weights as baked mat4 constants or in a texture [auto]")
@@ -73,6 +75,7 @@ def _spec_from_args(args):
         "lr": args.lr,
         "seed": args.seed,
         "target": args.target,
+        "match_tolerance": args.match_tolerance,
         "glsl_layout": args.glsl_layout,
     }
     data = {k: v for k, v in vars(spec).items()}
@@ -88,6 +91,12 @@ def _spec_from_args(args):
         if args.pos_freqs is not None:
             fixed["pos_freqs"] = args.pos_freqs
         data["fixed"] = fixed
+    if args.match is not None:
+        try:
+            k, l = (int(v) for v in args.match.lower().split("x"))
+        except ValueError:
+            raise SpecError(f"--match: expected KxL such as 64x4, got {args.match!r}") from None
+        data["match"] = {"hidden": k, "layers": l}
     spec = spec_from_dict(data)
     return spec
 
