@@ -73,14 +73,24 @@ def test_unshadowed_segments_need_no_network(tmp_path):
 
 
 def test_match_right_sizes_against_a_reference_size(tmp_path):
+    fixed = tmp_path / "fixed"
+    proc = prt_train(DATA / "spot.obj", "-o", fixed, *QUICK, "--segments", 2, "--hidden", 32, "--layers", 2, "--no-analytic")
+    assert proc.returncode == 0, proc.stderr
     out = tmp_path / "match"
+    out.mkdir()
+    (out / "precompute").symlink_to(fixed / "precompute")  # one ground truth, as the paper table shares it
     proc = prt_train(DATA / "spot.obj", "-o", out, *QUICK, "--segments", 2, "--match", "32x2", "--match-tolerance", 0.5)
     assert proc.returncode == 0, proc.stderr
+    # the references are the fixed build's networks, read from the fit cache in the shared precompute
+    fixed_report = json.loads((fixed / "build.json").read_text())
+    assert proc.stdout.count("k32-l2-f6: fitted before on this precompute (cached)") == len(fixed_report["segments"])
     report = json.loads((out / "build.json").read_text())
     ref_flops = None
     for seg in report["segments"]:
         tried = seg["tried"]
         assert tried[0]["arch"].startswith("k32-l2") and tried[0]["reference"]
+        fixed_seg = next(f for f in fixed_report["segments"] if f["id"] == seg["id"])
+        assert tried[0]["val_mae"] == fixed_seg["val_mae"]
         ref_flops = tried[0]["flops"]
         assert seg["bar"] == pytest.approx(tried[0]["val_mae"] * 1.5)
         if seg["kind"] == "network":

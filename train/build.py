@@ -32,6 +32,7 @@ __all__ = ["BuildSpec", "load_spec", "run_build", "analytic_transfer", "ENV_LIGH
 
 ENV_LIGHTS = ("potsdamer", "interior", "studio")
 TRAIN_FORMAT = 1
+FIT_FORMAT = 1  # layout of the fit cache (precompute/fits/)
 
 
 @dataclass
@@ -238,7 +239,8 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
                 log(f"segment {s}: cached ({record['kind']}{', ' + record['arch_label'] if record['kind'] == 'network' else ''})")
                 segments.append(record)
                 continue
-        record = _train_segment(spec, s, seg, samples, valid, members[s], archs, fit_settings, lights, progress, log)
+        fits = _FitCache(out / "precompute" / "fits", pre_summary["key"], s, fit_settings)
+        record = _train_segment(spec, s, seg, samples, valid, members[s], archs, fit_settings, lights, progress, log, fits)
         record["key"] = key
         if record["kind"] == "network":
             atomic_save_npz(weights_path, **record.pop("arrays"))
@@ -305,7 +307,54 @@ def _validation_split(s, valid, own_idx, seed):
     return None, held
 
 
-def _train_segment(spec, s, seg, samples, valid, member_idx, archs, fit_settings, lights, progress, log) -> dict:
+class _StoredModel:
+    """A fitted network read back from the fit cache: just its arrays (all export needs)."""
+
+    def __init__(self, arrays: dict):
+        self._arrays = arrays
+
+    def arrays(self) -> dict:
+        return dict(self._arrays)
+
+
+class _FitCache:
+    """Every network fitted on a precompute's segment, keyed by size and fit settings.
+
+    It lives inside the precompute folder, so builds that share one ground truth (the paper
+    table links one precompute into its k = 64, k = 128 and right-sized builds) also share
+    fits: ``--match 64x4`` reuses the k = 64 build's networks as its references.
+    """
+
+    def __init__(self, folder: Path, pre_key: str, segment: int, fit_settings):
+        self.folder, self.base = Path(folder), (pre_key, segment, asdict(fit_settings), FIT_FORMAT)
+
+    def _paths(self, arch):
+        key = _hash(*self.base, arch.as_dict())
+        return self.folder / f"{key}.json", self.folder / f"{key}.npz"
+
+    def get(self, arch):
+        from .fit import FitResult
+
+        meta_path, weights_path = self._paths(arch)
+        if not (meta_path.is_file() and weights_path.is_file()):
+            return None
+        try:
+            meta = json.loads(meta_path.read_text())
+            with np.load(weights_path) as data:
+                arrays = {k: data[k] for k in data.files}
+        except (OSError, ValueError):
+            return None  # a damaged entry is refitted
+        return FitResult(_StoredModel(arrays), arch, meta["val_mae"], meta["shaded"], meta["epochs"], meta["seconds"], meta["history"])
+
+    def put(self, result) -> None:
+        meta_path, weights_path = self._paths(result.arch)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        atomic_save_npz(weights_path, **result.model.arrays())  # weights first: the json marks the entry complete
+        atomic_write_json(meta_path, {"arch": result.arch.as_dict(), "val_mae": result.val_mae, "shaded": result.shaded,
+                                      "epochs": result.epochs, "seconds": result.seconds, "history": result.history})  # fmt: skip
+
+
+def _train_segment(spec, s, seg, samples, valid, member_idx, archs, fit_settings, lights, progress, log, fits=None) -> dict:
     own_idx = member_idx[samples["segment"][member_idx] == s]
     vsel, held = _validation_split(s, valid, own_idx, spec.seed)
     if held is not None:
@@ -342,6 +391,16 @@ def _train_segment(spec, s, seg, samples, valid, member_idx, archs, fit_settings
     log(f"segment {s}: {len(train_idx):,} training samples ({base['margin_samples']:,} margin), {len(vt):,} held out")
 
     def fit(arch):
+        cached = fits.get(arch) if fits is not None else None
+        if cached is not None:
+            log(f"  {arch.label():>12}: fitted before on this precompute (cached)")
+            return cached
+        result = _fit(arch)
+        if fits is not None:
+            fits.put(result)
+        return result
+
+    def _fit(arch):
         bar = None
         if progress:
             from tqdm import tqdm
