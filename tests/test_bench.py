@@ -169,6 +169,16 @@ def test_variant_records_match_fp32_transfer(report):
             assert r["transfer_max_abs_diff"] < 1e-4  # the same networks in the fragment shader
 
 
+def test_network_profile_splits_the_run_into_ops(report):
+    data, paths = report
+    prof = data["scenes"][0]["packing"][0]["network_profile"]
+    assert prof["rows"] > 0 and prof["run_us"] > 0
+    assert {"FusedGemm", "Sin", "Cos", "Concat"} <= set(prof["op_us"])  # ORT fuses Gemm + LeakyRelu
+    assert 0.0 < prof["gemm_share"] < 1.0
+    assert sum(prof["op_us"].values()) <= 1.2 * prof["run_us"]  # ops sum to about one run, not many
+    assert "network profile" in paths["md"].read_text()
+
+
 def test_onnxruntime_gemm_limit_counts_the_flops_of_a_product():
     """Two sizes 2x apart take ~8x the time: the GFLOP/s figure stays within a factor of 4.
 

@@ -65,7 +65,10 @@ JSON report (``--json``)
     ``naive_total_rows``, ``naive_inference_ms``, ``packed_inference_ms`` (medians over
     views), ``packing_speedup`` (naive / packed), ``pixel_ratio`` (all / covered pixels),
     ``work_ratio`` (naive rows / covered pixels), ``naive_max_abs_diff`` (naive vs packed
-    transfer on covered pixels); ``vertex_baseline`` (``vertices``, ``back_vertices``,
+    transfer on covered pixels), ``network_profile`` (ONNX Runtime's profiler on one slice of
+    the largest network segment of the first view, one thread: ``segment``, ``rows``,
+    ``run_us``, ``op_us`` per op type, ``gemm_share``: the share of the run in the MLP's
+    Gemms; the rest is the encoding and element-wise ops); ``vertex_baseline`` (``vertices``, ``back_vertices``,
     ``weight_bytes``, ``coverage_agreement`` or ``note`` when skipped).
 
     ``records``: one per configuration, with ``scene``, ``backend`` (onnx, glsl, vertex),
@@ -126,6 +129,7 @@ SCENE_KEYS = ("scene", "path", "geometry", "networks", "weight_bytes", "referenc
 PACKING_KEYS = (
     "resolution", "all_pixels", "covered_pixels", "network_segments", "naive_rows_per_segment", "naive_total_rows",
     "naive_inference_ms", "packed_inference_ms", "packing_speedup", "pixel_ratio", "work_ratio", "naive_max_abs_diff",
+    "network_profile",
 )  # fmt: skip
 RECORD_KEYS = (
     "scene", "backend", "precision", "material", "resolution", "width", "height", "views", "fps", "frame_ms",
@@ -874,6 +878,7 @@ def packing_baseline(manifest, gbuffer_pass, cameras, log) -> dict:
 
     onnx = OnnxTransfer(manifest)
     naive_ms, packed_ms, covered_counts, diffs, rows = [], [], [], [], {}
+    profile = None
     try:
         for i, camera in enumerate([cameras[0], *cameras]):  # the first pass warms the sessions up
             gbuffer_pass.render(camera)
@@ -884,6 +889,14 @@ def packing_baseline(manifest, gbuffer_pass, cameras, log) -> dict:
             everywhere, naive_time, rows = naive_transfer(onnx, packed, segment)
             if i == 0:
                 continue
+            if profile is None:  # the first measured view: its largest network segment, one slice
+                seg_cov = segment[covered]
+                ids, counts = np.unique(seg_cov[np.isin(seg_cov, list(onnx.sessions))], return_counts=True)
+                if len(ids):
+                    s = int(ids[np.argmax(counts)])
+                    x = packed[covered[seg_cov == s]][:, list(PACKED_COLUMNS)][: onnx.slice_rows]
+                    model = next(seg.model for seg in manifest.segments if seg.id == s)
+                    profile = {"segment": s, **profile_network(model, x)}
             packed_ms.append(packed_time)
             naive_ms.append(naive_time)
             covered_counts.append(len(covered))
@@ -906,12 +919,53 @@ def packing_baseline(manifest, gbuffer_pass, cameras, log) -> dict:
         "pixel_ratio": round(all_pixels / covered, 2) if covered else None,
         "work_ratio": round(sum(rows.values()) / covered, 2) if covered else None,
         "naive_max_abs_diff": float(max(diffs, default=0.0)),
+        "network_profile": profile,
     }
     log(
         f"  packing {result['resolution']}: naive {naive:.1f} ms ({len(rows)} x {all_pixels} rows) vs packed "
         f"{packed:.1f} ms ({covered:.0f} rows): {result['packing_speedup']}x; all/covered pixels {result['pixel_ratio']}x"
     )
     return result
+
+
+def profile_network(model_path, x: np.ndarray, repeats: int = 30) -> dict:
+    """Where one network's time goes: ONNX Runtime's own profiler, one thread, ``x`` as one call.
+
+    Returns ``{"rows", "run_us"`` (median model run), ``"op_us"`` ({op type: mean microseconds
+    per run}), ``"gemm_share"`` (share of the run spent in the MLP's matrix products: Gemm and
+    the FusedGemm ORT makes of Gemm + LeakyRelu; the encoding's tiny MatMuls are not counted)``}``.
+    """
+    import onnxruntime as ort
+
+    with tempfile.TemporaryDirectory(prefix="prt_profile_") as folder:
+        opts = ort.SessionOptions()
+        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        opts.intra_op_num_threads = 1
+        opts.enable_profiling = True
+        opts.profile_file_prefix = str(Path(folder) / "profile")
+        sess = ort.InferenceSession(str(model_path), opts, providers=["CPUExecutionProvider"])
+        feed = {"x": np.ascontiguousarray(x, dtype=np.float32)}
+        for _ in range(3):
+            sess.run(None, feed)  # warm-up runs are profiled too; dropped below by run index
+        for _ in range(repeats):
+            sess.run(None, feed)
+        events = json.loads(Path(sess.end_profiling()).read_text())
+    runs = [e for e in events if e.get("name") == "model_run"]
+    kept = runs[3:]
+    start = kept[0]["ts"] if kept else 0
+    op_us: dict[str, float] = {}
+    for e in events:
+        if e.get("cat") == "Node" and e.get("name", "").endswith("_kernel_time") and e["ts"] >= start:
+            op = e.get("args", {}).get("op_name", "?")
+            op_us[op] = op_us.get(op, 0.0) + e["dur"] / max(len(kept), 1)
+    run_us = float(np.median([e["dur"] for e in kept])) if kept else 0.0
+    gemm = sum(v for k, v in op_us.items() if k in ("Gemm", "FusedGemm"))
+    return {
+        "rows": int(len(x)),
+        "run_us": round(run_us, 1),
+        "op_us": {k: round(v, 1) for k, v in sorted(op_us.items(), key=lambda kv: -kv[1])},
+        "gemm_share": round(gemm / run_us, 3) if run_us else None,
+    }
 
 
 # =========================================================================== the benchmark
@@ -1329,6 +1383,11 @@ def markdown(report: dict) -> str:
                 f"{p['all_pixels']:,} pixels) vs packed {p['packed_inference_ms']:.1f} ms ({p['covered_pixels']:,.0f} covered): "
                 f"speed-up {p['packing_speedup']}x; all / covered pixels {p['pixel_ratio']}x, naive rows / covered {p['work_ratio']}x"
             )
+            prof = p.get("network_profile")
+            if prof:
+                top = ", ".join(f"{op} {us / prof['run_us']:.0%}" for op, us in list(prof["op_us"].items())[:6])
+                lines.append(f"- network profile (segment {prof['segment']}, {prof['rows']:,} rows, one thread): {prof['run_us']:.0f} us per call, "
+                             f"{prof['gemm_share']:.0%} in the MLP's Gemms; {top}")  # fmt: skip
         vb = s["vertex_baseline"]
         if "note" in vb:
             lines.append(f"- vertex baseline: {vb['note']}")
