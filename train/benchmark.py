@@ -931,7 +931,7 @@ def packing_baseline(manifest, gbuffer_pass, cameras, log) -> dict:
 def profile_network(model_path, x: np.ndarray, repeats: int = 30) -> dict:
     """Where one network's time goes: ONNX Runtime's own profiler, one thread, ``x`` as one call.
 
-    Returns ``{"rows", "run_us"`` (median model run), ``"op_us"`` ({op type: mean microseconds
+    Returns ``{"rows", "run_us"`` (median model run), ``"op_us"`` ({op type: median microseconds
     per run}), ``"gemm_share"`` (share of the run spent in the MLP's matrix products: Gemm and
     the FusedGemm ORT makes of Gemm + LeakyRelu; the encoding's tiny MatMuls are not counted)``}``.
     """
@@ -950,14 +950,19 @@ def profile_network(model_path, x: np.ndarray, repeats: int = 30) -> dict:
         for _ in range(repeats):
             sess.run(None, feed)
         events = json.loads(Path(sess.end_profiling()).read_text())
-    runs = [e for e in events if e.get("name") == "model_run"]
+    runs = sorted((e for e in events if e.get("name") == "model_run"), key=lambda e: e["ts"])
     kept = runs[3:]
-    start = kept[0]["ts"] if kept else 0
-    op_us: dict[str, float] = {}
-    for e in events:
-        if e.get("cat") == "Node" and e.get("name", "").endswith("_kernel_time") and e["ts"] >= start:
-            op = e.get("args", {}).get("op_name", "?")
-            op_us[op] = op_us.get(op, 0.0) + e["dur"] / max(len(kept), 1)
+    nodes = [e for e in events if e.get("cat") == "Node" and e.get("name", "").endswith("_kernel_time")]
+    per_run = []  # {op type: microseconds} of each kept run: medians resist a preempted op or two
+    for run in kept:
+        ops: dict[str, float] = {}
+        for e in nodes:
+            if run["ts"] <= e["ts"] <= run["ts"] + run["dur"]:
+                op = e.get("args", {}).get("op_name", "?")
+                ops[op] = ops.get(op, 0.0) + e["dur"]
+        per_run.append(ops)
+    names = {op for ops in per_run for op in ops}
+    op_us = {op: float(np.median([ops.get(op, 0.0) for ops in per_run])) for op in names}
     run_us = float(np.median([e["dur"] for e in kept])) if kept else 0.0
     gemm = sum(v for k, v in op_us.items() if k in ("Gemm", "FusedGemm"))
     return {
@@ -1118,7 +1123,10 @@ class SceneBench:
             log(f"  warning: {manifest.root / 'build.json'}'s source no longer gives geometry.npz's mesh; using geometry.npz")
         self.geometry_id = geo_info["checksum"] or f"sdf:{geo_info['source']}"
         self.tracer = make_tracer(self.geometry)
-        self.cache = settings.cache / manifest.name
+        self.cache = settings.cache / manifest.name  # this scene's precision variants
+        # Ray-traced transfer is keyed by its inputs (points, normals, rays, seed, geometry), so
+        # scenes of one mesh (k = 64, k = 128, right-sized) share their references and vertices.
+        self.transfer_cache = settings.cache / "transfer"
         self.cameras = orbit_cameras(manifest, settings.views)
         self.materials = _materials(manifest)
         self.variants = {p: variant_manifest(manifest, p, self.cache / "models") for p in settings.precisions}
@@ -1127,7 +1135,7 @@ class SceneBench:
         self.entry = {
             "scene": manifest.name, "path": str(manifest.path), "geometry": geo_info,
             "networks": sum(s.kind == "network" for s in manifest.segments), "weight_bytes": self.weights["fp32"],
-            "reference": {"rays": settings.ref_rays, "seed": settings.seed, "cache": str(self.cache), "noise_psnr": {},
+            "reference": {"rays": settings.ref_rays, "seed": settings.seed, "cache": str(self.transfer_cache), "noise_psnr": {},
                           "noise_note": "PSNR between two references with different seeds at view 0 (covered pixels); "
                                         "each is ~3 dB closer to the converged image than this"},
             "packing": [], "vertex_baseline": vertex_info,
@@ -1157,7 +1165,7 @@ class SceneBench:
             return None, {"note": "skipped: SDF scene (no vertices)"}
         if "vertex" not in self.settings.backends:
             return None, {"note": "skipped (--backends)"}
-        front, back, back_vertices = vertex_transfer(self.geometry, self.tracer, self.settings.ref_rays, self.cache, self.geometry_id)
+        front, back, back_vertices = vertex_transfer(self.geometry, self.tracer, self.settings.ref_rays, self.transfer_cache, self.geometry_id)
         n_vertices = len(self.geometry.mesh.vertices)
         info = {"vertices": n_vertices, "back_vertices": back_vertices,
                 "weight_bytes": 16 * 4 * (n_vertices + back_vertices), "rays": self.settings.ref_rays}  # fmt: skip
@@ -1178,7 +1186,7 @@ class SceneBench:
             # A second seed (other frame spins) at view 0 measures the reference's own noise.
             for seed in (settings.seed, settings.seed + 1) if v == 0 else (settings.seed,):
                 transfer, spent = cached_transfer(
-                    self.cache, tag, self.geometry, self.tracer, points, normals, settings.ref_rays, seed, self.geometry_id
+                    self.transfer_cache, tag, self.geometry, self.tracer, points, normals, settings.ref_rays, seed, self.geometry_id
                 )
                 seconds += spent
                 images[seed] = {
