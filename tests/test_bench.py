@@ -182,6 +182,16 @@ def test_network_profile_splits_the_run_into_ops(report):
     assert "network profile" in paths["md"].read_text()
 
 
+def test_budget_keeps_view_zero_and_spreads_the_rest():
+    views = list(range(30))
+    assert pb.budget_views(views, None, 0.5) == views  # no budget: every view
+    assert pb.budget_views(views, 60.0, None) == views  # nothing timed yet
+    assert pb.budget_views(views, 60.0, 1.0) == views  # 60 frames fit
+    few = pb.budget_views(views, 10.0, 1.0)
+    assert len(few) == 10 and few[0] == 0 and few[-1] == 29 and few == sorted(set(few))
+    assert len(pb.budget_views(views, 1.0, 16.0)) == 4  # a 16 s frame still gets the minimum
+
+
 def test_onnxruntime_gemm_limit_counts_the_flops_of_a_product():
     """Two sizes 2x apart take ~8x the time: the GFLOP/s figure stays within a factor of 4.
 

@@ -5,21 +5,24 @@ usage::
     prt-bench scene.json [more scenes] [--json out.json] [--md out.md]
         [--plot out.png] [--views 30] [--size 512 [256 ...]] [--ref-rays 1024] [--warmup 3]
         [--precisions fp32 fp16 fp16-mlp int8] [--backends onnx glsl vertex] [--cache DIR]
-        [--gemm-size 4096] [--blas-threads N]
+        [--gemm-size 4096] [--blas-threads N] [--config-budget SECONDS]
 
 For every scene, a camera trajectory of ``--views`` views orbits the manifest camera about its
 target (the paper's Table 1 protocol).  Every configuration (backend ``onnx`` at each ONNX
 precision, backend ``glsl``, and the vertex-space baseline; material diffuse and glossy; each
-``--size``) renders all views after ``--warmup`` frames, and is compared with a ray-traced
-reference of the same G-buffer.
+``--size``) renders all views after ``--warmup`` frames (or, under ``--config-budget``, as
+many views as the budget allows at the warm-up's frame time, at least 4, spread over the
+orbit; the record's ``views`` says how many), and is compared with a ray-traced reference of
+the same G-buffer.
 
 Reference
     The G-buffer of each view (the renderer's own, so pixels match), ground-truth transfer
     ray traced at every covered pixel with :func:`prt.train.compute_transfer` (``--ref-rays``
     cosine-weighted rays; the same geometry the scene was built from: ``geometry.npz``, or the
     SDF scene by name), shaded with :func:`prt.runtime.shading.shade` under the renderer's
-    lighting and material.  Cached per (scene, view, size, rays, seed) as ``.npz`` in the cache
-    folder (default: ``<json stem>_cache`` next to ``--json``).  Its own noise is reported:
+    lighting and material.  Cached by content (points, normals, rays, seed, geometry) as
+    ``.npz`` in ``transfer/`` of the cache folder (default: ``<json stem>_cache`` next to
+    ``--json``), so scenes built from one mesh share their references.  Its own noise is reported:
     PSNR between two references with different seeds (frame spins) at view 0.
 
 Metrics
@@ -984,6 +987,7 @@ class Settings:
     sizes: tuple = (512,)
     ref_rays: int = 1024
     warmup: int = 3
+    config_budget: float | None = None  # seconds of frames per configuration (slow ones measure fewer views)
     precisions: tuple = PRECISIONS
     backends: tuple = ("onnx", "glsl", "vertex")
     cache: Path | None = None
@@ -1026,6 +1030,20 @@ def _summarise(stage_lists, metric_lists, gflops, frame_ms) -> dict:
     return out
 
 
+def budget_views(views: list, budget_s: float | None, frame_s: float | None, least: int = 4) -> list:
+    """The views one configuration measures under a time budget (``--config-budget``).
+
+    All of them without a budget (or before any frame was timed); else as many as
+    ``budget_s / frame_s`` allow, at least ``least``, spread evenly over the orbit and always
+    starting at view 0 (whose transfer the precision variants are compared on).
+    """
+    if budget_s is None or frame_s is None or frame_s <= 0:
+        return list(views)
+    n = int(min(len(views), max(least, budget_s // frame_s)))
+    picks = np.unique(np.round(np.linspace(0, len(views) - 1, n)).astype(int)) if n > 1 else np.array([0])
+    return [views[i] for i in picks]
+
+
 def _measure_renderer(renderer, views, material_name, material, settings, transfer_fp32=None) -> tuple[dict, np.ndarray]:
     """Render every view with one material after warm-up; timings, metrics and view 0's transfer."""
     from prt.runtime.shading import tonemap
@@ -1034,12 +1052,16 @@ def _measure_renderer(renderer, views, material_name, material, settings, transf
     if material.kind == "glossy":
         kw.update(specular=material.specular, exponent=material.exponent)
     renderer.set_material(material.kind, **kw)
+    warm_s = None
     for i in range(settings.warmup):  # sessions, shader compilation, caches; a new view each time
         renderer.set_camera_object(views[0].camera.orbit(0.01 * (i + 1)))
+        t0 = time.perf_counter()
         renderer.render()
+        warm_s = time.perf_counter() - t0
+    measured = budget_views(views, settings.config_budget, warm_s)
     stages, metrics, gflops, frames = defaultdict(list), defaultdict(list), [], []
     transfer0 = None
-    for k, view in enumerate(views):
+    for k, view in enumerate(measured):
         renderer.set_camera_object(view.camera)
         image = renderer.render()
         for name, ms in renderer.timings.items():
@@ -1054,6 +1076,7 @@ def _measure_renderer(renderer, views, material_name, material, settings, transf
             transfer0 = renderer.render_transfer()[view.gbuffer.covered]  # cached: no network runs
     summary = _summarise(stages, metrics, gflops, frames)
     summary["network_ms"] = summary["stages_ms"].get("inference", summary["stages_ms"].get("network", 0.0))
+    summary["views"] = len(measured)
     if transfer_fp32 is not None:
         summary["transfer_max_abs_diff"] = float(np.abs(transfer0 - transfer_fp32).max(initial=0.0))
     return summary, transfer0
@@ -1373,10 +1396,12 @@ def markdown(report: dict) -> str:
         "| SSIM | MAE | weights (bytes) | network GFLOP/s (% of GEMM) | Pareto |",
         "|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|:-:|",
     ]
+    settings_views = report["settings"]["views"]
     for r in report["records"]:
         gflops = f"{r['achieved_gflops']:.1f} ({r['machine_percent']:.1f} %)" if r["achieved_gflops"] else "-"
+        fps = f"{r['fps']:.1f}" + (f" ({r['views']} views)" if r["views"] != settings_views else "")
         lines.append(
-            f"| {r['scene']} | {r['resolution']} | {r['backend']} | {r['precision']} | {r['material']} | {r['fps']:.1f} "
+            f"| {r['scene']} | {r['resolution']} | {r['backend']} | {r['precision']} | {r['material']} | {fps} "
             f"| {r['frame_ms']:.1f} | {r['network_ms']:.1f} | {r['psnr']:.2f} | {r['psnr_whole']:.2f} | {r['ssim']:.4f} "
             f"| {r['mae']:.4f} | {r['weight_bytes']:,} | {gflops} | {'*' if r.get('pareto') else ''} |"
         )
@@ -1516,6 +1541,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--size", type=int, nargs="+", default=[512], help="image sizes, square (default 512)")
     p.add_argument("--ref-rays", type=int, default=1024, help="rays per pixel of the reference (default 1024)")
     p.add_argument("--warmup", type=int, default=3, help="frames before timing each configuration (default 3)")
+    p.add_argument("--config-budget", type=float, default=None, metavar="SECONDS",
+                   help="time budget of one configuration's frames: one slower than budget/views per frame (the GLSL "
+                        "backend at k = 128 on llvmpipe) measures fewer views, at least 4, spread over the orbit; "
+                        "its record's 'views' says how many (default: every view)")  # fmt: skip
     p.add_argument("--precisions", nargs="+", choices=PRECISIONS, default=list(PRECISIONS))
     p.add_argument("--backends", nargs="+", choices=("onnx", "glsl", "vertex"), default=["onnx", "glsl", "vertex"])
     p.add_argument("--cache", type=Path, default=None, help="reference / variant cache (default: next to --json)")
@@ -1536,7 +1565,7 @@ def main(argv=None) -> int:
     if cache is None and args.json is not None:
         cache = args.json.parent / f"{args.json.stem}_cache"
     settings = Settings(
-        views=args.views, sizes=tuple(args.size), ref_rays=args.ref_rays, warmup=args.warmup,
+        views=args.views, sizes=tuple(args.size), ref_rays=args.ref_rays, warmup=args.warmup, config_budget=args.config_budget,
         precisions=tuple(dict.fromkeys(args.precisions)), backends=tuple(args.backends), cache=cache,
         gemm_size=args.gemm_size, blas_threads=args.blas_threads,
     )  # fmt: skip
