@@ -3,6 +3,7 @@
 usage: python bench/paper_table.py [--samples 1000000] [--views 30] [--size 512] [--ref-rays 1024]
                                    [--backends onnx glsl vertex] [--work /tmp/prt-paper]
                                    [--meshes bunny ...] [--sizes k64 k128 right-sized] [--build-only]
+                                   [--warmup 3] [--config-budget SECONDS]
                                    [--out docs/benchmarks/paper]
 
 Builds the shared meshes (bunny, teapot, spot, daffodil plant; from ../shared/data/meshes,
@@ -48,6 +49,9 @@ def main(argv=None) -> int:
     p.add_argument("--size", type=int, default=512)
     p.add_argument("--ref-rays", type=int, default=1024)
     p.add_argument("--backends", nargs="*", default=["onnx", "glsl", "vertex"], help="passed to prt-bench")
+    p.add_argument("--warmup", type=int, default=3, help="passed to prt-bench")
+    p.add_argument("--config-budget", type=float, default=None, metavar="SECONDS",
+                   help="passed to prt-bench: slow configurations (GLSL k = 128 on llvmpipe) measure fewer views")  # fmt: skip
     p.add_argument("--meshes", nargs="*", default=list(MESHES), choices=list(MESHES))
     p.add_argument("--sizes", nargs="*", default=list(SIZES), choices=list(SIZES), help="which builds to make (all: the table)")
     p.add_argument("--build-only", action="store_true", help="make the builds (cached under --work) and stop before the benchmark")
@@ -87,7 +91,8 @@ def main(argv=None) -> int:
     bench = [sys.executable, "-m", "prt.train.benchmark", *map(str, scenes),
              "--views", str(args.views), "--size", str(args.size), "--ref-rays", str(args.ref_rays),
              "--json", str(args.out.with_suffix(".json")), "--md", str(args.out.with_suffix(".md")),
-             "--plot", str(args.out.with_suffix(".png")), "--backends", *args.backends]  # fmt: skip
+             "--plot", str(args.out.with_suffix(".png")), "--backends", *args.backends, "--warmup", str(args.warmup),
+             *(["--config-budget", str(args.config_budget)] if args.config_budget else [])]  # fmt: skip
     print(f"== benchmark: {shlex.join(bench[1:])}", flush=True)
     subprocess.run(bench, check=True)
 
