@@ -144,3 +144,20 @@ def test_bad_inputs_fail_in_one_line(tmp_path):
         proc = prt_train(*args, "--no-progress")
         assert proc.returncode == 2, proc.stderr
         assert len(proc.stderr.strip().splitlines()) == 1 and "Traceback" not in proc.stderr
+
+
+def test_static_int8_study_runs_on_a_build(spot_build, tmp_path):
+    """bench/int8_static.py: three versions per segment, each timed and each about as accurate."""
+    out, _ = spot_build
+    report = tmp_path / "int8.json"
+    script = Path(__file__).resolve().parents[1] / "bench" / "int8_static.py"
+    proc = subprocess.run([sys.executable, str(script), str(out / "scene.json"), "--rows", "256", "--repeats", "2",
+                           "--calibration", "256", "--json", str(report)], capture_output=True, text=True)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    data = json.loads(report.read_text())
+    assert data["segments"]
+    for row in data["segments"]:
+        assert set(row["ms"]) == {"fp32", "int8-dynamic", "int8-static"} and all(v > 0 for v in row["ms"].values())
+        # quantisation moves the error, it must not wreck it (8 bits of a tanh output ~ 0.004)
+        assert row["mae"]["int8-static"] < row["mae"]["fp32"] + 0.01
+        assert row["mae"]["int8-dynamic"] < row["mae"]["fp32"] + 0.01
