@@ -3,7 +3,7 @@
 usage: python bench/paper_table.py [--samples 1000000] [--views 30] [--size 512] [--ref-rays 1024]
                                    [--backends onnx glsl vertex] [--work /tmp/prt-paper]
                                    [--meshes bunny ...] [--sizes k64 k128 right-sized] [--build-only]
-                                   [--warmup 3] [--config-budget SECONDS]
+                                   [--warmup 3] [--config-budget SECONDS] [--packing-views N]
                                    [--out docs/benchmarks/paper]
 
 Builds the shared meshes (bunny, teapot, spot, daffodil plant; from ../shared/data/meshes,
@@ -50,6 +50,7 @@ def main(argv=None) -> int:
     p.add_argument("--ref-rays", type=int, default=1024)
     p.add_argument("--backends", nargs="*", default=["onnx", "glsl", "vertex"], help="passed to prt-bench")
     p.add_argument("--warmup", type=int, default=3, help="passed to prt-bench")
+    p.add_argument("--packing-views", type=int, default=None, metavar="N", help="passed to prt-bench")
     p.add_argument("--config-budget", type=float, default=None, metavar="SECONDS",
                    help="passed to prt-bench: slow configurations (GLSL k = 128 on llvmpipe) measure fewer views")  # fmt: skip
     p.add_argument("--meshes", nargs="*", default=list(MESHES), choices=list(MESHES))
@@ -92,7 +93,8 @@ def main(argv=None) -> int:
              "--views", str(args.views), "--size", str(args.size), "--ref-rays", str(args.ref_rays),
              "--json", str(args.out.with_suffix(".json")), "--md", str(args.out.with_suffix(".md")),
              "--plot", str(args.out.with_suffix(".png")), "--backends", *args.backends, "--warmup", str(args.warmup),
-             *(["--config-budget", str(args.config_budget)] if args.config_budget else [])]  # fmt: skip
+             *(["--config-budget", str(args.config_budget)] if args.config_budget else []),
+             *(["--packing-views", str(args.packing_views)] if args.packing_views else [])]  # fmt: skip
     print(f"== benchmark: {shlex.join(bench[1:])}", flush=True)
     subprocess.run(bench, check=True)
 

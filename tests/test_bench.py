@@ -190,6 +190,7 @@ def test_budget_keeps_view_zero_and_spreads_the_rest():
     few = pb.budget_views(views, 10.0, 1.0)
     assert len(few) == 10 and few[0] == 0 and few[-1] == 29 and few == sorted(set(few))
     assert len(pb.budget_views(views, 1.0, 16.0)) == 4  # a 16 s frame still gets the minimum
+    assert pb.spread(views, None) == views and pb.spread(views, 1) == [0] and pb.spread(views, 3) == [0, 14, 29]
 
 
 def test_onnxruntime_gemm_limit_counts_the_flops_of_a_product():
