@@ -1421,7 +1421,7 @@ def markdown(report: dict) -> str:
                      + "; ".join(f"{res}: " + ", ".join(f"{m} {db:.1f} dB" for m, db in d.items()) for res, d in ref["noise_psnr"].items()))  # fmt: skip
         for p in s["packing"]:
             lines.append(
-                f"- packing {p['resolution']}: naive {p['naive_inference_ms']:.1f} ms ({p['network_segments']} networks x "
+                f"- packing {p['resolution']} ({p.get('packing_views', '?')} views): naive {p['naive_inference_ms']:.1f} ms ({p['network_segments']} networks x "
                 f"{p['all_pixels']:,} pixels) vs packed {p['packed_inference_ms']:.1f} ms ({p['covered_pixels']:,.0f} covered): "
                 f"speed-up {p['packing_speedup']}x; all / covered pixels {p['pixel_ratio']}x, naive rows / covered {p['work_ratio']}x"
             )
