@@ -41,6 +41,81 @@ SIZES = {
 }
 
 
+TARGET_DIFFUSE = {"daffodil": 40.0}  # dB at k = 64; the others 45
+TARGET_GLOSSY = 38.0
+
+
+def _pick(records, scene, backend="onnx", precision="fp32", material="diffuse"):
+    for r in records:
+        if (r["scene"], r["backend"], r["precision"], r["material"]) == (scene, backend, precision, material):
+            return r
+    return None
+
+
+def _range(values, fmt="{:.2f}", unit=""):
+    values = [v for v in values if v is not None]
+    if not values:
+        return "-"
+    lo, hi = min(values), max(values)
+    return fmt.format(lo) + unit if lo == hi else f"{fmt.format(lo)} to {fmt.format(hi)}{unit}"
+
+
+def summary(report: dict) -> str:
+    """The table's headline figures per mesh and each target's verdict, as Markdown."""
+    records = report["records"]
+    meshes = sorted({r["scene"].rsplit("-", 1)[0].replace("-right", "") for r in records}, key=list(MESHES).index)
+    lines = ["| mesh | k = 64 | k = 128 | right-sized | vertex PRT (Sloan) | GLSL k = 64 FPS |", "|---|---|---|---|---|---:|"]
+    verdict = {"accuracy": [], "right": [], "packing": [], "precision": [], "gemm": []}
+    for mesh in meshes:
+        cells = []
+        for size in SIZES:
+            d, g = _pick(records, f"{mesh}-{size}"), _pick(records, f"{mesh}-{size}", material="glossy")
+            if d is None or g is None:
+                cells.append("-")
+                continue
+            cells.append(f"{d['psnr']:.1f} / {g['psnr']:.1f} ({d['flops_per_fragment'] / 1e3:.0f}k FLOPs, {d['weight_bytes'] / 1024:.0f} KiB)")
+        vd, vg = _pick(records, f"{mesh}-k64", "vertex"), _pick(records, f"{mesh}-k64", "vertex", material="glossy")
+        cells.append(f"{vd['psnr']:.1f} / {vg['psnr']:.1f} ({vd['weight_bytes'] / 1024:.0f} KiB)" if vd and vg else "-")
+        gl = _pick(records, f"{mesh}-k64", "glsl")
+        cells.append(f"{gl['fps']:.2f}" if gl else "-")
+        lines.append(f"| {mesh} | " + " | ".join(cells) + " |")
+        k64d, k64g = _pick(records, f"{mesh}-k64"), _pick(records, f"{mesh}-k64", material="glossy")
+        if k64d and k64g:
+            need = TARGET_DIFFUSE.get(mesh, 45.0)
+            verdict["accuracy"].append(f"{mesh} {k64d['psnr']:.1f}/{k64g['psnr']:.1f} dB ({'met' if k64d['psnr'] >= need and k64g['psnr'] >= TARGET_GLOSSY else 'missed'}; needs {need:.0f}/{TARGET_GLOSSY:.0f})")
+            rs = _pick(records, f"{mesh}-right-sized")
+            if rs:
+                delta, ratio = rs["psnr"] - k64d["psnr"], rs["flops_per_fragment"] / max(k64d["flops_per_fragment"], 1)
+                ok = delta >= -0.5 and ratio < 1.0
+                verdict["right"].append(f"{mesh} {delta:+.2f} dB with {ratio:.2f}x the FLOPs ({'met' if ok else 'missed'})")
+            for precision in ("int8", "fp16", "fp16-mlp"):
+                v = _pick(records, f"{mesh}-k64", precision=precision)
+                if v and v["network_ms"] > 0:
+                    verdict["precision"].append((precision, k64d["network_ms"] / v["network_ms"], v["psnr"] - k64d["psnr"]))
+            verdict["gemm"].append(k64d["machine_percent"])
+        for scene in report["scenes"]:
+            if scene["scene"] == f"{mesh}-k64":
+                for p in scene["packing"]:
+                    verdict["packing"].append((mesh, p["packing_speedup"], p["pixel_ratio"]))
+    out = ["\n".join(lines), ""]
+    out.append("Targets (k = 64 unless said; measured in this run):")
+    out.append("- accuracy, diffuse/glossy PSNR over covered pixels: " + "; ".join(verdict["accuracy"]))
+    out.append("- right-sized vs k = 64, diffuse PSNR and FLOPs per fragment (target: the same PSNR, within 0.5 dB, "
+               "with fewer FLOPs): " + "; ".join(verdict["right"]))  # fmt: skip
+    met = all(s >= r for _, s, r in verdict["packing"])
+    out.append("- packing vs naive: " + "; ".join(f"{m} {s}x (pixel ratio {r}x)" for m, s, r in verdict["packing"]) + f" ({'met' if met else 'missed'})")
+    for precision in ("int8", "fp16", "fp16-mlp"):
+        got = [(sp, db) for pr, sp, db in verdict["precision"] if pr == precision]
+        if got:
+            ok = any(sp >= 1.5 and db >= -0.5 for sp, db in got)
+            out.append(f"- {precision} network stage: {_range([sp for sp, _ in got], unit='x')} the fp32 speed, "
+                       f"PSNR {_range([db for _, db in got], fmt='{:+.2f}', unit=' dB')} ({'met' if ok else 'missed'}: needs >= 1.5x, <= 0.5 dB)")  # fmt: skip
+    gemm = report["machine"]
+    out.append(f"- network stage at {_range(verdict['gemm'], fmt='{:.0f}', unit=' %')} of the machine's fp32 GEMM "
+               f"({gemm['machine_gflops']:.0f} GFLOP/s) ({'met' if verdict['gemm'] and min(verdict['gemm']) >= 60 else 'missed'}: needs >= 60 %)")  # fmt: skip
+    return "\n".join(out)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--samples", type=int, default=1_000_000)
@@ -108,6 +183,9 @@ def main(argv=None) -> int:
         f"Settings: `{json.dumps(settings)}`\n\n"
         "Error is against a reference render whose transfer is ray traced at every visible pixel, on\n"
         "tone-mapped images over the pixels the scene covers; FPS are medians over the views.\n\n"
+        "## Summary\n\n"
+        f"{summary(json.loads(args.out.with_suffix('.json').read_text()))}\n\n"
+        "## Every configuration\n\n"
         f"{table}\n\n![speed against error]({Path('benchmarks') / args.out.with_suffix('.png').name})\n"
     )
     print(f"wrote {doc}")
