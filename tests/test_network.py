@@ -118,6 +118,18 @@ def test_target_scaling_keeps_tanh_out_of_saturation():
         assert torch.allclose(model(x)[0], torch.from_numpy(t[0]), atol=1e-5)
 
 
+def test_no_early_stop_in_the_first_half_of_the_schedule(spot):
+    """A rate so high that validation never improves after epoch 1: patience 1 would stop at
+    epoch 2; the rule holds it to half the epochs (the k = 128 spike at lr 1e-2 stopped there)."""
+    geometry, train, t, valid, tv = spot
+    args = (train.points[:1000], train.normals[:1000], t[:1000], valid.points[:300], valid.normals[:300], tv[:300], SMALL,
+            np.array(geometry.mesh.bounds))  # fmt: skip
+    held = fit_segment(*args, FitSettings(epochs=8, batch=100, lr=50.0, warmup_epochs=0.01, patience=1, seed=0))
+    eager = fit_segment(*args, FitSettings(epochs=8, batch=100, lr=50.0, warmup_epochs=0.01, patience=1, seed=0, min_epochs_fraction=0.0))
+    assert len(eager.history) < 4 <= len(held.history)
+    assert held.val_mae == min(h["val_mae"] for h in held.history)  # the best epoch's weights are kept
+
+
 def test_a_segment_with_very_few_samples_still_fits(spot):
     geometry, train, t, valid, tv = spot
     r = fit_segment(train.points[:5], train.normals[:5], t[:5], valid.points[:3], valid.normals[:3], tv[:3], SMALL,
