@@ -4,6 +4,7 @@ usage: python bench/paper_table.py [--samples 1000000] [--views 30] [--size 512]
                                    [--backends onnx glsl vertex] [--work /tmp/prt-paper]
                                    [--meshes bunny ...] [--sizes k64 k128 right-sized] [--build-only]
                                    [--warmup 3] [--config-budget SECONDS] [--packing-views N]
+                                   [--precisions fp32 fp16 int8]
                                    [--out docs/benchmarks/paper]
 
 Builds the shared meshes (bunny, teapot, spot, daffodil plant; from ../shared/data/meshes,
@@ -125,6 +126,7 @@ def main(argv=None) -> int:
     p.add_argument("--ref-rays", type=int, default=1024)
     p.add_argument("--backends", nargs="*", default=["onnx", "glsl", "vertex"], help="passed to prt-bench")
     p.add_argument("--warmup", type=int, default=3, help="passed to prt-bench")
+    p.add_argument("--precisions", nargs="*", default=None, help="passed to prt-bench (default: all)")
     p.add_argument("--packing-views", type=int, default=None, metavar="N", help="passed to prt-bench")
     p.add_argument("--config-budget", type=float, default=None, metavar="SECONDS",
                    help="passed to prt-bench: slow configurations (GLSL k = 128 on llvmpipe) measure fewer views")  # fmt: skip
@@ -169,7 +171,8 @@ def main(argv=None) -> int:
              "--json", str(args.out.with_suffix(".json")), "--md", str(args.out.with_suffix(".md")),
              "--plot", str(args.out.with_suffix(".png")), "--backends", *args.backends, "--warmup", str(args.warmup),
              *(["--config-budget", str(args.config_budget)] if args.config_budget else []),
-             *(["--packing-views", str(args.packing_views)] if args.packing_views else [])]  # fmt: skip
+             *(["--packing-views", str(args.packing_views)] if args.packing_views else []),
+             *(["--precisions", *args.precisions] if args.precisions else [])]  # fmt: skip
     print(f"== benchmark: {shlex.join(bench[1:])}", flush=True)
     subprocess.run(bench, check=True)
 
