@@ -64,7 +64,7 @@ def _range(values, fmt="{:.2f}", unit=""):
 def summary(report: dict) -> str:
     """The table's headline figures per mesh and each target's verdict, as Markdown."""
     records = report["records"]
-    meshes = sorted({r["scene"].rsplit("-", 1)[0].replace("-right", "") for r in records}, key=list(MESHES).index)
+    meshes = [m for m in MESHES if any(r["scene"].startswith(f"{m}-") for r in records)]
     lines = ["| mesh | k = 64 | k = 128 | right-sized | vertex PRT (Sloan) | GLSL k = 64 FPS |", "|---|---|---|---|---|---:|"]
     verdict = {"accuracy": [], "right": [], "packing": [], "precision": [], "gemm": []}
     for mesh in meshes:

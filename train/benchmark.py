@@ -585,22 +585,27 @@ def pareto_front(points) -> list[int]:
 # =========================================================================== machine limit
 
 
+def _gemm_rate(product, n: int, repeats: int) -> float:
+    """GFLOP/s of ``product()``, an n x n x n GEMM: median of ``repeats`` after one warm-up."""
+    product()  # warm-up: thread pool start, page faults of the output
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        product()
+        times.append(time.perf_counter() - t0)
+    return float(2.0 * n**3 / np.median(times) / 1e9)
+
+
 def gemm_gflops(n: int = 4096, repeats: int = 3) -> float:
     """Single-precision GEMM throughput of numpy's BLAS: median GFLOP/s of ``repeats`` n x n products."""
     rng = np.random.default_rng(0)
     a = rng.standard_normal((n, n), dtype=np.float32)
     b = rng.standard_normal((n, n), dtype=np.float32)
-    a @ b  # warm-up: thread pool start, page faults of the output
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        a @ b
-        times.append(time.perf_counter() - t0)
-    return float(2.0 * n**3 / np.median(times) / 1e9)
+    return _gemm_rate(lambda: a @ b, n, repeats)
 
 
 def ort_gemm_gflops(n: int = 4096, repeats: int = 3, threads: int | None = None) -> float:
-    """Single-precision GEMM throughput of ONNX Runtime's CPU MatMul (MLAS), all cores, spinning on.
+    """Single-precision GEMM throughput of ONNX Runtime's CPU MatMul (MLAS) on all cores.
 
     The same library and kernels family the network stage runs on; on CPUs whose numpy BLAS
     picks an older kernel (OpenBLAS uses its AVX2 kernels on some AVX-512 parts) this is the
@@ -623,14 +628,7 @@ def ort_gemm_gflops(n: int = 4096, repeats: int = 3, threads: int | None = None)
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = threads or os.cpu_count() or 1
     sess = ort.InferenceSession(model.SerializeToString(), opts, providers=["CPUExecutionProvider"])
-    feed = {"a": a}
-    sess.run(None, feed)  # warm-up
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        sess.run(None, feed)
-        times.append(time.perf_counter() - t0)
-    return float(2.0 * n**3 / np.median(times) / 1e9)
+    return _gemm_rate(lambda: sess.run(None, {"a": a}), n, repeats)
 
 
 def machine_gemm(n: int = 4096, repeats: int = 3) -> dict:
