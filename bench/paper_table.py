@@ -4,7 +4,7 @@ usage: python bench/paper_table.py [--samples 1000000] [--views 30] [--size 512]
                                    [--backends onnx glsl vertex] [--work /tmp/prt-paper]
                                    [--meshes bunny ...] [--sizes k64 k128 right-sized] [--build-only]
                                    [--warmup 3] [--config-budget SECONDS] [--packing-views N]
-                                   [--precisions fp32 fp16 int8]
+                                   [--precisions fp32 fp16 int8] [--fresh]
                                    [--out docs/benchmarks/paper]
 
 Builds the shared meshes (bunny, teapot, spot, daffodil plant; from ../shared/data/meshes,
@@ -13,8 +13,9 @@ at our right-sized setting (``prt-train --match 64x4``: per segment, the cheapes
 ladder whose validation error is within 5 % of the k = 64 network's), sharing one
 precompute per mesh, then runs the backend benchmark (``prt-bench``) over all of
 them and writes ``<out>.json``, ``<out>.md`` and ``<out>.png`` plus ``docs/paper_table.md``
-with the command that made them.  Every stage is cached under --work, so an interrupted run
-resumes.  The full setting takes hours on 2 cores; smaller --samples/--views/--size give a
+with the command that made them.  Every stage is cached (builds under --work, references and
+each finished scene's measurement in ``<out>_cache``), so an interrupted run resumes at the
+scene it was on; --fresh measures every scene again.  The full setting takes hours on 2 cores; smaller --samples/--views/--size give a
 quicker table (the settings are written next to the figures).
 """
 
@@ -130,6 +131,7 @@ def main(argv=None) -> int:
     p.add_argument("--packing-views", type=int, default=None, metavar="N", help="passed to prt-bench")
     p.add_argument("--config-budget", type=float, default=None, metavar="SECONDS",
                    help="passed to prt-bench: slow configurations (GLSL k = 128 on llvmpipe) measure fewer views")  # fmt: skip
+    p.add_argument("--fresh", action="store_true", help="passed to prt-bench: measure every scene again (default: resume)")
     p.add_argument("--meshes", nargs="*", default=list(MESHES), choices=list(MESHES))
     p.add_argument("--sizes", nargs="*", default=list(SIZES), choices=list(SIZES), help="which builds to make (all: the table)")
     p.add_argument("--build-only", action="store_true", help="make the builds (cached under --work) and stop before the benchmark")
@@ -172,7 +174,7 @@ def main(argv=None) -> int:
              "--plot", str(args.out.with_suffix(".png")), "--backends", *args.backends, "--warmup", str(args.warmup),
              *(["--config-budget", str(args.config_budget)] if args.config_budget else []),
              *(["--packing-views", str(args.packing_views)] if args.packing_views else []),
-             *(["--precisions", *args.precisions] if args.precisions else [])]  # fmt: skip
+             *(["--precisions", *args.precisions] if args.precisions else []), *(["--fresh"] if args.fresh else [])]  # fmt: skip
     print(f"== benchmark: {shlex.join(bench[1:])}", flush=True)
     subprocess.run(bench, check=True)
 
@@ -180,7 +182,8 @@ def main(argv=None) -> int:
     table = args.out.with_suffix(".md").read_text()
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
     doc = ROOT / "docs" / "paper_table.md"
-    doc.write_text(
+    tmp = doc.with_name(f".{doc.name}.tmp")
+    tmp.write_text(
         "# Paper-style table\n\n"
         f"Made by `{command.strip()}` on this project's 2-core machine (no GPU; OpenGL from Mesa llvmpipe).\n\n"
         f"Settings: `{json.dumps(settings)}`\n\n"
@@ -191,6 +194,7 @@ def main(argv=None) -> int:
         "## Every configuration\n\n"
         f"{table}\n\n![speed against error]({Path('benchmarks') / args.out.with_suffix('.png').name})\n"
     )
+    tmp.replace(doc)
     print(f"wrote {doc}")
     return 0
 

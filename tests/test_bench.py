@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -74,6 +76,37 @@ def test_report_has_every_documented_key(report):
         assert not missing, (record["label"], missing)
         assert record["resolution"] == f"{SIZE}x{SIZE}" and record["views"] == VIEWS
         assert record["fps"] > 0 and record["stages_ms"]
+
+
+def test_an_interrupted_run_resumes_from_its_scene_checkpoints(report, tiny_scene, tmp_path, capsys):
+    """A second run with the same scene and settings takes the finished scene from its checkpoint."""
+    data, paths = report
+    out = paths["json"].parent
+    argv = [str(tiny_scene), "--size", str(SIZE), "--views", str(VIEWS), "--ref-rays", "64", "--warmup", "1",
+            "--gemm-size", "256", "--cache", str(out / "r_cache"), "--json", str(tmp_path / "again.json")]  # fmt: skip
+    capsys.readouterr()
+    assert pb.main(argv) == 0
+    assert "kept in" in capsys.readouterr().out
+    again = json.loads((tmp_path / "again.json").read_text())
+    assert again["scenes"] == data["scenes"] and again["records"] == data["records"]  # not measured again
+    checkpoint = Path(data["scenes"][0]["checkpoint"])
+    assert checkpoint.is_file() and not list(checkpoint.parent.glob(".*.tmp"))
+    # --fresh measures again (its FPS differ from the first run's at the timer's resolution).
+    assert pb.main([*argv, "--fresh"]) == 0
+    assert "kept in" not in capsys.readouterr().out
+    fresh = json.loads((tmp_path / "again.json").read_text())
+    assert [r["frame_ms"] for r in fresh["records"]] != [r["frame_ms"] for r in data["records"]]
+    # Other settings, or changed scene files, key another checkpoint.
+    settings = pb.Settings(views=VIEWS, sizes=(SIZE,), ref_rays=64, warmup=1, gemm_size=256, cache=out / "r_cache")
+    assert pb.scene_checkpoint(tiny_scene, settings) == checkpoint
+    assert pb.scene_checkpoint(tiny_scene, dataclasses.replace(settings, warmup=2)) != checkpoint
+    assert pb.scene_checkpoint(tiny_scene, dataclasses.replace(settings, cache=tmp_path)).name == checkpoint.name
+    copy = tmp_path / "scene"
+    shutil.copytree(tiny_scene.parent, copy)
+    assert pb.scene_checkpoint(copy / "scene.json", settings) == checkpoint  # same files, same key
+    model = next(copy.rglob("*.onnx"))
+    model.write_bytes(model.read_bytes() + b"\0")
+    assert pb.scene_checkpoint(copy / "scene.json", settings) != checkpoint
 
 
 def test_errors_are_finite_and_plausible(report):

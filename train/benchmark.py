@@ -72,7 +72,10 @@ JSON report (``--json``)
     the largest network segment of the first view, one thread: ``segment``, ``rows``,
     ``run_us``, ``op_us`` per op type, ``gemm_share``: the share of the run in the MLP's
     Gemms; the rest is the encoding and element-wise ops); ``vertex_baseline`` (``vertices``, ``back_vertices``,
-    ``weight_bytes``, ``coverage_agreement`` or ``note`` when skipped).
+    ``weight_bytes``, ``coverage_agreement`` or ``note`` when skipped), ``measured`` (ISO time
+    the scene was measured) and ``checkpoint`` (where its measurement is kept: a later run with
+    the same scene files and settings takes it from there instead of measuring again, unless
+    ``--fresh``; its records then keep the ``machine_gflops`` of the run that measured them).
 
     ``records``: one per configuration, with ``scene``, ``backend`` (onnx, glsl, vertex),
     ``precision`` (fp32, fp16, fp16-mlp, int8), ``material``, ``resolution`` (``"WxH"``),
@@ -128,7 +131,8 @@ PACKED_COLUMNS = (0, 1, 2, 4, 5, 6)
 REPORT_KEYS = ("tool", "created", "settings", "machine", "scenes", "records", "pareto")
 MACHINE_KEYS = ("cpu", "cores", "gl_renderer", "onnxruntime", "numpy", "gemm_size", "gemm_numpy_gflops",
                 "gemm_onnxruntime_gflops", "machine_gflops", "load_average", "other_cpu_share")
-SCENE_KEYS = ("scene", "path", "geometry", "networks", "weight_bytes", "reference", "packing", "vertex_baseline")
+SCENE_KEYS = ("scene", "path", "geometry", "networks", "weight_bytes", "reference", "packing", "vertex_baseline",
+              "measured", "checkpoint")  # fmt: skip
 PACKING_KEYS = (
     "resolution", "all_pixels", "covered_pixels", "network_segments", "naive_rows_per_segment", "naive_total_rows",
     "naive_inference_ms", "packed_inference_ms", "packing_speedup", "pixel_ratio", "work_ratio", "naive_max_abs_diff",
@@ -994,6 +998,7 @@ class Settings:
     gemm_size: int = 4096
     seed: int = 0
     blas_threads: int | None = None
+    fresh: bool = False  # re-measure scenes a checkpoint already holds
 
 
 def _materials(manifest) -> dict:
@@ -1331,6 +1336,50 @@ def mark_pareto(records: list) -> dict:
     return fronts
 
 
+# Settings that change what a scene's measurement is (the cache only says where things live).
+_CHECKPOINT_SETTINGS = ("views", "sizes", "ref_rays", "warmup", "config_budget", "packing_views", "precisions",
+                        "backends", "gemm_size", "seed", "blas_threads")  # fmt: skip
+
+
+def scene_checkpoint(scene_path, settings: Settings) -> Path:
+    """Where one scene's finished measurement is kept, keyed by its files and the settings.
+
+    The key covers ``scene.json`` and every file it names (models, generated GLSL, weight
+    textures, geometry, environment map) plus ``geometry.npz``, so a rebuilt scene or other
+    settings never reuse an old measurement.
+    """
+    from prt.runtime.manifest import load_manifest
+
+    manifest = load_manifest(scene_path)
+    digest = hashlib.sha256()
+    files = [manifest.path, manifest.geometry.get("path"), manifest.lighting.get("envmap"), manifest.root / "geometry.npz"]
+    for segment in manifest.segments:
+        files += [segment.model, segment.glsl, segment.glsl_weights]
+    for f in dict.fromkeys(Path(f) for f in files if f is not None and Path(f).is_file()):
+        digest.update(f.name.encode())
+        digest.update(f.read_bytes())
+    options = {k: getattr(settings, k) for k in _CHECKPOINT_SETTINGS}
+    options["prt"] = _prt_version()  # a new release measures again
+    digest.update(json.dumps(options, sort_keys=True, default=list).encode())
+    return settings.cache / "results" / f"{manifest.name}-{digest.hexdigest()[:16]}.json"
+
+
+def _prt_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("prt-runtime")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
 def run(scene_paths, settings: Settings, log=print) -> dict:
     """Benchmark every scene; the report described in the module docstring.
 
@@ -1373,8 +1422,19 @@ def run(scene_paths, settings: Settings, log=print) -> dict:
         limits = threadpool_limits(limits=settings.blas_threads, user_api="blas") if settings.blas_threads else None
         try:
             for path in scene_paths:
-                log(f"scene {path}")
-                entry, recs = SceneBench(path, settings, ctx, machine_gflops, log).run()
+                # Each finished scene is kept, so an interrupted run resumes at the scene it was on.
+                checkpoint = scene_checkpoint(path, settings)
+                if checkpoint.exists() and not settings.fresh:
+                    kept = json.loads(checkpoint.read_text())
+                    entry, recs = kept["scene"], kept["records"]
+                    log(f"scene {path}: measured at {entry['measured']} (against a {recs[0]['machine_gflops'] if recs else '?'} "
+                        f"GFLOP/s limit), kept in {checkpoint}; --fresh measures it again")  # fmt: skip
+                else:
+                    log(f"scene {path}")
+                    entry, recs = SceneBench(path, settings, ctx, machine_gflops, log).run()
+                    entry["measured"] = datetime.datetime.now().isoformat(timespec="seconds")
+                    entry["checkpoint"] = str(checkpoint)
+                    _write_atomic(checkpoint, json.dumps({"scene": entry, "records": recs}, indent=1) + "\n")
                 scenes.append(entry)
                 records.extend(recs)
         finally:
@@ -1491,8 +1551,12 @@ def plot(report: dict, path: Path) -> None:
     for ax, group in zip(axes.flat, groups.values()):
         _place_labels(fig, ax, [(r["fps"], r["psnr"], r["label"]) for r in group])
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+    fig.savefig(tmp, dpi=120)
     plt.close(fig)
+    os.replace(tmp, path)
 
 
 def _place_labels(fig, ax, points) -> None:
@@ -1561,6 +1625,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--gemm-size", type=int, default=4096, help="matrix size of the machine-limit GEMM (default 4096)")
     p.add_argument("--blas-threads", type=int, default=None,
                    help="limit numpy's BLAS threads while rendering (default: leave as found)")  # fmt: skip
+    p.add_argument("--fresh", action="store_true",
+                   help="measure every scene again (default: a scene measured earlier with the same files and "
+                        "settings is taken from its checkpoint in the cache, so an interrupted run resumes)")  # fmt: skip
     args = p.parse_args(argv)
     if args.views < 1 or min(args.size) < 1 or args.ref_rays < 1 or args.warmup < 0:
         p.error("--views, --size and --ref-rays must be positive, --warmup >= 0")
@@ -1578,17 +1645,15 @@ def main(argv=None) -> int:
         views=args.views, sizes=tuple(args.size), ref_rays=args.ref_rays, warmup=args.warmup, config_budget=args.config_budget,
         packing_views=args.packing_views,
         precisions=tuple(dict.fromkeys(args.precisions)), backends=tuple(args.backends), cache=cache,
-        gemm_size=args.gemm_size, blas_threads=args.blas_threads,
+        gemm_size=args.gemm_size, blas_threads=args.blas_threads, fresh=args.fresh,
     )  # fmt: skip
     report = run(args.scenes, settings)
     text = markdown(report)
     print(text)
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(report, indent=2) + "\n")
+        _write_atomic(args.json, json.dumps(report, indent=2) + "\n")
     if args.md:
-        args.md.parent.mkdir(parents=True, exist_ok=True)
-        args.md.write_text(text)
+        _write_atomic(args.md, text)
     if args.plot:
         plot(report, args.plot)
     return 0
