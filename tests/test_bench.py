@@ -47,7 +47,8 @@ def report(tiny_scene, tmp_path_factory):
     out = tmp_path_factory.mktemp("bench")
     paths = {"json": out / "r.json", "md": out / "r.md", "plot": out / "r.png"}
     argv = [str(tiny_scene), "--size", str(SIZE), "--views", str(VIEWS), "--ref-rays", "64", "--warmup", "1",
-            "--gemm-size", "256", "--json", str(paths["json"]), "--md", str(paths["md"]), "--plot", str(paths["plot"])]  # fmt: skip
+            "--gemm-size", "256", "--json", str(paths["json"]), "--md", str(paths["md"]), "--plot", str(paths["plot"]),
+            "--images", str(out / "images")]  # fmt: skip
     assert pb.main(argv) == 0
     return json.loads(paths["json"].read_text()), paths
 
@@ -83,7 +84,8 @@ def test_an_interrupted_run_resumes_from_its_scene_checkpoints(report, tiny_scen
     data, paths = report
     out = paths["json"].parent
     argv = [str(tiny_scene), "--size", str(SIZE), "--views", str(VIEWS), "--ref-rays", "64", "--warmup", "1",
-            "--gemm-size", "256", "--cache", str(out / "r_cache"), "--json", str(tmp_path / "again.json")]  # fmt: skip
+            "--gemm-size", "256", "--cache", str(out / "r_cache"), "--json", str(tmp_path / "again.json"),
+            "--images", str(out / "images")]  # fmt: skip
     capsys.readouterr()
     assert pb.main(argv) == 0
     assert "kept in" in capsys.readouterr().out
@@ -97,7 +99,8 @@ def test_an_interrupted_run_resumes_from_its_scene_checkpoints(report, tiny_scen
     fresh = json.loads((tmp_path / "again.json").read_text())
     assert [r["frame_ms"] for r in fresh["records"]] != [r["frame_ms"] for r in data["records"]]
     # Other settings, or changed scene files, key another checkpoint.
-    settings = pb.Settings(views=VIEWS, sizes=(SIZE,), ref_rays=64, warmup=1, gemm_size=256, cache=out / "r_cache")
+    settings = pb.Settings(views=VIEWS, sizes=(SIZE,), ref_rays=64, warmup=1, gemm_size=256, cache=out / "r_cache",
+                           images=out / "images")  # fmt: skip
     assert pb.scene_checkpoint(tiny_scene, settings) == checkpoint
     assert pb.scene_checkpoint(tiny_scene, dataclasses.replace(settings, warmup=2)) != checkpoint
     assert pb.scene_checkpoint(tiny_scene, dataclasses.replace(settings, cache=tmp_path)).name == checkpoint.name
@@ -107,6 +110,19 @@ def test_an_interrupted_run_resumes_from_its_scene_checkpoints(report, tiny_scen
     model = next(copy.rglob("*.onnx"))
     model.write_bytes(model.read_bytes() + b"\0")
     assert pb.scene_checkpoint(copy / "scene.json", settings) != checkpoint
+
+
+def test_error_maps_show_reference_and_every_configuration(report):
+    """One figure per scene and size: a row per material, the reference then each configuration."""
+    from PIL import Image
+
+    data, _ = report
+    (path,) = data["scenes"][0]["error_images"]
+    image = np.asarray(Image.open(path).convert("RGB"))
+    configs = len(data["records"]) // len(pb.MATERIALS)
+    # (1 + configs) panels of ~2.6 in at 100 dpi across, two rows down
+    assert image.shape[1] > 200 * (1 + configs) and image.shape[0] > 2 * 200
+    assert image.std() > 10  # not blank
 
 
 def test_errors_are_finite_and_plausible(report):

@@ -72,7 +72,9 @@ JSON report (``--json``)
     the largest network segment of the first view, one thread: ``segment``, ``rows``,
     ``run_us``, ``op_us`` per op type, ``gemm_share``: the share of the run in the MLP's
     Gemms; the rest is the encoding and element-wise ops); ``vertex_baseline`` (``vertices``, ``back_vertices``,
-    ``weight_bytes``, ``coverage_agreement`` or ``note`` when skipped), ``measured`` (ISO time
+    ``weight_bytes``, ``coverage_agreement`` or ``note`` when skipped), ``error_images``
+    (the ``--images`` figures of this scene, one per size: view 0's reference and each
+    configuration's error map; empty without ``--images``), ``measured`` (ISO time
     the scene was measured) and ``checkpoint`` (where its measurement is kept: a later run with
     the same scene files and settings takes it from there instead of measuring again, unless
     ``--fresh``; its records then keep the ``machine_gflops`` of the run that measured them).
@@ -132,7 +134,7 @@ REPORT_KEYS = ("tool", "created", "settings", "machine", "scenes", "records", "p
 MACHINE_KEYS = ("cpu", "cores", "gl_renderer", "onnxruntime", "numpy", "gemm_size", "gemm_numpy_gflops",
                 "gemm_onnxruntime_gflops", "machine_gflops", "load_average", "other_cpu_share")
 SCENE_KEYS = ("scene", "path", "geometry", "networks", "weight_bytes", "reference", "packing", "vertex_baseline",
-              "measured", "checkpoint")  # fmt: skip
+              "error_images", "measured", "checkpoint")  # fmt: skip
 PACKING_KEYS = (
     "resolution", "all_pixels", "covered_pixels", "network_segments", "naive_rows_per_segment", "naive_total_rows",
     "naive_inference_ms", "packed_inference_ms", "packing_speedup", "pixel_ratio", "work_ratio", "naive_max_abs_diff",
@@ -999,6 +1001,7 @@ class Settings:
     seed: int = 0
     blas_threads: int | None = None
     fresh: bool = False  # re-measure scenes a checkpoint already holds
+    images: Path | None = None  # folder for the error-map figures (None: none)
 
 
 def _materials(manifest) -> dict:
@@ -1085,9 +1088,11 @@ def _measure_renderer(renderer, views, material_name, material, settings, transf
             metrics[name].append(value)
         if k == 0:
             transfer0 = renderer.render_transfer()[view.gbuffer.covered]  # cached: no network runs
+            image0 = tonemap(image)
     summary = _summarise(stages, metrics, gflops, frames)
     summary["network_ms"] = summary["stages_ms"].get("inference", summary["stages_ms"].get("network", 0.0))
     summary["views"] = len(measured)
+    summary["_image0"] = image0  # for the error maps; not part of the record
     if transfer_fp32 is not None:
         summary["transfer_max_abs_diff"] = float(np.abs(transfer0 - transfer_fp32).max(initial=0.0))
     return summary, transfer0
@@ -1120,8 +1125,10 @@ def _measure_vertex(vertex, gbuffer_pass, views, material_name, material, lighti
     for i in range(settings.warmup):
         frame(views[0].camera.orbit(0.01 * (i + 1)))
     stages, metrics, frames = defaultdict(list), defaultdict(list), []
+    image0 = None
     for view in views:
         image, timings = frame(view.camera)
+        image0 = tonemap(image) if image0 is None else image0
         for name, ms in timings.items():
             stages[name].append(ms)
         frames.append(timings["frame"])
@@ -1129,6 +1136,7 @@ def _measure_vertex(vertex, gbuffer_pass, views, material_name, material, lighti
             metrics[name].append(value)
     summary = _summarise(stages, metrics, [], frames)
     summary["network_ms"] = 0.0
+    summary["_image0"] = image0
     return summary
 
 
@@ -1172,9 +1180,10 @@ class SceneBench:
             "reference": {"rays": settings.ref_rays, "seed": settings.seed, "cache": str(self.transfer_cache), "noise_psnr": {},
                           "noise_note": "PSNR between two references with different seeds at view 0 (covered pixels); "
                                         "each is ~3 dB closer to the converged image than this"},
-            "packing": [], "vertex_baseline": vertex_info,
+            "packing": [], "vertex_baseline": vertex_info, "error_images": [],
         }  # fmt: skip
         self.records: list[dict] = []
+        self.images: dict = defaultdict(list)  # (resolution, material) -> [(label, view 0 image, its PSNR)]
 
     def run(self) -> tuple[dict, list]:
         """Measure every size; returns the ``scenes[]`` entry and the ``records[]`` of this scene."""
@@ -1190,6 +1199,12 @@ class SceneBench:
                 self._network_records(size, views)
                 if self.vertex_data is not None:
                     self._vertex_records(size, views, base.gbuffer, base.lighting)
+                if self.settings.images is not None:
+                    path = Path(self.settings.images) / f"{self.manifest.name}-{size}x{size}.png"
+                    error_figure(views[0], {m: self.images[(f"{size}x{size}", m)] for m in self.materials}, path,
+                                 f"{self.manifest.name} {size}x{size}, view 0")  # fmt: skip
+                    self.entry["error_images"].append(str(path))
+                    self.log(f"  error maps: {path}")
         return self.entry, self.records
 
     # ------------------------------------------------------------------ pieces
@@ -1254,7 +1269,11 @@ class SceneBench:
 
     def _add(self, common: dict, backend: str, precision: str, material: str, summary: dict, weight_bytes: int) -> None:
         noise = self.entry["reference"]["noise_psnr"][common["resolution"]][material]
-        self.records.append(_record(common, backend, precision, material, summary, weight_bytes, noise, self.log))
+        image0 = summary.pop("_image0", None)
+        record = _record(common, backend, precision, material, summary, weight_bytes, noise, self.log)
+        self.records.append(record)
+        if image0 is not None:
+            self.images[(common["resolution"], material)].append((record["label"], image0))
 
     def _network_records(self, size: int, views: list) -> None:
         """The ONNX backend at every precision, then the GLSL backend, each with both materials."""
@@ -1336,9 +1355,56 @@ def mark_pareto(records: list) -> dict:
     return fronts
 
 
+ERROR_MAP_MAX = 0.05  # |error| (tone-mapped, channel mean) at the top of the error maps' colour scale
+
+
+def error_figure(view, images: dict, path: Path, title: str) -> None:
+    """View 0's reference and each configuration's error map, one row per material (PNG).
+
+    ``images``: material -> [(label, tone-mapped image)].  Every error map shares one colour
+    scale (0 to :data:`ERROR_MAP_MAX`), so panels compare at a glance; each title gives the
+    view's PSNR over covered pixels.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    covered = view.gbuffer.covered
+    rows = [m for m in images if images[m]]
+    cols = 1 + max((len(images[m]) for m in rows), default=0)
+    fig, axes = plt.subplots(len(rows), cols, figsize=(2.6 * cols + 0.6, 2.8 * len(rows)), squeeze=False)
+    shown = None
+    for i, material in enumerate(rows):
+        reference = view.references[material]
+        axes[i, 0].imshow(np.clip(reference, 0, 1))
+        axes[i, 0].set_title(f"reference ({material})", fontsize=9)
+        for j, (label, image) in enumerate(images[material], start=1):
+            error = np.abs(image - reference).mean(axis=2)
+            error[~covered] = np.nan
+            shown = axes[i, j].imshow(error, cmap="magma", vmin=0.0, vmax=ERROR_MAP_MAX)
+            axes[i, j].set_facecolor("#d0d0d0")
+            psnr = image_metrics(image, reference, covered)["psnr"]
+            axes[i, j].set_title(f"{label.replace(f' {material}', '')}: {psnr:.1f} dB", fontsize=9)
+        for ax in axes[i]:
+            ax.set_xticks([])
+            ax.set_yticks([])
+        for ax in axes[i, len(images[material]) + 1:]:
+            ax.set_visible(False)
+    fig.suptitle(f"{title}: |error| of tone-mapped images (grey: not covered)", fontsize=10)
+    if shown is not None:
+        fig.colorbar(shown, ax=axes.ravel().tolist(), shrink=0.8, label="|error|")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+    fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    os.replace(tmp, path)
+
+
 # Settings that change what a scene's measurement is (the cache only says where things live).
 _CHECKPOINT_SETTINGS = ("views", "sizes", "ref_rays", "warmup", "config_budget", "packing_views", "precisions",
-                        "backends", "gemm_size", "seed", "blas_threads")  # fmt: skip
+                        "backends", "gemm_size", "seed", "blas_threads", "images")  # fmt: skip
 
 
 def scene_checkpoint(scene_path, settings: Settings) -> Path:
@@ -1359,6 +1425,7 @@ def scene_checkpoint(scene_path, settings: Settings) -> Path:
         digest.update(f.name.encode())
         digest.update(f.read_bytes())
     options = {k: getattr(settings, k) for k in _CHECKPOINT_SETTINGS}
+    options["images"] = str(options["images"]) if options["images"] else None
     options["prt"] = _prt_version()  # a new release measures again
     digest.update(json.dumps(options, sort_keys=True, default=list).encode())
     return settings.cache / "results" / f"{manifest.name}-{digest.hexdigest()[:16]}.json"
@@ -1625,6 +1692,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--gemm-size", type=int, default=4096, help="matrix size of the machine-limit GEMM (default 4096)")
     p.add_argument("--blas-threads", type=int, default=None,
                    help="limit numpy's BLAS threads while rendering (default: leave as found)")  # fmt: skip
+    p.add_argument("--images", type=Path, default=None, metavar="DIR",
+                   help="write one PNG per scene and size into DIR: view 0's reference and every configuration's "
+                        "error map, on one colour scale")  # fmt: skip
     p.add_argument("--fresh", action="store_true",
                    help="measure every scene again (default: a scene measured earlier with the same files and "
                         "settings is taken from its checkpoint in the cache, so an interrupted run resumes)")  # fmt: skip
@@ -1645,7 +1715,7 @@ def main(argv=None) -> int:
         views=args.views, sizes=tuple(args.size), ref_rays=args.ref_rays, warmup=args.warmup, config_budget=args.config_budget,
         packing_views=args.packing_views,
         precisions=tuple(dict.fromkeys(args.precisions)), backends=tuple(args.backends), cache=cache,
-        gemm_size=args.gemm_size, blas_threads=args.blas_threads, fresh=args.fresh,
+        gemm_size=args.gemm_size, blas_threads=args.blas_threads, fresh=args.fresh, images=args.images,
     )  # fmt: skip
     report = run(args.scenes, settings)
     text = markdown(report)
