@@ -28,6 +28,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data" / "meshes"
 MESHES = {
@@ -67,7 +69,7 @@ def summary(report: dict) -> str:
     records = report["records"]
     meshes = [m for m in MESHES if any(r["scene"].startswith(f"{m}-") for r in records)]
     lines = ["| mesh | k = 64 | k = 128 | right-sized | vertex PRT (Sloan) | GLSL k = 64 FPS |", "|---|---|---|---|---|---:|"]
-    verdict = {"accuracy": [], "right": [], "packing": [], "precision": [], "gemm": []}
+    verdict = {"accuracy": [], "right": [], "packing": [], "precision": [], "gemm": [], "gemm128": []}
     for mesh in meshes:
         cells = []
         for size in SIZES:
@@ -90,11 +92,18 @@ def summary(report: dict) -> str:
                 delta, ratio = rs["psnr"] - k64d["psnr"], rs["flops_per_fragment"] / max(k64d["flops_per_fragment"], 1)
                 ok = delta >= -0.5 and ratio < 1.0
                 verdict["right"].append(f"{mesh} {delta:+.2f} dB with {ratio:.2f}x the FLOPs ({'met' if ok else 'missed'})")
+            # Both materials run the same networks on the same pixels: their network stages pool
+            # into one ratio per mesh (a single configuration's 10-view median is noisy here).
             for precision in ("int8", "fp16", "fp16-mlp"):
-                v = _pick(records, f"{mesh}-k64", precision=precision)
-                if v and v["network_ms"] > 0:
-                    verdict["precision"].append((precision, k64d["network_ms"] / v["network_ms"], v["psnr"] - k64d["psnr"]))
-            verdict["gemm"].append(k64d["machine_percent"])
+                v, vg = _pick(records, f"{mesh}-k64", precision=precision), _pick(records, f"{mesh}-k64", precision=precision, material="glossy")
+                if v and vg and v["network_ms"] > 0 and vg["network_ms"] > 0:
+                    ratio = (k64d["network_ms"] + k64g["network_ms"]) / (v["network_ms"] + vg["network_ms"])
+                    loss = min(v["psnr"] - k64d["psnr"], vg["psnr"] - k64g["psnr"])
+                    verdict["precision"].append((precision, mesh, ratio, loss))
+            verdict["gemm"].append((mesh, 0.5 * (k64d["machine_percent"] + k64g["machine_percent"])))
+            big, bigg = _pick(records, f"{mesh}-k128"), _pick(records, f"{mesh}-k128", material="glossy")
+            if big and bigg:
+                verdict["gemm128"].append((mesh, 0.5 * (big["machine_percent"] + bigg["machine_percent"])))
         for scene in report["scenes"]:
             if scene["scene"] == f"{mesh}-k64":
                 for p in scene["packing"]:
@@ -107,14 +116,23 @@ def summary(report: dict) -> str:
     met = all(s >= r for _, s, r in verdict["packing"])
     out.append("- packing vs naive: " + "; ".join(f"{m} {s}x (pixel ratio {r}x)" for m, s, r in verdict["packing"]) + f" ({'met' if met else 'missed'})")
     for precision in ("int8", "fp16", "fp16-mlp"):
-        got = [(sp, db) for pr, sp, db in verdict["precision"] if pr == precision]
+        got = [(m, sp, db) for pr, m, sp, db in verdict["precision"] if pr == precision]
         if got:
-            ok = any(sp >= 1.5 and db >= -0.5 for sp, db in got)
-            out.append(f"- {precision} network stage: {_range([sp for sp, _ in got], unit='x')} the fp32 speed, "
-                       f"PSNR {_range([db for _, db in got], fmt='{:+.2f}', unit=' dB')} ({'met' if ok else 'missed'}: needs >= 1.5x, <= 0.5 dB)")  # fmt: skip
-    gemm = report["machine"]
-    out.append(f"- network stage at {_range(verdict['gemm'], fmt='{:.0f}', unit=' %')} of the machine's fp32 GEMM "
-               f"({gemm['machine_gflops']:.0f} GFLOP/s) ({'met' if verdict['gemm'] and min(verdict['gemm']) >= 60 else 'missed'}: needs >= 60 %)")  # fmt: skip
+            middle = float(np.median([sp for _, sp, _ in got]))
+            worst = min(db for _, _, db in got)
+            ok = middle >= 1.5 and worst >= -0.5
+            per = "; ".join(f"{m} {sp:.2f}x, {db:+.2f} dB" for m, sp, db in got)
+            out.append(f"- {precision} network stage against fp32 (both materials pooled; worse material's PSNR change): {per}: "
+                       f"median {middle:.2f}x ({'met' if ok else 'missed'}: needs >= 1.5x with <= 0.5 dB lost)")  # fmt: skip
+    limits = sorted({r["machine_gflops"] for r in records if r.get("machine_gflops")})
+    limit = _range(limits, fmt="{:.0f}", unit=" GFLOP/s")
+    share = [v for _, v in verdict["gemm"]]
+    if share:
+        middle = float(np.median(share))
+        out.append(f"- network stage's share of the machine's fp32 GEMM limit ({limit}), k = 64: "
+                   + "; ".join(f"{m} {v:.0f} %" for m, v in verdict["gemm"])
+                   + f": median {middle:.0f} % ({'met' if middle >= 60 else 'missed'}: needs >= 60 %)"
+                   + ("; k = 128 for comparison: " + "; ".join(f"{m} {v:.0f} %" for m, v in verdict["gemm128"]) if verdict["gemm128"] else ""))  # fmt: skip
     return "\n".join(out)
 
 

@@ -54,7 +54,9 @@ JSON report (``--json``)
     ``cores``, ``gl_renderer``, ``onnxruntime``, ``numpy``, ``gemm_size``, ``gemm_numpy_gflops``
     and ``gemm_onnxruntime_gflops`` (float32 n x n GEMM through numpy's BLAS and through ONNX
     Runtime's MatMul on all cores, medians of 3), ``machine_gflops`` (the higher of the two: the
-    machine's limit), ``load_average`` (1-minute load at the start),
+    machine's limit), ``resumed`` (the scenes taken from checkpoints of an earlier run, each
+    with ``scene`` and ``measured``: their records keep that run's ``machine_gflops``; empty
+    when every scene was measured in this run), ``load_average`` (1-minute load at the start),
     ``other_cpu_share`` (CPU time other processes used during the run, as a share of all
     cores' time; Linux only, else None): other work makes every timing slower and noisier.
 
@@ -132,7 +134,7 @@ PACKED_COLUMNS = (0, 1, 2, 4, 5, 6)
 # The report's keys (documented in the module docstring; the tests hold the output to them).
 REPORT_KEYS = ("tool", "created", "settings", "machine", "scenes", "records", "pareto")
 MACHINE_KEYS = ("cpu", "cores", "gl_renderer", "onnxruntime", "numpy", "gemm_size", "gemm_numpy_gflops",
-                "gemm_onnxruntime_gflops", "machine_gflops", "load_average", "other_cpu_share")
+                "gemm_onnxruntime_gflops", "machine_gflops", "resumed", "load_average", "other_cpu_share")
 SCENE_KEYS = ("scene", "path", "geometry", "networks", "weight_bytes", "reference", "packing", "vertex_baseline",
               "error_images", "measured", "checkpoint")  # fmt: skip
 PACKING_KEYS = (
@@ -1404,7 +1406,7 @@ def error_figure(view, images: dict, path: Path, title: str) -> None:
 
 # Settings that change what a scene's measurement is (the cache only says where things live).
 _CHECKPOINT_SETTINGS = ("views", "sizes", "ref_rays", "warmup", "config_budget", "packing_views", "precisions",
-                        "backends", "gemm_size", "seed", "blas_threads", "images")  # fmt: skip
+                        "backends", "gemm_size", "seed", "blas_threads")  # fmt: skip
 
 
 def scene_checkpoint(scene_path, settings: Settings) -> Path:
@@ -1425,7 +1427,8 @@ def scene_checkpoint(scene_path, settings: Settings) -> Path:
         digest.update(f.name.encode())
         digest.update(f.read_bytes())
     options = {k: getattr(settings, k) for k in _CHECKPOINT_SETTINGS}
-    options["images"] = str(options["images"]) if options["images"] else None
+    if settings.images is not None:  # (only then, so keys made before --images existed still match)
+        options["images"] = str(settings.images)
     options["prt"] = _prt_version()  # a new release measures again
     digest.update(json.dumps(options, sort_keys=True, default=list).encode())
     return settings.cache / "results" / f"{manifest.name}-{digest.hexdigest()[:16]}.json"
@@ -1484,7 +1487,7 @@ def run(scene_paths, settings: Settings, log=print) -> dict:
             "gemm_size": settings.gemm_size, "gemm_numpy_gflops": gemm["numpy"],
             "gemm_onnxruntime_gflops": gemm["onnxruntime"], "machine_gflops": machine_gflops,
         }  # fmt: skip
-        scenes, records = [], []
+        scenes, records, resumed = [], [], []
         # numpy's BLAS threads also run the renderer's small shading products (None: as found).
         limits = threadpool_limits(limits=settings.blas_threads, user_api="blas") if settings.blas_threads else None
         try:
@@ -1494,6 +1497,8 @@ def run(scene_paths, settings: Settings, log=print) -> dict:
                 if checkpoint.exists() and not settings.fresh:
                     kept = json.loads(checkpoint.read_text())
                     entry, recs = kept["scene"], kept["records"]
+                    entry.setdefault("error_images", [])
+                    resumed.append({"scene": entry["scene"], "measured": entry["measured"]})
                     log(f"scene {path}: measured at {entry['measured']} (against a {recs[0]['machine_gflops'] if recs else '?'} "
                         f"GFLOP/s limit), kept in {checkpoint}; --fresh measures it again")  # fmt: skip
                 else:
@@ -1509,6 +1514,7 @@ def run(scene_paths, settings: Settings, log=print) -> dict:
                 limits.restore_original_limits()
     finally:
         ctx.release()
+    machine["resumed"] = resumed
     machine["load_average"] = round(load_start, 2)
     machine["other_cpu_share"] = _other_cpu_share(busy_start, time.perf_counter() - t0)
     fronts = mark_pareto(records)
@@ -1562,6 +1568,10 @@ def markdown(report: dict) -> str:
             lines.append(f"- vertex baseline: {vb['vertices']:,} vertices (+{vb['back_vertices']:,} back sides) x 16 float32 = "
                          f"{vb['weight_bytes']:,} bytes vs {s['weight_bytes']:,} bytes of network weights (fp32 ONNX initialisers)")  # fmt: skip
     gemm = f"numpy {machine['gemm_numpy_gflops']:.1f}, onnxruntime {machine['gemm_onnxruntime_gflops']:.1f}" if "gemm_numpy_gflops" in machine else "numpy"
+    if machine.get("resumed"):
+        times = sorted(r["measured"] for r in machine["resumed"])
+        lines.append(f"\n{len(times)} of {len(report['scenes'])} scenes taken from checkpoints of an earlier run "
+                     f"(measured {times[0]} to {times[-1]}); their records keep that run's GEMM limit.")  # fmt: skip
     lines.append(f"\nMachine: {machine['cpu']}, {machine['cores']} cores, {machine['gl_renderer']}; float32 GEMM "
                  f"({machine['gemm_size']}^3; {gemm}): limit {machine['machine_gflops']:.1f} GFLOP/s.")  # fmt: skip
     settings = report["settings"]
@@ -1579,7 +1589,7 @@ def plot(report: dict, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.ticker import FormatStrFormatter
+    from matplotlib.ticker import FormatStrFormatter, NullFormatter
 
     groups = defaultdict(list)
     for r in report["records"]:
@@ -1602,8 +1612,12 @@ def plot(report: dict, path: Path) -> None:
         ax.set_xscale("log")
         ax.margins(x=0.25, y=0.2)  # room for the labels
         ax.xaxis.set_major_formatter(FormatStrFormatter("%g"))
-        ax.xaxis.set_minor_formatter(FormatStrFormatter("%g"))
-        ax.tick_params(axis="x", which="minor", labelsize=7)
+        fps = [r["fps"] for r in group if r["fps"] > 0]
+        if fps and max(fps) / min(fps) < 20:  # minor labels only where they fit (one or two decades)
+            ax.xaxis.set_minor_formatter(FormatStrFormatter("%g"))
+            ax.tick_params(axis="x", which="minor", labelsize=7)
+        else:
+            ax.xaxis.set_minor_formatter(NullFormatter())
         ax.set_xlabel("FPS (log scale)")
         ax.set_ylabel("PSNR over covered pixels (dB)")
         ax.set_title(f"{name}: speed against error")
@@ -1617,7 +1631,6 @@ def plot(report: dict, path: Path) -> None:
     fig.canvas.draw()
     for ax, group in zip(axes.flat, groups.values()):
         _place_labels(fig, ax, [(r["fps"], r["psnr"], r["label"]) for r in group])
-    path.parent.mkdir(parents=True, exist_ok=True)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
