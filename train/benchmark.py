@@ -1375,7 +1375,9 @@ def error_figure(view, images: dict, path: Path, title: str) -> None:
     covered = view.gbuffer.covered
     rows = [m for m in images if images[m]]
     cols = 1 + max((len(images[m]) for m in rows), default=0)
-    fig, axes = plt.subplots(len(rows), cols, figsize=(2.6 * cols + 0.6, 2.8 * len(rows)), squeeze=False)
+    panel = max(2.6, covered.shape[1] / 70)  # inches: about one image pixel per figure pixel or more, at 100 dpi
+    fig, axes = plt.subplots(len(rows), cols, figsize=(panel * cols + 0.8, (panel + 0.3) * len(rows) + 0.3), squeeze=False,
+                             layout="constrained")
     shown = None
     for i, material in enumerate(rows):
         reference = view.references[material]
@@ -1395,7 +1397,7 @@ def error_figure(view, images: dict, path: Path, title: str) -> None:
             ax.set_visible(False)
     fig.suptitle(f"{title}: |error| of tone-mapped images (grey: not covered)", fontsize=10)
     if shown is not None:
-        fig.colorbar(shown, ax=axes.ravel().tolist(), shrink=0.8, label="|error|")
+        fig.colorbar(shown, ax=axes, shrink=0.8, label="|error|")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
