@@ -37,6 +37,7 @@ from ..shaders import source as shader_source
 from .camera import Camera
 from .errors import GeometryError, SpecError
 from .manifest import Manifest
+from .normals import corner_normals
 
 __all__ = ["GBuffer", "GBufferPass", "segment_tables", "load_mesh"]
 
@@ -49,9 +50,6 @@ _MAX_OBJECT_ID = 1 << 16
 
 # One vertex of the unindexed mesh buffer, matching gbuffer_mesh.vert's inputs.
 _VERTEX = np.dtype([("position", "<f4", 3), ("normal", "<f4", 3), ("face_normal", "<f4", 3), ("info", "<i4", 2)])
-# Corners whose smooth normal is further than this from the face normal keep the face normal,
-# so creases (box edges, the Cornell walls) stay sharp while curved surfaces shade smoothly.
-CREASE_COS = float(np.cos(np.radians(40.0)))
 
 
 @dataclass
@@ -220,23 +218,9 @@ def load_mesh(path: str | Path) -> dict[str, np.ndarray]:
 
 def _mesh_vertices(mesh: dict[str, np.ndarray]) -> np.ndarray:
     """(3F,) unindexed vertex records: corner position, smooth normal, face normal, (object id, two-sided)."""
-    corners = mesh["vertices"][mesh["faces"]].astype(np.float64)  # (F, 3, 3)
-    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    length = np.linalg.norm(normal, axis=1, keepdims=True)
     # Degenerate faces keep a zero normal; the fragment shader substitutes one.
-    normal = np.divide(normal, length, out=np.zeros_like(normal), where=length > 0.0)
-    # Area-weighted vertex normals (vertices are shared within an object only, see prt.train.geometry).
-    faces = mesh["faces"].astype(np.int64)
-    weighted = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    vertex_normal = np.zeros((len(mesh["vertices"]), 3))
-    for k in range(3):
-        np.add.at(vertex_normal, faces[:, k], weighted)
-    vlen = np.linalg.norm(vertex_normal, axis=1, keepdims=True)
-    vertex_normal = np.divide(vertex_normal, vlen, out=np.zeros_like(vertex_normal), where=vlen > 0.0)
-    smooth = vertex_normal[faces]  # (F, 3, 3)
-    crease = np.einsum("fkc,fc->fk", smooth, normal) < CREASE_COS
-    smooth[crease] = np.broadcast_to(normal[:, None, :], smooth.shape)[crease]
-    records = np.empty((len(corners), 3), dtype=_VERTEX)
+    normal, smooth = corner_normals(mesh["vertices"], mesh["faces"])
+    records = np.empty((len(smooth), 3), dtype=_VERTEX)
     records["position"] = mesh["vertices"][mesh["faces"]]
     records["normal"] = smooth
     records["face_normal"] = normal[:, None, :]

@@ -475,3 +475,58 @@ def test_segment_tables_round_splits_down_to_float32(scenes):
     assert split.dtype == np.float32 and float(split) <= 0.1 < float(np.nextafter(split, np.float32(1)))
     np.testing.assert_array_equal(tables["nodes"][1], [-1, 0, 0, 0])
     np.testing.assert_array_equal(tables["roots"], [0])
+
+
+def _containing_face(mesh, points):
+    """(face index, barycentric coordinates) of each point: the face whose plane is nearest
+    among those containing its projection (brute force: a coarse mesh, no rtree needed)."""
+    tris = np.asarray(mesh.triangles)  # (F, 3, 3)
+    normal = np.asarray(mesh.face_normals)
+    best = np.full(len(points), np.inf)
+    face = np.zeros(len(points), dtype=np.int64)
+    bary = np.zeros((len(points), 3))
+    for f in range(len(tris)):
+        b = trimesh.triangles.points_to_barycentric(np.repeat(tris[f][None], len(points), 0), points)
+        dist = np.abs((points - tris[f, 0]) @ normal[f])
+        take = (b.min(axis=1) > -1e-4) & (dist < best)
+        best[take], face[take], bary[take] = dist[take], f, b[take]
+    assert np.isfinite(best).all()
+    return face, bary
+
+
+def test_training_samples_get_the_normals_the_gbuffer_interpolates(gl_ctx, tmp_path):
+    """The networks learn transfer for the normals the runtime will ask about.
+
+    On a coarse sphere the G-buffer's smooth normals differ from the face normals by several
+    degrees; training samples (face + barycentric coordinates) must get the G-buffer's normal,
+    not the face's, and the G-buffer must agree with the shared helper at its own pixels.
+    """
+    from prt.runtime.normals import corner_normals, interpolated_normals
+    from prt.train.geometry import load_geometry
+    from prt.train.sampling import sample_surface
+
+    coarse = trimesh.creation.icosphere(subdivisions=1, radius=RADIUS)
+    closed = np.zeros(len(coarse.faces))
+    root = tmp_path / "coarse"
+    mesh = _write_mesh(root, coarse.vertices, coarse.faces, closed, closed, ["ball"])
+    g, _, _ = _render(gl_ctx, _write_scene(root, mesh, SPHERE_SEGMENTATION, SPHERE_BOUNDS))
+    face, corner = corner_normals(coarse.vertices, coarse.faces)
+    c = g.covered
+    tri, bary = _containing_face(coarse, g.position[c].astype(np.float64))
+    expected = interpolated_normals(corner, face, tri, bary)
+    angle = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", g.normal[c], expected), -1, 1)))
+    assert np.percentile(angle, 99) < 0.5
+    flat = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", g.normal[c], face[tri]), -1, 1)))
+    assert flat.mean() > 3.0  # the test can tell the two apart
+
+    obj = tmp_path / "coarse.obj"
+    coarse.export(obj)
+    geometry = load_geometry(obj, normalise=False)
+    samples = sample_surface(geometry, 4000, seed=0)
+    gm = geometry.mesh
+    face, corner = corner_normals(np.asarray(gm.vertices), np.asarray(gm.faces))
+    bary = trimesh.triangles.points_to_barycentric(gm.triangles[samples.face_index], samples.points.astype(np.float64))
+    expected = interpolated_normals(corner, face, samples.face_index, bary)
+    cos = np.einsum("ij,ij->i", samples.normals, expected)
+    assert cos.min() > 1.0 - 1e-5
+    assert np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", samples.normals, face[samples.face_index]), -1, 1))).mean() > 3.0

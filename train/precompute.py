@@ -29,7 +29,7 @@ from .transfer import DEFAULT_CHUNK, compute_transfer, make_tracer
 
 __all__ = ["PrecomputeSettings", "run_precompute", "load_precompute"]
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: samples carry the G-buffer's interpolated normals (1: face normals)
 
 
 @dataclass

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..runtime.errors import GeometryError
+from ..runtime.normals import corner_normals, interpolated_normals
 
 __all__ = ["SurfaceSamples", "sample_surface", "TRAIN_STREAM", "VALIDATION_STREAM"]
 
@@ -23,7 +24,9 @@ class SurfaceSamples:
     """Points on a surface with the normal of the side they belong to.
 
     points : (N, 3) float32, scene units
-    normals : (N, 3) float32, unit length
+    normals : (N, 3) float32, unit length: on meshes the normal the runtime's G-buffer
+        interpolates there (smooth vertex normals, the face normal at creases; see
+        :func:`prt.runtime.normals.corner_normals`), on SDFs the gradient
     face_index : (N,) int64, triangle of ``geometry.mesh`` the sample was drawn from
     object_ids : (N,) int64, object of that triangle
     """
@@ -50,7 +53,8 @@ def sample_surface(geometry, count: int, *, seed: int = 0, stream: int = TRAIN_S
     """Draw ``count`` area-uniform samples on ``geometry``.
 
     Meshes: a face is chosen with probability proportional to its area, then a uniform
-    point inside it (square-root barycentric warp).  Faces of open components
+    point inside it (square-root barycentric warp), with the interpolated smooth normal the
+    G-buffer gives that point.  Faces of open components
     (``geometry.two_sided``) are surfaces on both sides: each sample takes one side at random.
     SDF scenes: samples on the marching-cubes mesh are projected onto the zero level set
     along the gradient and take the normalised gradient as normal.
@@ -80,7 +84,11 @@ def sample_surface(geometry, count: int, *, seed: int = 0, stream: int = TRAIN_S
         + (r1 * (1.0 - r2))[:, None] * tri[:, 1]
         + (r1 * r2)[:, None] * tri[:, 2]
     )
-    normals = np.asarray(mesh.face_normals, dtype=np.float64)[faces].copy()
+    # The normals the runtime's G-buffer interpolates (smooth, face normals at creases), so the
+    # networks learn transfer for the normals they will be asked about.
+    face_normal, corner = corner_normals(np.asarray(mesh.vertices), np.asarray(mesh.faces))
+    weights = np.stack([1.0 - r1, r1 * (1.0 - r2), r1 * r2], axis=1)
+    normals = interpolated_normals(corner, face_normal, faces, weights)
     flip = rng.random(count) < 0.5
     two_sided = np.asarray(geometry.two_sided, dtype=bool)[faces]
     normals[two_sided & flip] *= -1.0
