@@ -5,7 +5,7 @@ usage: python bench/paper_table.py [--samples 1000000] [--views 30] [--size 512]
                                    [--meshes bunny ...] [--sizes k64 k128 right-sized] [--build-only]
                                    [--warmup 3] [--config-budget SECONDS] [--packing-views N]
                                    [--precisions fp32 fp16 int8] [--fresh]
-                                   [--out docs/benchmarks/paper]
+                                   [--out docs/benchmarks/paper] [--doc docs/paper_table.md]
 
 Builds the shared meshes (bunny, teapot, spot, daffodil plant; from ../shared/data/meshes,
 Spot falls back to the bundled copy) at the paper's two sizes (k = 64 and k = 128, l = 4) and
@@ -13,7 +13,7 @@ at our right-sized setting (``prt-train --match 64x4``: per segment, the cheapes
 ladder whose validation error is within 5 % of the k = 64 network's), sharing one
 precompute per mesh, then runs the backend benchmark (``prt-bench``) over all of
 them and writes ``<out>.json``, ``<out>.md`` and ``<out>.png`` plus ``docs/paper_table.md``
-with the command that made them.  Every stage is cached (builds under --work, references and
+(or ``--doc``) with the command that made them.  Every stage is cached (builds under --work, references and
 each finished scene's measurement in ``<out>_cache``), so an interrupted run resumes at the
 scene it was on; --fresh measures every scene again.  The full setting takes hours on 2 cores; smaller --samples/--views/--size give a
 quicker table (the settings are written next to the figures).
@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shlex
 import subprocess
 import sys
@@ -155,6 +156,7 @@ def main(argv=None) -> int:
     p.add_argument("--build-only", action="store_true", help="make the builds (cached under --work) and stop before the benchmark")
     p.add_argument("--work", type=Path, default=Path("/tmp/prt-paper"))
     p.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks" / "paper")
+    p.add_argument("--doc", type=Path, default=ROOT / "docs" / "paper_table.md", help="the Markdown page with the summary")
     args = p.parse_args(argv)
 
     scenes = []
@@ -199,7 +201,7 @@ def main(argv=None) -> int:
     command = "python bench/paper_table.py " + shlex.join(argv if argv is not None else sys.argv[1:])
     table = args.out.with_suffix(".md").read_text()
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
-    doc = ROOT / "docs" / "paper_table.md"
+    doc = args.doc
     tmp = doc.with_name(f".{doc.name}.tmp")
     tmp.write_text(
         "# Paper-style table\n\n"
@@ -210,7 +212,7 @@ def main(argv=None) -> int:
         "## Summary\n\n"
         f"{summary(json.loads(args.out.with_suffix('.json').read_text()))}\n\n"
         "## Every configuration\n\n"
-        f"{table}\n\n![speed against error]({Path('benchmarks') / args.out.with_suffix('.png').name})\n"
+        f"{table}\n\n![speed against error]({os.path.relpath(args.out.with_suffix('.png').resolve(), doc.parent.resolve())})\n"
     )
     tmp.replace(doc)
     print(f"wrote {doc}")
