@@ -112,8 +112,9 @@ def summary(report: dict) -> str:
     out = ["\n".join(lines), ""]
     out.append("Targets (k = 64 unless said; measured in this run):")
     out.append("- accuracy, diffuse/glossy PSNR over covered pixels: " + "; ".join(verdict["accuracy"]))
-    out.append("- right-sized vs k = 64, diffuse PSNR and FLOPs per fragment (target: the same PSNR, within 0.5 dB, "
-               "with fewer FLOPs): " + "; ".join(verdict["right"]))  # fmt: skip
+    if verdict["right"]:
+        out.append("- right-sized vs k = 64, diffuse PSNR and FLOPs per fragment (target: the same PSNR, within 0.5 dB, "
+                   "with fewer FLOPs): " + "; ".join(verdict["right"]))  # fmt: skip
     met = all(s >= r for _, s, r in verdict["packing"])
     out.append("- packing vs naive: " + "; ".join(f"{m} {s}x (pixel ratio {r}x)" for m, s, r in verdict["packing"]) + f" ({'met' if met else 'missed'})")
     for precision in ("int8", "fp16", "fp16-mlp"):
