@@ -31,6 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
+from prt.runtime.files import atomic_write_bytes
+
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data" / "meshes"
 MESHES = {
@@ -203,8 +205,7 @@ def main(argv=None) -> int:
     table = args.out.with_suffix(".md").read_text()
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
     doc = args.doc
-    tmp = doc.with_name(f".{doc.name}.tmp")
-    tmp.write_text(
+    page = (
         "# Paper-style table\n\n"
         f"Made by `{command.strip()}` on this project's 2-core machine (no GPU; OpenGL from Mesa llvmpipe).\n\n"
         f"Settings: `{json.dumps(settings)}`\n\n"
@@ -215,7 +216,7 @@ def main(argv=None) -> int:
         "## Every configuration\n\n"
         f"{table}\n\n![speed against error]({os.path.relpath(args.out.with_suffix('.png').resolve(), doc.parent.resolve())})\n"
     )
-    tmp.replace(doc)
+    atomic_write_bytes(doc, page.encode())
     print(f"wrote {doc}")
     return 0
 

@@ -1398,12 +1398,7 @@ def error_figure(view, images: dict, path: Path, title: str) -> None:
     fig.suptitle(f"{title}: |error| of tone-mapped images (grey: not covered)", fontsize=10)
     if shown is not None:
         fig.colorbar(shown, ax=axes, shrink=0.8, label="|error|")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    os.replace(tmp, path)
+    _save_figure(fig, path, dpi=100)
 
 
 # Settings that change what a scene's measurement is (the cache only says where things live).
@@ -1445,11 +1440,18 @@ def _prt_version() -> str:
         return "unknown"
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+def _save_figure(fig, path, dpi: int) -> None:
+    """PNG through a temporary file and a rename (an interrupted run leaves no half image)."""
+    import io
+
+    import matplotlib.pyplot as plt
+
+    from prt.runtime.files import atomic_write_bytes
+
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=dpi)
+    plt.close(fig)
+    atomic_write_bytes(path, buffer.getvalue())
 
 
 def run(scene_paths, settings: Settings, log=print) -> dict:
@@ -1468,6 +1470,8 @@ def run(scene_paths, settings: Settings, log=print) -> dict:
     """
     import onnxruntime
     from threadpoolctl import threadpool_limits
+
+    from prt.runtime.files import atomic_write_json
 
     from prt.runtime.gl import create_context
 
@@ -1508,7 +1512,7 @@ def run(scene_paths, settings: Settings, log=print) -> dict:
                     entry, recs = SceneBench(path, settings, ctx, machine_gflops, log).run()
                     entry["measured"] = datetime.datetime.now().isoformat(timespec="seconds")
                     entry["checkpoint"] = str(checkpoint)
-                    _write_atomic(checkpoint, json.dumps({"scene": entry, "records": recs}, indent=1) + "\n")
+                    atomic_write_json(checkpoint, {"scene": entry, "records": recs})
                 scenes.append(entry)
                 records.extend(recs)
         finally:
@@ -1633,12 +1637,7 @@ def plot(report: dict, path: Path) -> None:
     fig.canvas.draw()
     for ax, group in zip(axes.flat, groups.values()):
         _place_labels(fig, ax, [(r["fps"], r["psnr"], r["label"]) for r in group])
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
-    fig.savefig(tmp, dpi=120)
-    plt.close(fig)
-    os.replace(tmp, path)
+    _save_figure(fig, path, dpi=120)
 
 
 def _place_labels(fig, ax, points) -> None:
@@ -1722,6 +1721,8 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def main(argv=None) -> int:
+    from prt.runtime.files import atomic_write_bytes, atomic_write_json
+
     args = parse_args(argv)
     cache = args.cache
     if cache is None and args.json is not None:
@@ -1736,9 +1737,9 @@ def main(argv=None) -> int:
     text = markdown(report)
     print(text)
     if args.json:
-        _write_atomic(args.json, json.dumps(report, indent=2) + "\n")
+        atomic_write_json(args.json, report)
     if args.md:
-        _write_atomic(args.md, text)
+        atomic_write_bytes(args.md, text.encode())
     if args.plot:
         plot(report, args.plot)
     return 0
