@@ -84,17 +84,18 @@ def sample_surface(geometry, count: int, *, seed: int = 0, stream: int = TRAIN_S
         + (r1 * (1.0 - r2))[:, None] * tri[:, 1]
         + (r1 * r2)[:, None] * tri[:, 2]
     )
-    # The normals the runtime's G-buffer interpolates (smooth, face normals at creases), so the
-    # networks learn transfer for the normals they will be asked about.
-    face_normal, corner = corner_normals(np.asarray(mesh.vertices), np.asarray(mesh.faces))
-    weights = np.stack([1.0 - r1, r1 * (1.0 - r2), r1 * r2], axis=1)
-    normals = interpolated_normals(corner, face_normal, faces, weights)
-    flip = rng.random(count) < 0.5
-    two_sided = np.asarray(geometry.two_sided, dtype=bool)[faces]
-    normals[two_sided & flip] *= -1.0
+    flip = rng.random(count) < 0.5  # drawn either way: SDF and mesh samples keep one random stream
     if geometry.sdf is not None:
         points = geometry.sdf.project_to_surface(points)
         normals = geometry.sdf.normals(points)
+    else:
+        # The normals the runtime's G-buffer interpolates (smooth, face normals at creases), so
+        # the networks learn transfer for the normals they will be asked about.
+        face_normal, corner = corner_normals(np.asarray(mesh.vertices), np.asarray(mesh.faces))
+        weights = np.stack([1.0 - r1, r1 * (1.0 - r2), r1 * r2], axis=1)
+        normals = interpolated_normals(corner, face_normal, faces, weights)
+        two_sided = np.asarray(geometry.two_sided, dtype=bool)[faces]
+        normals[two_sided & flip] *= -1.0
     normals = _safe_normalise(normals)
     return SurfaceSamples(
         points.astype(np.float32),
