@@ -112,7 +112,9 @@ def summary(report: dict) -> str:
                 for p in scene["packing"]:
                     verdict["packing"].append((mesh, p["packing_speedup"], p["pixel_ratio"]))
     out = ["\n".join(lines), ""]
-    out.append("Targets (k = 64 unless said; measured in this run):")
+    resumed = sorted(r["scene"] for r in report.get("machine", {}).get("resumed", []))
+    where = f"{', '.join(resumed)} from an earlier run's checkpoints, the rest measured in this run" if resumed else "measured in this run"
+    out.append(f"Targets (k = 64 unless said; {where}):")
     out.append("- accuracy, diffuse/glossy PSNR over covered pixels: " + "; ".join(verdict["accuracy"]))
     if verdict["right"]:
         out.append("- right-sized vs k = 64, diffuse PSNR and FLOPs per fragment (target: the same PSNR, within 0.5 dB, "

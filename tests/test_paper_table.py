@@ -1,0 +1,89 @@
+"""The paper table's verdicts (bench/paper_table.py), on the committed full report and edits of it."""
+
+import copy
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+REPORT = ROOT / "docs" / "benchmarks" / "paper.json"
+
+
+@pytest.fixture(scope="module")
+def paper_table():
+    spec = importlib.util.spec_from_file_location("paper_table", ROOT / "bench" / "paper_table.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture()
+def report():
+    return json.loads(REPORT.read_text())
+
+
+def _record(report, scene, backend="onnx", precision="fp32", material="diffuse"):
+    for r in report["records"]:
+        if (r["scene"], r["backend"], r["precision"], r["material"]) == (scene, backend, precision, material):
+            return r
+    raise KeyError(scene)
+
+
+def _line(text, start):
+    return next(line for line in text.splitlines() if line.startswith(start))
+
+
+def test_accuracy_verdict_follows_the_records(paper_table, report):
+    text = paper_table.summary(report)
+    line = _line(text, "- accuracy")
+    for mesh in ("bunny", "teapot", "spot", "daffodil"):
+        d, g = _record(report, f"{mesh}-k64"), _record(report, f"{mesh}-k64", material="glossy")
+        need = 40.0 if mesh == "daffodil" else 45.0
+        met = d["psnr"] >= need and g["psnr"] >= 38.0
+        assert f"{mesh} {d['psnr']:.1f}/{g['psnr']:.1f} dB ({'met' if met else 'missed'}" in line
+    # raising the teapot above 45 dB flips its verdict, and only its
+    edited = copy.deepcopy(report)
+    _record(edited, "teapot-k64")["psnr"] = 45.5
+    _record(edited, "teapot-k64", material="glossy")["psnr"] = 45.5
+    after = _line(paper_table.summary(edited), "- accuracy")
+    assert "teapot 45.5/45.5 dB (met" in after
+    for part in line.split("; "):
+        if "teapot" not in part:
+            assert part.split(": ")[-1] in after
+
+
+def test_right_sized_needs_fewer_flops_and_the_same_psnr(paper_table, report):
+    edited = copy.deepcopy(report)
+    k64 = _record(edited, "bunny-k64")
+    rs = _record(edited, "bunny-right-sized")
+    rs["flops_per_fragment"] = k64["flops_per_fragment"]
+    assert "with 1.00x the FLOPs (missed)" in _line(paper_table.summary(edited), "- right-sized")
+    rs["flops_per_fragment"] = k64["flops_per_fragment"] // 2
+    rs["psnr"] = k64["psnr"] - 0.6
+    assert "bunny -0.60 dB with 0.50x the FLOPs (missed)" in _line(paper_table.summary(edited), "- right-sized")
+    rs["psnr"] = k64["psnr"] - 0.4
+    assert "bunny -0.40 dB with 0.50x the FLOPs (met)" in _line(paper_table.summary(edited), "- right-sized")
+
+
+def test_precision_verdict_pools_materials_and_takes_the_median(paper_table, report):
+    edited = copy.deepcopy(report)
+    for mesh in ("bunny", "teapot", "spot", "daffodil"):
+        for material in ("diffuse", "glossy"):
+            fp32 = _record(edited, f"{mesh}-k64", material=material)
+            int8 = _record(edited, f"{mesh}-k64", precision="int8", material=material)
+            int8["network_ms"] = fp32["network_ms"] / 2
+            int8["psnr"] = fp32["psnr"] - 0.2
+    line = _line(paper_table.summary(edited), "- int8")
+    assert "median 2.00x (met" in line
+    _record(edited, "spot-k64", precision="int8", material="glossy")["psnr"] -= 1.0  # one mesh loses too much
+    assert "median 2.00x (missed" in _line(paper_table.summary(edited), "- int8")
+
+
+def test_says_which_scenes_came_from_checkpoints(paper_table, report):
+    edited = copy.deepcopy(report)
+    edited["machine"]["resumed"] = [{"scene": "spot-k64", "measured": "2026-01-01T00:00:00"}]
+    assert "spot-k64 from an earlier run's checkpoints" in _line(paper_table.summary(edited), "Targets")
+    edited["machine"]["resumed"] = []
+    assert _line(paper_table.summary(edited), "Targets").endswith("measured in this run):")
