@@ -20,17 +20,15 @@ the transfer coefficients against the ray-traced ground truth, per segment and a
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT.parent))  # run from a checkout without installing
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from segment_bench import StudyError, interleaved_ms, network_segments, session, write_report  # noqa: E402
 
 
 def static_int8(source: Path, calibration: np.ndarray, path: Path) -> Path:
@@ -58,16 +56,6 @@ def static_int8(source: Path, calibration: np.ndarray, path: Path) -> Path:
     return path
 
 
-def session(path: Path):
-    import onnxruntime as ort
-
-    opts = ort.SessionOptions()
-    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    opts.intra_op_num_threads = 1
-    opts.log_severity_level = 3
-    return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
-
-
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("scene", type=Path)
@@ -77,67 +65,35 @@ def main(argv=None) -> int:
     p.add_argument("--json", type=Path, default=None)
     args = p.parse_args(argv)
 
-    from prt.runtime.errors import PRTError
-    from prt.runtime.manifest import load_manifest
     from prt.train.benchmark import build_variant
 
     try:
-        manifest = load_manifest(args.scene)
-    except PRTError as exc:
+        segments = network_segments(args.scene)
+    except StudyError as exc:
         print(f"int8_static: error: {exc}", file=sys.stderr)
         return 2
-    pre = args.scene.parent / "precompute"
-    if not (pre / "samples.npz").is_file():
-        print(f"int8_static: error: {pre}/samples.npz: not found (a scene built by prt-train keeps it)", file=sys.stderr)
-        return 2
-    samples, valid = np.load(pre / "samples.npz"), np.load(pre / "validation.npz")
-    x_train = np.concatenate([samples["points"], samples["normals"]], axis=1).astype(np.float32)
-    x_valid = np.concatenate([valid["points"], valid["normals"]], axis=1).astype(np.float32)
     rng = np.random.default_rng(0)
     variants = ("fp32", "int8-dynamic", "int8-static")
     rows = []
     with tempfile.TemporaryDirectory(prefix="prt_int8_") as folder:
-        for seg in manifest.segments:
-            if seg.kind != "network":
-                continue
-            own = np.flatnonzero(samples["segment"] == seg.id)
-            held = np.flatnonzero(valid["segment"] == seg.id)
-            if len(own) == 0 or len(held) == 0:
-                continue
-            calibration = x_train[rng.choice(own, min(args.calibration, len(own)), replace=False)]
+        for item in segments:
+            seg = item.segment
+            calibration = item.train[rng.choice(len(item.train), min(args.calibration, len(item.train)), replace=False)]
             paths = {
                 "fp32": seg.model,
                 "int8-dynamic": build_variant(seg.model, "int8", Path(folder) / f"seg{seg.id}-dyn.onnx"),
                 "int8-static": static_int8(seg.model, calibration, Path(folder) / f"seg{seg.id}-static.onnx"),
             }
             sessions = {k: session(v) for k, v in paths.items()}
-            xs = x_valid[held]
-            mae = {k: float(np.abs(s.run(None, {"x": xs})[0] - valid["transfer"][held]).mean()) for k, s in sessions.items()}
-            x = x_train[rng.choice(own, args.rows, replace=len(own) < args.rows)]
-            times = {k: [] for k in variants}
-            for k, s in sessions.items():
-                s.run(None, {"x": x})  # warm-up
-            for _ in range(args.repeats):  # interleaved: noise hits every variant alike
-                for k, s in sessions.items():
-                    t0 = time.perf_counter()
-                    s.run(None, {"x": x})
-                    times[k].append(time.perf_counter() - t0)
-            ms = {k: 1e3 * float(np.median(v)) for k, v in times.items()}
+            mae = {k: float(np.abs(s.run(None, {"x": item.held})[0] - item.held_transfer).mean()) for k, s in sessions.items()}
+            x = item.train[rng.choice(len(item.train), args.rows, replace=len(item.train) < args.rows)]
+            ms = interleaved_ms(sessions, x, args.repeats)
             row = {"segment": seg.id, "arch": seg.architecture, "ms": ms, "speedup": {k: ms["fp32"] / ms[k] for k in variants}, "mae": mae}
             rows.append(row)
             print(f"segment {seg.id}: " + ", ".join(f"{k} {ms[k]:.2f} ms ({row['speedup'][k]:.2f}x, MAE {mae[k]:.5f})" for k in variants))
-    if not rows:
-        print("int8_static: error: the scene has no network segment with samples", file=sys.stderr)
-        return 2
     summary = {k: {"speedup": float(np.median([r["speedup"][k] for r in rows])), "mae": float(np.median([r["mae"][k] for r in rows]))} for k in variants}
     print("median over segments: " + ", ".join(f"{k} {v['speedup']:.2f}x, MAE {v['mae']:.5f}" for k, v in summary.items()))
-    if args.json is not None:
-        import onnxruntime
-
-        from prt.runtime.files import atomic_write_json
-
-        atomic_write_json(args.json, {"scene": str(args.scene), "rows": args.rows, "repeats": args.repeats, "threads": 1,
-                                      "onnxruntime": onnxruntime.__version__, "segments": rows, "median": summary})  # fmt: skip
+    write_report(args.json, args.scene, args.rows, args.repeats, rows, summary)
     return 0
 
 

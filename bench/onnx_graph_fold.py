@@ -26,13 +26,12 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT.parent))  # run from a checkout without installing
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from segment_bench import StudyError, interleaved_ms, network_segments, session, write_report  # noqa: E402
 
 
 def folded_model(arrays: dict[str, np.ndarray], architecture: dict) -> bytes:
@@ -118,16 +117,6 @@ def folded_model(arrays: dict[str, np.ndarray], architecture: dict) -> bytes:
     return model.SerializeToString()
 
 
-def session(model):
-    import onnxruntime as ort
-
-    opts = ort.SessionOptions()
-    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    opts.intra_op_num_threads = 1
-    opts.log_severity_level = 3
-    return ort.InferenceSession(model if isinstance(model, bytes) else str(model), opts, providers=["CPUExecutionProvider"])
-
-
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("scene", type=Path)
@@ -137,61 +126,29 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
 
     from prt.export.onnx_model import read_arrays
-    from prt.runtime.errors import PRTError
-    from prt.runtime.manifest import load_manifest
 
     try:
-        manifest = load_manifest(args.scene)
-    except PRTError as exc:
+        segments = network_segments(args.scene)
+    except StudyError as exc:
         print(f"onnx_graph_fold: error: {exc}", file=sys.stderr)
         return 2
-    pre = args.scene.parent / "precompute"
-    if not (pre / "samples.npz").is_file():
-        print(f"onnx_graph_fold: error: {pre}/samples.npz: not found (a scene built by prt-train keeps it)", file=sys.stderr)
-        return 2
-    samples, valid = np.load(pre / "samples.npz"), np.load(pre / "validation.npz")
-    x_train = np.concatenate([samples["points"], samples["normals"]], axis=1).astype(np.float32)
-    x_valid = np.concatenate([valid["points"], valid["normals"]], axis=1).astype(np.float32)
     rng = np.random.default_rng(0)
     rows = []
-    for seg in manifest.segments:
-        if seg.kind != "network":
-            continue
-        own = np.flatnonzero(samples["segment"] == seg.id)
-        held = np.flatnonzero(valid["segment"] == seg.id)
-        if len(own) == 0 or len(held) == 0:
-            continue
+    for item in segments:
+        seg = item.segment
         arrays, arch = read_arrays(seg.model)
         sessions = {"exported": session(seg.model), "folded": session(folded_model(arrays, arch))}
-        xs = x_valid[held]
-        out = {k: s.run(None, {"x": xs})[0] for k, s in sessions.items()}
+        out = {k: s.run(None, {"x": item.held})[0] for k, s in sessions.items()}
         diff = float(np.abs(out["folded"] - out["exported"]).max())
-        x = x_train[rng.choice(own, args.rows, replace=len(own) < args.rows)]
-        times = {k: [] for k in sessions}
-        for s in sessions.values():
-            s.run(None, {"x": x})  # warm-up
-        for _ in range(args.repeats):  # interleaved: noise hits both alike
-            for k, s in sessions.items():
-                t0 = time.perf_counter()
-                s.run(None, {"x": x})
-                times[k].append(time.perf_counter() - t0)
-        ms = {k: 1e3 * float(np.median(v)) for k, v in times.items()}
+        x = item.train[rng.choice(len(item.train), args.rows, replace=len(item.train) < args.rows)]
+        ms = interleaved_ms(sessions, x, args.repeats)
         row = {"segment": seg.id, "arch": arch, "ms": ms, "speedup": ms["exported"] / ms["folded"], "max_abs_diff": diff}
         rows.append(row)
         print(f"segment {seg.id}: exported {ms['exported']:.2f} ms, folded {ms['folded']:.2f} ms "
               f"({row['speedup']:.2f}x), largest output difference {diff:.1e}")  # fmt: skip
-    if not rows:
-        print("onnx_graph_fold: error: the scene has no network segment with samples", file=sys.stderr)
-        return 2
     summary = {"speedup": float(np.median([r["speedup"] for r in rows])), "max_abs_diff": max(r["max_abs_diff"] for r in rows)}
     print(f"median over segments: {summary['speedup']:.2f}x; largest output difference {summary['max_abs_diff']:.1e}")
-    if args.json is not None:
-        import onnxruntime
-
-        from prt.runtime.files import atomic_write_json
-
-        atomic_write_json(args.json, {"scene": str(args.scene), "rows": args.rows, "repeats": args.repeats, "threads": 1,
-                                      "onnxruntime": onnxruntime.__version__, "segments": rows, "median": summary})  # fmt: skip
+    write_report(args.json, args.scene, args.rows, args.repeats, rows, summary)
     return 0
 
 

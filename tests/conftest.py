@@ -1,6 +1,24 @@
 """Shared pytest fixtures and hooks."""
 
+import importlib.util
+from pathlib import Path
+
 import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "bench"
+
+
+@pytest.fixture(scope="session")
+def bench_module():
+    """Import a script of ``bench/`` (not a package) by name: ``bench_module("paper_table")``."""
+
+    def load(name):
+        spec = importlib.util.spec_from_file_location(name, BENCH / f"{name}.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+
+    return load
 
 
 @pytest.fixture(scope="session")

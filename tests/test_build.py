@@ -161,3 +161,20 @@ def test_static_int8_study_runs_on_a_build(spot_build, tmp_path):
         # quantisation moves the error, it must not wreck it (8 bits of a tanh output ~ 0.004)
         assert row["mae"]["int8-static"] < row["mae"]["fp32"] + 0.01
         assert row["mae"]["int8-dynamic"] < row["mae"]["fp32"] + 0.01
+
+
+def test_graph_fold_study_runs_on_a_build(spot_build, tmp_path):
+    """bench/onnx_graph_fold.py: both graphs timed per segment, and they agree on held-out samples."""
+    out, _ = spot_build
+    report = tmp_path / "fold.json"
+    script = Path(__file__).resolve().parents[1] / "bench" / "onnx_graph_fold.py"
+    proc = subprocess.run([sys.executable, str(script), str(out / "scene.json"), "--rows", "256", "--repeats", "2",
+                           "--json", str(report)], capture_output=True, text=True)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    data = json.loads(report.read_text())
+    assert data["segments"]
+    for row in data["segments"]:
+        assert set(row["ms"]) == {"exported", "folded"} and all(v > 0 for v in row["ms"].values())
+        assert row["max_abs_diff"] < 1e-5
+    bad = subprocess.run([sys.executable, str(script), str(tmp_path / "missing.json")], capture_output=True, text=True)
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "Traceback" not in bad.stderr

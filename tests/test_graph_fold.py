@@ -1,6 +1,5 @@
 """bench/onnx_graph_fold.py's folded graph computes what the exported one does."""
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
@@ -10,11 +9,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def fold():
-    spec = importlib.util.spec_from_file_location("onnx_graph_fold", ROOT / "bench" / "onnx_graph_fold.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def fold(bench_module):
+    return bench_module("onnx_graph_fold")
 
 
 @pytest.mark.parametrize("pos_freqs, normal_freqs", [(None, None), (0, 2), (4, 0), (0, 0)])

@@ -1,7 +1,6 @@
 """The paper table's verdicts (bench/paper_table.py), on the committed full report and edits of it."""
 
 import copy
-import importlib.util
 import json
 from pathlib import Path
 
@@ -12,11 +11,8 @@ REPORT = ROOT / "docs" / "benchmarks" / "paper.json"
 
 
 @pytest.fixture(scope="module")
-def paper_table():
-    spec = importlib.util.spec_from_file_location("paper_table", ROOT / "bench" / "paper_table.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def paper_table(bench_module):
+    return bench_module("paper_table")
 
 
 @pytest.fixture()
