@@ -18,7 +18,15 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Camera"]
+__all__ = ["Camera", "DEFAULT_CAMERA", "orbit_views"]
+
+# The camera of a scene whose manifest leaves fields out (scene space is [-1, 1]^3, +Y up).
+DEFAULT_CAMERA: dict[str, Any] = {
+    "eye": (0.0, 0.6, 3.2),
+    "target": (0.0, 0.0, 0.0),
+    "up": (0.0, 1.0, 0.0),
+    "fov": 40.0,
+}
 
 # Relative tolerance below which two directions count as parallel.
 _PARALLEL_TOL = 1e-9
@@ -218,3 +226,8 @@ class Camera:
             f"Camera(eye={self.eye.tolist()}, target={self.target.tolist()}, up={self.up.tolist()}, "
             f"fov_y={self.fov_y}, near={self.near}, far={self.far})"
         )
+
+
+def orbit_views(start: Camera, views: int) -> list[Camera]:
+    """``views`` cameras evenly spaced on a full orbit of ``start`` about its target (view 0 is ``start``)."""
+    return [start.orbit(2.0 * np.pi * i / views) for i in range(views)]

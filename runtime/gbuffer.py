@@ -39,7 +39,13 @@ from .errors import GeometryError, SpecError
 from .manifest import Manifest
 from .normals import corner_normals
 
-__all__ = ["GBuffer", "GBufferPass", "segment_tables", "load_mesh"]
+__all__ = ["GBuffer", "GBufferPass", "segment_tables", "load_mesh", "PACKED_COLUMNS", "PACKED_COVERED", "PACKED_SEGMENT"]
+
+# Columns of :meth:`GBufferPass.read_packed`'s rows: ``pos.xyz, covered, n.xyz, segment``.
+# The networks' input (position + normal, float32 [N, 6]) is these columns, in this order.
+PACKED_COLUMNS = (0, 1, 2, 4, 5, 6)
+PACKED_COVERED = 3
+PACKED_SEGMENT = 7
 
 # Half size of the box every scene lies in ([-1, 1]^3), padded so surfaces on it are found.
 SCENE_BOX = 1.001

@@ -32,6 +32,7 @@ import numpy as np
 from jsonschema import Draft202012Validator
 from jsonschema.exceptions import ValidationError, best_match
 
+from .camera import DEFAULT_CAMERA
 from .errors import InputError, SpecError
 
 __all__ = [
@@ -61,14 +62,6 @@ def _load_schema() -> dict:
 
 SCENE_SCHEMA: dict = _load_schema()
 _VALIDATOR = Draft202012Validator(SCENE_SCHEMA)
-
-# Used for every field a manifest's camera leaves out.
-DEFAULT_CAMERA: dict[str, Any] = {
-    "eye": (0.0, 0.6, 3.2),
-    "target": (0.0, 0.0, 0.0),
-    "up": (0.0, 1.0, 0.0),
-    "fov": 40.0,
-}
 
 # Schema messages quote the offending value; a whole array in an error line helps nobody.
 _MAX_MESSAGE = 200

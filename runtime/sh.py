@@ -68,6 +68,8 @@ __all__ = [
     "rotate",
     "gaunt",
     "clamped_cosine",
+    "unshadowed_transfer",
+    "unshadowed_coeff_scale",
     "zonal_to_band_factors",
     "phong_lobe",
     "band_factors_to_coeff_scale",
@@ -705,6 +707,32 @@ def apply_window(coeffs, w) -> np.ndarray:
     if scale.shape[0] != coeffs.shape[0]:
         raise ValueError(f"{bands} bands of coefficients but {np.shape(w)[0]} window factors")
     return coeffs * (scale if coeffs.ndim == 1 else scale[:, None])
+
+
+def unshadowed_transfer(normals, bands: int = 4) -> np.ndarray:
+    """Diffuse transfer of unshadowed points: the clamped cosine / pi turned to each normal.
+
+    The one definition of the "analytic" transfer (segments that need no network, the
+    training check that a segment is unshadowed, the GLSL backend's coefficient scale).
+
+    Parameters
+    ----------
+    normals : array_like, shape (N, 3)
+        Unit normals.
+    bands : int
+        Number of bands.
+
+    Returns
+    -------
+    ndarray, shape (N, bands**2), float32
+    """
+    lam = zonal_to_band_factors(clamped_cosine(bands)) / np.pi
+    return (basis(np.asarray(normals, dtype=np.float64), bands) * band_factors_to_coeff_scale(lam)).astype(np.float32)
+
+
+def unshadowed_coeff_scale(bands: int = 4) -> np.ndarray:
+    """(bands**2,) float64 per-coefficient factors ``s`` with ``unshadowed_transfer(n) = s * Y(n)``."""
+    return band_factors_to_coeff_scale(zonal_to_band_factors(clamped_cosine(bands)) / np.pi)
 
 
 def white_furnace_transfer(bands: int = 4) -> np.ndarray:

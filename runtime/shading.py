@@ -82,7 +82,7 @@ GLSL_BANDS = 4
 # Rows shaded per chunk in shade(); bounds the (rows, 3, n) temporaries to a few tens of MB.
 _SHADE_CHUNK = 1 << 16
 # Tone-mapping input ceiling: the curve is already 1 beyond ~7.3, and x * x stays finite.
-_TONEMAP_MAX = 1.0e4
+TONEMAP_MAX = 1.0e4
 # ACES filmic fit (Narkowicz 2015): x (a x + b) / (x (c x + d) + e).
 _ACES = (2.51, 0.03, 2.43, 0.59, 0.14)
 
@@ -463,7 +463,7 @@ def tonemap(radiance, exposure: float = 1.0) -> np.ndarray:
     if not (math.isfinite(exposure) and exposure >= 0):
         raise InputError(f"tonemap(): exposure must be finite and >= 0, got {exposure!r}")
     x = np.asarray(radiance, dtype=np.float64)
-    x = np.clip(np.where(np.isfinite(x), x, 0.0) * exposure, 0.0, _TONEMAP_MAX)
+    x = np.clip(np.where(np.isfinite(x), x, 0.0) * exposure, 0.0, TONEMAP_MAX)
     a, b, c, d, e = _ACES
     mapped = np.clip(x * (a * x + b) / (x * (c * x + d) + e), 0.0, 1.0)
     return linear_to_srgb(mapped).astype(np.float32)
