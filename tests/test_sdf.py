@@ -200,6 +200,6 @@ def test_culling_is_exact():
     sdf = get_sdf("creature")
     q = np.concatenate([p, rng.normal(0.0, 0.3, (5000, 3))])
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr("prt.train.sdf._CULL_MIN_COST", float("inf"))
+        mp.setattr("prt.train.sdf.nodes._CULL_MIN_COST", float("inf"))
         unculled = sdf.evaluate(q)
     np.testing.assert_allclose(sdf.evaluate(q), unculled, rtol=0.0, atol=1e-12)

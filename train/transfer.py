@@ -130,18 +130,21 @@ class EmbreeTracer:
 
 
 class SDFTracer:
-    """Occlusion queries by sphere tracing an analytic SDF scene."""
+    """Occlusion queries against an analytic SDF scene, by its own sphere tracer.
+
+    :meth:`prt.train.sdf.SDF.sphere_trace` is the one implementation; this adapts it to
+    the tracer interface (``offset``, ``identity``, ``occluded``).
+    """
 
     offset = SDF_RAY_OFFSET
 
     def __init__(self, sdf):
         self._sdf = sdf
-        lo, hi = np.asarray(sdf.bounds, dtype=np.float64)
-        self._t_max = float(np.linalg.norm(hi - lo)) + 0.1
         self.identity = "sdf:" + hashlib.sha1(sdf.glsl().encode()).hexdigest()
 
     def occluded(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-        return np.asarray(self._sdf.sphere_trace(origins, dirs, t_max=self._t_max), dtype=bool)
+        """origins, dirs : (K, 3) float32 -> (K,) bool, True where the ray hits the scene."""
+        return self._sdf.sphere_trace(origins, dirs)  # t_max: across the whole scene
 
 
 def make_tracer(geometry):
