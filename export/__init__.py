@@ -1,6 +1,10 @@
-"""Export: fitted networks -> ONNX files, generated GLSL, and the scene manifest.
+"""prt.export: fitted networks -> the files of a scene folder.  Imports runtime, never train.
 
-Filled in by the training/export stage; nothing here yet imports torch at module level.
+- :mod:`prt.export.scene`       a whole built scene: segment files, geometry, ``scene.json``
+- :mod:`prt.export.onnx_model`  segment networks as ONNX files, from plain arrays
+- :mod:`prt.export.glsl`        GLSL generated from an ONNX segment network
+- :mod:`prt.export.manifest`    writing ``scene.json`` (validated, atomic, byte-stable)
+- :mod:`prt.export.precision`   reduced-precision variants of the ONNX networks (fp16, int8)
 """
 
 __all__: list[str] = []

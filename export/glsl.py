@@ -100,8 +100,11 @@ from dataclasses import dataclass
 from functools import lru_cache
 from string import Template
 
+import moderngl
 import numpy as np
 
+from ..runtime.gl import run_fragment_program
+from ..shaders import assemble
 from ..shaders import source as shader_source
 from .onnx_model import LEAKY_SLOPE, NORMAL_EPS, POSITION_CLIP, read_arrays
 
@@ -127,8 +130,6 @@ TEXTURE_WIDTH = 1024
 
 _TEXELS = {"vec4": 1, "mat3x4": 3, "mat4": 4}
 _IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
-# Texels per row of evaluate_glsl's input grid; a pass draws at most this many rows too.
-_GRID_WIDTH = 1024
 
 
 @dataclass(frozen=True)
@@ -260,7 +261,7 @@ def evaluation_program(snippet: str, function_name: str = "prt_transfer", output
         Length of its ``t`` array, ``ceil(bands^2 / 4)``.
     """
     fn = _check_name(function_name)
-    return _template("mlp_eval.glsl.tmpl").substitute(fn=fn, outputs=outputs, snippet=snippet)
+    return assemble("mlp_eval.glsl.tmpl", fills={"fn": fn, "outputs": str(outputs), "snippet": snippet})
 
 
 def compile_report(ctx, source: str, function_name: str = "prt_transfer", outputs: int = 4) -> dict:
@@ -285,12 +286,14 @@ def compile_report(ctx, source: str, function_name: str = "prt_transfer", output
     """
     program_source = evaluation_program(source, function_name, outputs)
     start = time.perf_counter()
-    program = ctx.program(vertex_shader=shader_source("fullscreen.vert"), fragment_shader=program_source)
+    program = ctx.program(vertex_shader=assemble("fullscreen.vert"), fragment_shader=program_source)
     linked = time.perf_counter()
-    with _Targets(ctx, program, (1, 1), outputs) as targets:
-        targets.draw(np.zeros((1, 4), dtype=np.float32), np.zeros((1, 4), dtype=np.float32))
+    try:
+        zeros = np.zeros((1, 4), dtype=np.float32)
+        run_fragment_program(ctx, program, {"u_position": zeros, "u_normal": zeros}, 4 * outputs, attachments=outputs)
+    finally:
+        program.release()
     drawn = time.perf_counter()
-    program.release()
     return {
         "link_s": linked - start,
         "first_draw_s": drawn - linked,
@@ -302,8 +305,9 @@ def compile_report(ctx, source: str, function_name: str = "prt_transfer", output
 def evaluate_glsl(ctx, onnx_path, x, layout: str = "auto", function_name: str = "prt_transfer") -> np.ndarray:
     """Run the generated GLSL on ``x`` (N, 6) = [position, normal], like the ONNX graph.
 
-    For checking the shader against onnxruntime and for timing; the framebuffer bound
-    before the call is bound again.
+    For checking the shader against onnxruntime and for timing, through
+    :func:`prt.runtime.gl.run_fragment_program`; the framebuffer bound before the call is
+    bound again.
 
     Parameters
     ----------
@@ -317,8 +321,6 @@ def evaluate_glsl(ctx, onnx_path, x, layout: str = "auto", function_name: str = 
     -------
     (N, bands^2) float32 ndarray
     """
-    import moderngl
-
     data = np.asarray(x, dtype=np.float32)
     if data.ndim != 2 or data.shape[1] != 6:
         raise ValueError(f"x must be (N, 6), got shape {data.shape}")
@@ -327,89 +329,22 @@ def evaluate_glsl(ctx, onnx_path, x, layout: str = "auto", function_name: str = 
     if layout == "auto":
         layout = choose_layout(network.architecture)
     outputs = network.outputs
-    program = ctx.program(
-        vertex_shader=shader_source("fullscreen.vert"),
-        fragment_shader=evaluation_program(_source(network, fn, layout), fn, outputs),
-    )
-    weights = None
+    source = evaluation_program(_source(network, fn, layout), fn, outputs)
+    program = ctx.program(vertex_shader=assemble("fullscreen.vert"), fragment_shader=source)
+    textures = {}
     try:
         if layout == "texture":
             texels, meta = _texture(network)
             weights = ctx.texture((meta["width"], meta["height"]), 4, texels.tobytes(), dtype="f4")
             weights.filter = (moderngl.NEAREST, moderngl.NEAREST)
-            weights.use(2)
-            program[f"{fn}_weights"] = 2
-        result = np.empty((len(data), outputs * 4), dtype=np.float32)
-        per_pass = _GRID_WIDTH * _GRID_WIDTH
-        for start in range(0, len(data), per_pass):
-            chunk = data[start : start + per_pass]
-            width = min(len(chunk), _GRID_WIDTH)
-            height = math.ceil(len(chunk) / width)
-            grid = np.zeros((width * height, 2, 4), dtype=np.float32)
-            grid[: len(chunk), :, :3] = chunk.reshape(-1, 2, 3)
-            with _Targets(ctx, program, (width, height), outputs) as targets:
-                result[start : start + len(chunk)] = targets.draw(grid[:, 0], grid[:, 1])[: len(chunk)]
+            textures[f"{fn}_weights"] = weights
+        inputs = {"u_position": data[:, :3], "u_normal": data[:, 3:]}
+        result = run_fragment_program(ctx, program, inputs, 4 * outputs, attachments=outputs, textures=textures)
     finally:
-        if weights is not None:
-            weights.release()
+        for texture in textures.values():
+            texture.release()
         program.release()
     return result[:, : network.coefficients]
-
-
-class _Targets:
-    """Input textures and an RGBA32F framebuffer with ``outputs`` attachments for one draw."""
-
-    def __init__(self, ctx, program, size: tuple[int, int], outputs: int):
-        self.ctx, self.program, self.size, self.outputs = ctx, program, size, outputs
-
-    def __enter__(self):
-        import moderngl
-
-        self.previous = self.ctx.fbo
-        self.buffers = [self.ctx.renderbuffer(self.size, 4, dtype="f4") for _ in range(self.outputs)]
-        self.fbo = self.ctx.framebuffer(color_attachments=self.buffers)
-        self.vao = self.ctx.vertex_array(self.program, [])
-        self.ctx.disable(moderngl.BLEND)  # blending would mix the outputs with the cleared target
-        return self
-
-    def draw(self, positions: np.ndarray, normals: np.ndarray) -> np.ndarray:
-        """Evaluate at (width * height, 4) positions and normals -> (width * height, 4 outputs)."""
-        import moderngl
-
-        textures = []
-        try:
-            for unit, (name, values) in enumerate((("u_position", positions), ("u_normal", normals))):
-                texture = self.ctx.texture(self.size, 4, np.ascontiguousarray(values).tobytes(), dtype="f4")
-                texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
-                texture.use(unit)
-                textures.append(texture)
-                if name in self.program:
-                    self.program[name] = unit
-            self.fbo.use()
-            self.fbo.viewport = (0, 0, *self.size)
-            self.vao.render(moderngl.TRIANGLES, vertices=3)
-            blocks = [
-                np.frombuffer(self.fbo.read(components=4, attachment=j, dtype="f4"), dtype=np.float32).reshape(-1, 4)
-                for j in range(self.outputs)
-            ]
-            return np.concatenate(blocks, axis=1)
-        finally:
-            for texture in textures:
-                texture.release()
-
-    def __exit__(self, *exc):
-        import moderngl
-
-        previous = self.previous
-        # moderngl re-binds ctx.fbo when creating framebuffers, so a released one must not stay.
-        if previous is None or isinstance(previous.mglo, moderngl.InvalidObject):
-            previous = self.ctx.detect_framebuffer(0)
-        previous.use()
-        self.vao.release()
-        self.fbo.release()
-        for buffer in self.buffers:
-            buffer.release()
-        return False
 
 
 def _network(onnx_path) -> _Network:

@@ -1,7 +1,9 @@
 """Writing the scene manifest ``scene.json``.
 
-:func:`write_manifest` accepts the manifest as a dict that may still hold numpy values,
-tuples and ``PurePath`` objects, turns it into plain JSON types, runs exactly the checks of
+:func:`write_manifest` accepts the manifest as the typed model the loader returns
+(:class:`prt.runtime.manifest.Manifest`, serialised by its ``to_dict``) or as a dict that may
+still hold numpy values, tuples and ``PurePath`` objects, turns it into plain JSON types,
+runs exactly the checks of
 :func:`prt.runtime.manifest.load_manifest` (schema, semantic rules, and by default that
 every referenced file exists inside the scene folder), and only then replaces the file
 atomically, so a failed export never leaves a half-written or invalid manifest behind.
@@ -23,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from prt.runtime.errors import SpecError
-from prt.runtime.manifest import MANIFEST_NAME, format_field_path, validate_manifest_dict
+from prt.runtime.manifest import MANIFEST_NAME, Manifest, format_field_path, validate_manifest_dict
 
 __all__ = ["write_manifest", "relative_to_scene"]
 
@@ -78,7 +80,7 @@ def relative_to_scene(path: str | Path, scene_dir: str | Path) -> str:
     return target.relative_to(scene).as_posix()
 
 
-def write_manifest(path: str | Path, data: dict, *, check_files: bool = True) -> Path:
+def write_manifest(path: str | Path, data: Manifest | dict, *, check_files: bool = True) -> Path:
     """Validate a manifest and write it atomically.
 
     Parameters
@@ -86,9 +88,11 @@ def write_manifest(path: str | Path, data: dict, *, check_files: bool = True) ->
     path : str or Path
         Destination ``scene.json``, or an existing scene folder (``scene.json`` is written
         inside it).  The folder must exist.
-    data : dict
-        The manifest (format version 1).  numpy scalars and arrays, tuples and ``PurePath``
-        values (written as POSIX strings) are accepted; integer dict keys become strings.
+    data : Manifest or dict
+        The manifest (format version 1).  A :class:`~prt.runtime.manifest.Manifest` has its
+        file paths written relative to the folder of ``path``.  In a dict, numpy scalars and
+        arrays, tuples and ``PurePath`` values (written as POSIX strings) are accepted;
+        integer dict keys become strings.
     check_files : bool
         Also require every referenced path to be an existing file inside the folder, as
         :func:`~prt.runtime.manifest.load_manifest` does.  Turn off only to write a
@@ -111,6 +115,8 @@ def write_manifest(path: str | Path, data: dict, *, check_files: bool = True) ->
     source = str(path)
     if not path.parent.is_dir():
         raise SpecError(f"{source}: folder {path.parent} does not exist")
+    if isinstance(data, Manifest):
+        data = data.to_dict(root=path.parent)
     plain = _to_json(data, [], source)
     validate_manifest_dict(plain, source, root=path.parent if check_files else None)
     text = _format(_ordered(plain)) + "\n"

@@ -7,9 +7,15 @@ and moderngl only; it never imports torch (a test enforces this).
 - :mod:`prt.runtime.shading`     diffuse and glossy PRT shading (numpy twin of the shaders)
 - :mod:`prt.runtime.manifest`    scene.json: schema validation, confined paths
 - :mod:`prt.runtime.gbuffer`     the G-buffer pass (rasterised meshes, sphere-traced SDFs)
-- :mod:`prt.runtime.onnx_backend` packed per-segment inference with ONNX Runtime
+- :mod:`prt.runtime.backends`    transfer backends by name behind one interface: ``onnx`` (packed
+                                 per-segment inference with ONNX Runtime), ``glsl`` (generated GLSL)
+- :mod:`prt.runtime.camera`      the look-at camera, the default camera, orbits
+- :mod:`prt.runtime.orbit`       turntable frames to PNG with median stage timings
 - :mod:`prt.runtime.envmap`      reading HDR environment maps (.hdr, .exr)
-- :mod:`prt.runtime.gl`          headless OpenGL contexts (EGL)
+- :mod:`prt.runtime.envmaps`     the bundled environment maps, by name
+- :mod:`prt.runtime.gl`          headless OpenGL contexts (EGL), full-screen programs, the GLSL
+                                 evaluation harness
+- :mod:`prt.runtime.viewer`, :mod:`prt.runtime.cli`  the viewer window and ``prt-runtime``
 - :mod:`prt.runtime.errors`      the exception types
 """
 

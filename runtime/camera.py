@@ -70,8 +70,8 @@ class Camera:
 
     eye: np.ndarray
     target: np.ndarray
-    up: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
-    fov_y: float = 40.0
+    up: np.ndarray = field(default_factory=lambda: np.array(DEFAULT_CAMERA["up"], dtype=np.float64))
+    fov_y: float = DEFAULT_CAMERA["fov"]
     near: float = 0.05
     far: float = 50.0
 
@@ -104,7 +104,7 @@ class Camera:
 
         Parameters
         ----------
-        camera : dict or Manifest
+        camera : CameraInfo or Manifest
             ``Manifest.camera`` (``eye``, ``target``, ``up``, ``fov`` in degrees), or the
             manifest itself.
         near, far : float
@@ -115,7 +115,7 @@ class Camera:
         Camera
         """
         camera = getattr(camera, "camera", camera)
-        return cls(camera["eye"], camera["target"], camera["up"], camera["fov"], near, far)
+        return cls(camera.eye, camera.target, camera.up, camera.fov, near, far)
 
     def orbit(self, angle: float, axis: Any = None) -> "Camera":
         """This camera rotated about ``target`` by ``angle`` radians.

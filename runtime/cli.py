@@ -6,6 +6,8 @@ usage: prt-runtime [scene.json] [--backend onnx|glsl] [--size W[xH]] [--headless
 Without a scene it opens the bundled demo scene (Spot).  With a display (and pygame installed:
 ``pip install "prt-runtime[viewer]"``) it opens a window; without one, or with --headless, it
 renders --frames frames along an orbit to PNG files and prints the median FPS and stage times.
+A thin layer over the library: :class:`prt.runtime.viewer.ViewerOptions`,
+:func:`prt.runtime.viewer.run_window` and :func:`prt.runtime.orbit.render_orbit`.
 """
 
 from __future__ import annotations
@@ -15,11 +17,14 @@ import os
 import sys
 from pathlib import Path
 
-import numpy as np
-
+from .backends import BACKENDS
+from .envmaps import BUNDLED_ENVMAPS
 from .errors import PRTError
+from .orbit import render_orbit
+from .renderer import Scene
+from .viewer import ViewerOptions, run_window
 
-__all__ = ["main", "build_parser", "render_orbit"]
+__all__ = ["main", "build_parser", "options_from_args"]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -29,12 +34,12 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     p.add_argument("scene", nargs="?", default=None, help="scene.json or its folder (default: the bundled demo scene)")
-    p.add_argument("--backend", choices=("onnx", "glsl"), default="onnx", help="where the networks run")
+    p.add_argument("--backend", choices=BACKENDS, default=BACKENDS[0], help="where the networks run")
     p.add_argument("--size", default="512", help="image size: W or WxH")
     p.add_argument("--headless", action="store_true", help="no window even if a display is available")
     p.add_argument("--frames", type=int, default=30, help="headless: frames along the orbit")
     p.add_argument("--out", type=Path, default=Path("prt_frames"), help="headless: folder for the PNG frames")
-    p.add_argument("--envmap", default=None, help="bundled env map name (potsdamer, interior, studio) or an .hdr/.exr path")
+    p.add_argument("--envmap", default=None, help=f"bundled env map name ({', '.join(BUNDLED_ENVMAPS)}) or an .hdr/.exr path")
     p.add_argument("--material", choices=("diffuse", "glossy"), default=None, help="override the scene's material")
     p.add_argument("--exponent", type=float, default=16.0, help="Phong exponent of the glossy material")
     p.add_argument("--exposure", type=float, default=1.0, help="exposure before tone mapping")
@@ -54,6 +59,16 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def options_from_args(args: argparse.Namespace) -> ViewerOptions:
+    """The viewer's options from parsed flags (PRTError for a bad ``--size``)."""
+    width, height = _size(args.size)
+    return ViewerOptions(
+        width=width, height=height, backend=args.backend, envmap=args.envmap, material=args.material,
+        exponent=args.exponent, exposure=args.exposure,
+        providers=args.providers.split(",") if args.providers else None, threads=args.threads,
+    )  # fmt: skip
+
+
 def has_display() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
@@ -61,19 +76,12 @@ def has_display() -> bool:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        from .renderer import Renderer, Scene
-
-        width, height = _size(args.size)
+        options = options_from_args(args)
         scene = Scene.load(args.scene)
-        providers = args.providers.split(",") if args.providers else None
-        window = not args.headless and has_display()
-        if window:
-            from .viewer import run_window
-
-            return run_window(scene, width, height, args, providers)
-        with Renderer(scene, width, height, backend=args.backend, providers=providers, threads=args.threads) as r:
-            _apply_options(r, args)
-            summary = render_orbit(r, args.frames, args.out, exposure=args.exposure)
+        if not args.headless and has_display():
+            return run_window(scene, options)
+        with options.renderer(scene) as r:
+            summary = render_orbit(r, args.frames, args.out, exposure=options.exposure)
     except PRTError as exc:
         print(f"prt-runtime: error: {exc}", file=sys.stderr)
         return 2
@@ -82,53 +90,6 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     print(summary)
     return 0
-
-
-def _apply_options(r, args) -> None:
-    if args.envmap:
-        r.set_envmap(args.envmap)
-    if args.material == "glossy":
-        r.set_material("glossy", albedo=r.material.albedo, specular=(0.3, 0.3, 0.3), exponent=args.exponent)
-    elif args.material == "diffuse":
-        r.set_material("diffuse", albedo=r.material.albedo)
-
-
-def render_orbit(r, frames: int, out: Path, *, exposure: float = 1.0, warmup: int = 2) -> str:
-    """Render ``frames`` views on an orbit about the scene's target into ``out``/frame_NNN.png.
-
-    Returns a summary: median FPS and median milliseconds per stage (warm-up frames excluded).
-    """
-    import imageio.v3 as iio
-
-    from .files import atomic_write_bytes
-    from .shading import to_srgb8
-
-    if frames < 1:
-        raise PRTError(f"--frames must be positive, got {frames}")
-    out = Path(out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise PRTError(f"{out}: cannot create the output folder ({exc.strerror})") from None
-    start = r.camera
-    for i in range(warmup):
-        r.set_camera_object(start.orbit(-0.01 * (i + 1)))
-        r.render()
-    stages: dict[str, list[float]] = {}
-    for i in range(frames):
-        r.set_camera_object(start.orbit(2 * np.pi * i / frames))
-        image = r.render()
-        for k, v in r.timings.items():
-            stages.setdefault(k, []).append(v)
-        atomic_write_bytes(out / f"frame_{i:03d}.png", iio.imwrite("<bytes>", to_srgb8(image, exposure), extension=".png"))
-    r.set_camera_object(start)
-    med = {k: float(np.median(v)) for k, v in stages.items()}
-    fps = 1000.0 / med["frame"]
-    parts = ", ".join(f"{k} {v:.1f}" for k, v in med.items() if k != "frame")
-    return (
-        f"{r.scene.name}: {frames} frames {r.width}x{r.height}, backend {r.backend}: median {fps:.1f} FPS "
-        f"({med['frame']:.1f} ms/frame; {parts} ms); wrote {out}/frame_000.png ..."
-    )
 
 
 if __name__ == "__main__":

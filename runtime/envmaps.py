@@ -8,13 +8,17 @@ from __future__ import annotations
 from importlib import resources
 from pathlib import Path
 
-__all__ = ["BUNDLED_ENVMAPS", "bundled_envmap_path"]
+__all__ = ["BUNDLED_ENVMAPS", "DEFAULT_ENVMAP", "bundled_envmap_path"]
 
 BUNDLED_ENVMAPS = {
     "potsdamer": "potsdamer_platz_256.hdr",
     "interior": "st_fagans_interior_256.hdr",
     "studio": "studio_small_03_256.hdr",
 }
+"""Short name -> file of every bundled env map (the one list of them), the default first."""
+
+DEFAULT_ENVMAP = next(iter(BUNDLED_ENVMAPS))
+"""The light of a scene whose manifest gives none."""
 
 
 def bundled_envmap_path(name: str) -> Path:

@@ -17,7 +17,7 @@ flipped accordingly; back faces of closed surfaces are discarded in the fragment
 (not culled by GL, which would hide two-sided faces from behind too).
 
 Segments are computed in the shader (``shaders/segment_lookup.glsl``) by the rule of
-:func:`prt.runtime.manifest.segment_of`: descend the object's k-d tree, or, for an object
+:func:`prt.runtime.segmentation.segment_of`: descend the object's k-d tree, or, for an object
 without a root, take the segment whose box is nearest to the point.  Nearest-box is applied
 per fragment, exactly as ``segment_of`` does per point, so both agree everywhere.  SDF
 scenes are object id 0.
@@ -33,9 +33,10 @@ from pathlib import Path
 import moderngl
 import numpy as np
 
-from ..shaders import source as shader_source
+from ..shaders import assemble
 from .camera import Camera
 from .errors import GeometryError, SpecError
+from .gl import bind_framebuffer
 from .manifest import Manifest
 from .normals import corner_normals
 
@@ -130,13 +131,13 @@ def segment_tables(manifest: Manifest, object_ids: np.ndarray | None = None) -> 
     return {"nodes": nodes, "roots": roots, "segment_min": bounds[:, 0], "segment_max": bounds[:, 1]}
 
 
-def _lookup_defines(tables: dict[str, np.ndarray]) -> str:
+def _lookup_defines(tables: dict[str, np.ndarray]) -> dict[str, int]:
     """The #defines ``segment_lookup.glsl`` needs for these tables."""
-    return (
-        f"#define PRT_KD_NODES {len(tables['nodes'])}\n"
-        f"#define PRT_KD_OBJECTS {len(tables['roots'])}\n"
-        f"#define PRT_SEGMENTS {len(tables['segment_min'])}\n"
-    )
+    return {
+        "PRT_KD_NODES": len(tables["nodes"]),
+        "PRT_KD_OBJECTS": len(tables["roots"]),
+        "PRT_SEGMENTS": len(tables["segment_min"]),
+    }
 
 
 def _check_uniform_budget(ctx: moderngl.Context, tables: dict[str, np.ndarray], source: str) -> None:
@@ -234,25 +235,10 @@ def _mesh_vertices(mesh: dict[str, np.ndarray]) -> np.ndarray:
     return records.reshape(-1)
 
 
-def _insert_after_version(main: str, *parts: str) -> str:
-    """``main`` with ``parts`` inserted after its ``#version`` line (line numbers kept by #line)."""
-    first, _, rest = main.partition("\n")
-    if not first.startswith("#version"):
-        raise ValueError("shader source must start with a #version line")
-    return "\n".join([first, *parts, "#line 2", rest])
-
-
 def _strip_version(glsl: str) -> str:
     """``glsl`` without a leading ``#version`` line (an included file must not repeat it)."""
     stripped = glsl.lstrip()
     return stripped.partition("\n")[2] if stripped.startswith("#version") else glsl
-
-
-def _bind_again(ctx: moderngl.Context, fbo) -> None:
-    """Bind ``fbo`` again, or the default framebuffer if it is None or was released meanwhile."""
-    if fbo is None or isinstance(fbo.mglo, moderngl.InvalidObject):
-        fbo = ctx.detect_framebuffer(0)
-    fbo.use()
 
 
 # --------------------------------------------------------------------------- the pass
@@ -324,7 +310,7 @@ class GBufferPass:
             raise ValueError(f"GBufferPass: size must be positive, got {width}x{height}")
         self.ctx = ctx
         self.width, self.height = width, height
-        self.kind = manifest.geometry["type"]
+        self.kind = manifest.geometry.type
         self._released = False
         self._vbo = None
         self._vao = self._program = None
@@ -360,13 +346,11 @@ class GBufferPass:
         return texture
 
     def _build_mesh(self, manifest: Manifest) -> None:
-        mesh = load_mesh(manifest.geometry["path"])
+        mesh = load_mesh(manifest.geometry.path)
         tables = segment_tables(manifest, mesh["object_ids"])
         _check_uniform_budget(self.ctx, tables, str(manifest.path))
-        fragment = _insert_after_version(
-            shader_source("gbuffer_mesh.frag"), _lookup_defines(tables), shader_source("segment_lookup.glsl")
-        )
-        vertex = shader_source("gbuffer_mesh.vert")
+        fragment = assemble("segment_lookup.glsl", "gbuffer_mesh.frag", defines=_lookup_defines(tables))
+        vertex = assemble("gbuffer_mesh.vert")
         self._program = self.ctx.program(vertex_shader=vertex, fragment_shader=fragment)
         _set_tables(self._program, tables)
         self._vbo = self.ctx.buffer(_mesh_vertices(mesh).tobytes())
@@ -379,25 +363,18 @@ class GBufferPass:
         if max_steps < 1 or not hit_eps > 0.0:
             message = f"need max_steps >= 1 and hit_eps > 0, got {max_steps} and {hit_eps}"
             raise ValueError(f"GBufferPass: {message}")
-        path = Path(manifest.geometry["path"])
+        path = Path(manifest.geometry.path)
         try:
             scene_glsl = path.read_text(encoding="utf-8")
         except (OSError, UnicodeDecodeError) as exc:
             raise GeometryError(f"{path}: cannot read SDF GLSL ({' '.join(str(exc).split())})") from None
         tables = segment_tables(manifest, np.zeros(1, dtype=np.int32))
         _check_uniform_budget(self.ctx, tables, str(manifest.path))
-        defines = (
-            f"#define PRT_MAX_STEPS {max_steps}\n"
-            f"#define PRT_HIT_EPS {hit_eps!r}\n"
-            f"#define PRT_SCENE_BOX {SCENE_BOX!r}\n" + _lookup_defines(tables)
+        defines = {"PRT_MAX_STEPS": max_steps, "PRT_HIT_EPS": hit_eps, "PRT_SCENE_BOX": SCENE_BOX, **_lookup_defines(tables)}
+        fragment = assemble(
+            "segment_lookup.glsl", "gbuffer_sdf.frag", defines=defines, fills={"scene_sdf": _strip_version(scene_glsl)}
         )
-        fragment = _insert_after_version(
-            shader_source("gbuffer_sdf.frag"),
-            defines,
-            shader_source("segment_lookup.glsl"),
-            _strip_version(scene_glsl),
-        )
-        vertex = shader_source("fullscreen.vert")
+        vertex = assemble("fullscreen.vert")
         self._program = self.ctx.program(vertex_shader=vertex, fragment_shader=fragment)
         _set_tables(self._program, tables)
         self._vbo = None
@@ -446,7 +423,7 @@ class GBufferPass:
             self._vao.render(moderngl.TRIANGLES, vertices=self._vertices)
         finally:
             self.ctx.disable(moderngl.DEPTH_TEST)
-            _bind_again(self.ctx, previous)
+            bind_framebuffer(self.ctx, previous)
 
     # ----------------------------------------------------------------- read-back
 

@@ -1,4 +1,5 @@
-"""Headless OpenGL contexts (EGL) and a helper that evaluates GLSL over packed inputs.
+"""Headless OpenGL contexts (EGL), full-screen programs, and the one harness that evaluates
+GLSL over inputs.
 
 Mesa's llvmpipe through EGL is enough: no display and no GPU are needed.
 """
@@ -6,27 +7,37 @@ Mesa's llvmpipe through EGL is enough: no display and no GPU are needed.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 import moderngl
 import numpy as np
 
-from ..shaders import source as shader_source
-from .errors import GLContextError
+from ..shaders import assemble
+from .errors import GLContextError, PRTError
 
-__all__ = ["create_context", "context_info", "run_fragment_program", "FRAGMENT_HEADER"]
+__all__ = [
+    "create_context",
+    "context_info",
+    "compile_program",
+    "draw_fullscreen",
+    "bind_framebuffer",
+    "run_fragment_program",
+    "ShaderCompileError",
+]
 
 _INSTALL_HINT = (
     "install Mesa's EGL (apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri) "
     "or run on a machine with a GPU driver"
 )
 
-_FULLSCREEN_VERTEX = shader_source("fullscreen.vert")
-
-FRAGMENT_HEADER = shader_source("packed_eval_header.frag")
-"""Prepended by :func:`run_fragment_program` to sources without a ``#version`` line."""
+_FULLSCREEN_VERTEX = assemble("fullscreen.vert")
 
 # Texels per row of the packed input grid.
 _GRID_WIDTH = 1024
+
+
+class ShaderCompileError(PRTError):
+    """A generated or bundled shader failed to compile; the message names the source file."""
 
 
 def create_context(require: int = 330) -> moderngl.Context:
@@ -70,55 +81,95 @@ def context_info(ctx: moderngl.Context) -> dict:
     }
 
 
+def compile_program(ctx: moderngl.Context, fragment: str, name: str, vertex: str | None = None) -> moderngl.Program:
+    """Compile a full-screen program (vertex stage ``fullscreen.vert`` unless ``vertex`` is given).
+
+    A failure becomes one :class:`ShaderCompileError` line naming ``name`` and the driver's message.
+    """
+    try:
+        return ctx.program(vertex_shader=vertex or _FULLSCREEN_VERTEX, fragment_shader=fragment)
+    except moderngl.Error as exc:
+        lines = [ln.strip() for ln in str(exc).splitlines() if "error" in ln.lower()]
+        raise ShaderCompileError(f"{name}: GLSL compile failed: {(lines or [str(exc).strip()])[0][:300]}") from None
+
+
+def draw_fullscreen(ctx: moderngl.Context, fbo, vao, textures) -> None:
+    """Clear ``fbo`` and draw one full-screen triangle with ``textures`` ((texture, unit) pairs) bound."""
+    for tex, unit in textures:
+        tex.use(unit)
+    fbo.use()
+    ctx.disable(moderngl.DEPTH_TEST | moderngl.BLEND | moderngl.CULL_FACE)
+    fbo.clear(0.0, 0.0, 0.0, 0.0)
+    vao.render(moderngl.TRIANGLES, vertices=3)
+
+
 def run_fragment_program(
     ctx: moderngl.Context,
-    fragment_source: str,
-    inputs: np.ndarray,
+    fragment: str | moderngl.Program,
+    inputs,
     components: int = 4,
+    *,
+    attachments: int = 1,
+    uniforms: Mapping[str, np.ndarray] | None = None,
+    textures: Mapping[str, moderngl.Texture] | None = None,
 ) -> np.ndarray:
     """Evaluate a fragment shader once per input row, on packed float32 textures.
 
     The N input rows are laid out row-major in a grid ``_GRID_WIDTH`` texels wide (row i
-    at texel ``(i % width, i // width)``), bound as the float texture ``u_input``; a
-    full-screen triangle is drawn into an RGBA32F framebuffer of the same size and read back.
+    at texel ``(i % width, i // width)``), each input its own float texture; a full-screen
+    triangle is drawn into RGBA32F framebuffer attachments of the same size and read back.
 
-    Without its own ``#version`` line, the source is prefixed with :data:`FRAGMENT_HEADER`,
-    which declares ``uniform sampler2D u_input``, ``out vec4 f_out`` and
-    ``vec4 prt_input()`` (this fragment's input, unused channels 0); the source then only
-    defines ``void main()`` writing ``f_out`` (plus any functions it needs).  A source with
-    ``#version`` must declare those names itself.  Blending is left disabled; the
+    A source without its own ``#version`` line is assembled into ``shaders/packed_eval.frag``,
+    which declares ``uniform sampler2D u_input``, ``out vec4 f_out`` and ``vec4 prt_input()``
+    (this fragment's input, unused channels 0); the source then only defines ``void main()``
+    writing ``f_out`` (plus any functions it needs).  A source with ``#version`` (or a
+    program) declares its samplers and outputs itself.  Blending is left disabled; the
     framebuffer bound before the call is bound again.
 
     Parameters
     ----------
     ctx : moderngl.Context
-    fragment_source : str
-        GLSL fragment shader source (see above).
-    inputs : (N, K) array_like, K in 1..4
-        Values per invocation, converted to float32.
+    fragment : str or moderngl.Program
+        GLSL fragment shader source (see above), or a linked full-screen program, which
+        the caller keeps (and releases).
+    inputs : (N, K) array_like, K in 1..4, or mapping of str to (N, K) array_like
+        Values per invocation, converted to float32: one array is bound as ``u_input``, a
+        mapping binds each array to the sampler it names (texture units 0, 1, ... in order).
     components : int
-        Output channels C kept from ``f_out`` (1..4).
+        Output channels C kept, counted across the attachments (1 .. 4 * attachments).
+    attachments : int
+        Colour attachments the program writes (``layout(location = j)``).
+    uniforms : mapping of str to ndarray, optional
+        Uniform values, written as their bytes (names the compiler dropped are skipped).
+    textures : mapping of str to moderngl.Texture, optional
+        Further textures (e.g. network weights) bound to the samplers they name, on the
+        units after the inputs; the caller keeps them.
 
     Returns
     -------
     (N, C) float32 ndarray
-        ``f_out`` of each invocation.
+        The outputs of each invocation, attachment 0 first.
 
     Raises
     ------
     moderngl.Error
         If the shader does not compile or link (the message holds the compiler log).
     """
-    data = np.asarray(inputs, dtype=np.float32)
-    if data.ndim == 1:
-        data = data[:, None]
-    if data.ndim != 2 or not 1 <= data.shape[1] <= 4:
-        raise ValueError(f"inputs must be (N, K) with K in 1..4, got shape {data.shape}")
-    if not 1 <= components <= 4:
-        raise ValueError(f"components must be in 1..4, got {components}")
-    has_version = fragment_source.lstrip().startswith("#version")
-    source = fragment_source if has_version else FRAGMENT_HEADER + fragment_source
-    n, k = data.shape
+    named = dict(inputs) if isinstance(inputs, Mapping) else {"u_input": inputs}
+    arrays = {}
+    for name, values in named.items():
+        data = np.asarray(values, dtype=np.float32)
+        if data.ndim == 1:
+            data = data[:, None]
+        if data.ndim != 2 or not 1 <= data.shape[1] <= 4:
+            raise ValueError(f"inputs must be (N, K) with K in 1..4, got shape {data.shape} for {name}")
+        arrays[name] = data
+    lengths = {len(a) for a in arrays.values()}
+    if len(lengths) != 1:
+        raise ValueError(f"inputs must all have the same number of rows, got {sorted(lengths)}")
+    if not 1 <= components <= 4 * attachments:
+        raise ValueError(f"components must be in 1..{4 * attachments}, got {components}")
+    n = lengths.pop()
     out = np.empty((n, components), dtype=np.float32)
     if n == 0:
         return out
@@ -126,27 +177,44 @@ def run_fragment_program(
     width = min(n, _GRID_WIDTH)
     rows_per_pass = max(1, min(ctx.info.get("GL_MAX_TEXTURE_SIZE", 4096), 4096))
     per_pass = width * rows_per_pass
-    program = ctx.program(vertex_shader=_FULLSCREEN_VERTEX, fragment_shader=source)
+    own_program = not isinstance(fragment, moderngl.Program)
+    if own_program:
+        source = fragment if fragment.lstrip().startswith("#version") else assemble("packed_eval.frag", fills={"body": fragment})
+        program = ctx.program(vertex_shader=_FULLSCREEN_VERTEX, fragment_shader=source)
+    else:
+        program = fragment
     vao = ctx.vertex_array(program, [])
     previous_fbo = ctx.fbo
     ctx.disable(moderngl.BLEND)  # blending would mix f_out with the cleared target
     try:
-        if "u_input" in program:
-            program["u_input"] = 0
+        for unit, name in enumerate([*arrays, *(textures or {})]):
+            if name in program:
+                program[name] = unit
+        for unit, texture in enumerate((textures or {}).values(), start=len(arrays)):
+            texture.use(unit)
+        for name, value in (uniforms or {}).items():
+            if name in program:
+                program[name].write(np.ascontiguousarray(value).tobytes())
         for start in range(0, n, per_pass):
-            chunk = data[start : start + per_pass]
-            height = math.ceil(len(chunk) / width)
-            grid = np.zeros((height * width, k), dtype=np.float32)
-            grid[: len(chunk)] = chunk
-            out[start : start + len(chunk)] = _draw(ctx, vao, grid, width, height)[: len(chunk), :components]
+            chunks = [a[start : start + per_pass] for a in arrays.values()]
+            rows = len(chunks[0])
+            height = math.ceil(rows / width)
+            grids = []
+            for chunk in chunks:
+                grid = np.zeros((height * width, chunk.shape[1]), dtype=np.float32)
+                grid[:rows] = chunk
+                grids.append(grid)
+            result = _draw(ctx, vao, grids, width, height, attachments)
+            out[start : start + rows] = result[:rows, :components]
     finally:
-        _rebind(ctx, previous_fbo)
+        bind_framebuffer(ctx, previous_fbo)
         vao.release()
-        program.release()
+        if own_program:
+            program.release()
     return out
 
 
-def _rebind(ctx: moderngl.Context, fbo) -> None:
+def bind_framebuffer(ctx: moderngl.Context, fbo) -> None:
     """Bind ``fbo`` again, or the default framebuffer if it is None or released.
 
     moderngl re-binds ``ctx.fbo`` when creating framebuffers, so leaving a released one
@@ -157,20 +225,26 @@ def _rebind(ctx: moderngl.Context, fbo) -> None:
     fbo.use()
 
 
-def _draw(ctx: moderngl.Context, vao, grid: np.ndarray, width: int, height: int) -> np.ndarray:
-    """One pass of :func:`run_fragment_program`: (width * height, K) in, (width * height, 4) out."""
-    texture = ctx.texture((width, height), grid.shape[1], grid.tobytes(), dtype="f4")
-    texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
-    target = ctx.renderbuffer((width, height), 4, dtype="f4")
-    fbo = ctx.framebuffer(color_attachments=[target])
+def _draw(ctx: moderngl.Context, vao, grids: list[np.ndarray], width: int, height: int, attachments: int) -> np.ndarray:
+    """One pass of :func:`run_fragment_program`: (width * height, K) grids in, (width * height, 4 * attachments) out."""
+    inputs = []
+    targets = [ctx.renderbuffer((width, height), 4, dtype="f4") for _ in range(attachments)]
+    fbo = ctx.framebuffer(color_attachments=targets)
     try:
-        texture.use(0)
+        for unit, grid in enumerate(grids):
+            texture = ctx.texture((width, height), grid.shape[1], grid.tobytes(), dtype="f4")
+            texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
+            texture.use(unit)
+            inputs.append(texture)
         fbo.use()
         fbo.viewport = (0, 0, width, height)
         vao.render(moderngl.TRIANGLES, vertices=3)
-        raw = fbo.read(components=4, dtype="f4")
-        return np.frombuffer(raw, dtype=np.float32).reshape(width * height, 4).copy()
+        blocks = [
+            np.frombuffer(fbo.read(components=4, attachment=j, dtype="f4"), dtype=np.float32).reshape(width * height, 4)
+            for j in range(attachments)
+        ]
+        return np.concatenate(blocks, axis=1)
     finally:
         fbo.release()
-        target.release()
-        texture.release()
+        for obj in [*targets, *inputs]:
+            obj.release()

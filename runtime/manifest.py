@@ -1,4 +1,4 @@
-"""The scene manifest ``scene.json``: loading, validation and the point -> segment rule.
+"""The scene manifest ``scene.json``: its typed model, loading and validation.
 
 A trained scene is a folder holding ``scene.json`` plus the files it names (geometry, one
 ONNX model and GLSL file per network segment, an optional environment map).  The format is
@@ -14,18 +14,22 @@ schema cannot express are made here:
 
 Every failure raises :class:`~prt.runtime.errors.SpecError` with a one-line message naming
 the file and the field, e.g. ``scene.json: segments[1].kind: 'netwrk' is not one of
-['network', 'analytic']``.  The writer lives in :mod:`prt.export.manifest` and runs the same
-checks before writing.
+['network', 'analytic']``.
+
+One model serves both directions: :func:`load_manifest` returns a :class:`Manifest`
+(:meth:`Manifest.from_dict`), and the writer :func:`prt.export.manifest.write_manifest`
+serialises one (:meth:`Manifest.to_dict`) after the same checks.  The point -> segment rule
+of the k-d tree lives in :mod:`prt.runtime.segmentation`.
 """
 
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from functools import cached_property
 from importlib import resources
-from pathlib import Path, PurePosixPath, PureWindowsPath
+from pathlib import Path, PurePath, PurePosixPath, PureWindowsPath
 from typing import Any
 
 import numpy as np
@@ -33,24 +37,31 @@ from jsonschema import Draft202012Validator
 from jsonschema.exceptions import ValidationError, best_match
 
 from .camera import DEFAULT_CAMERA
-from .errors import InputError, SpecError
+from .errors import SpecError
 
 __all__ = [
     "SCENE_SCHEMA",
     "FORMAT",
     "FORMAT_VERSION",
+    "GENERATOR",
     "MANIFEST_NAME",
     "DEFAULT_CAMERA",
+    "GeometryInfo",
     "SegmentInfo",
+    "LightingInfo",
+    "MaterialInfo",
+    "CameraInfo",
+    "MemoryInfo",
     "Manifest",
     "load_manifest",
     "validate_manifest_dict",
-    "segment_of",
+    "validate_manifest_field",
     "format_field_path",
 ]
 
 FORMAT = "prt-scene"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 1  # the version runtime/schemas/scene.schema.json describes
+GENERATOR = "prt-train 0.1.0"  # what the build writes as ``generator``
 MANIFEST_NAME = "scene.json"
 
 
@@ -67,9 +78,77 @@ _VALIDATOR = Draft202012Validator(SCENE_SCHEMA)
 _MAX_MESSAGE = 200
 
 
+def _array(value: Any) -> np.ndarray | None:
+    """``value`` as a float64 array; None stays None."""
+    return None if value is None else np.asarray(value, dtype=np.float64)
+
+
+def _listed(value: Any) -> Any:
+    """An array as nested lists (JSON arrays); anything else unchanged."""
+    return value.tolist() if isinstance(value, np.ndarray) else value
+
+
+def _relative(path: str | PurePath, root: Path) -> str:
+    """POSIX path of ``path`` (absolute, or relative to the current directory) relative to ``root``."""
+    return Path(os.path.relpath(os.path.abspath(path), os.path.abspath(root))).as_posix()
+
+
+@dataclass
+class GeometryInfo:
+    """The scene's geometry: a triangle mesh (``geometry.npz``) or a built-in SDF scene.
+
+    Attributes
+    ----------
+    type : str
+        ``"mesh"`` or ``"sdf"``.
+    path : Path
+        The mesh file (manifest field ``file``) or the SDF's GLSL (field ``glsl``); absolute
+        and resolved in a loaded manifest.
+    to_source : ndarray, shape (4, 4)
+        Row-major affine transform from scene space back to source units.
+    name : str or None
+        SDF scene name (sdf only).
+    triangles : int or None
+        Triangle count (mesh only).
+    objects : list of str or None
+        Object names, indexed by object id (mesh only).
+    """
+
+    type: str
+    path: Path
+    to_source: np.ndarray
+    name: str | None = None
+    triangles: int | None = None
+    objects: list[str] | None = None
+
+    @property
+    def path_field(self) -> str:
+        """The manifest field that holds :attr:`path`: ``"file"`` (mesh) or ``"glsl"`` (sdf)."""
+        return "file" if self.type == "mesh" else "glsl"
+
+    @classmethod
+    def from_dict(cls, data: dict, path: Path) -> GeometryInfo:
+        """From the manifest's ``geometry`` object, with its file already resolved to ``path``."""
+        objects = data.get("objects")
+        return cls(
+            type=data["type"],
+            path=path,
+            to_source=np.asarray(data["to_source"], dtype=np.float64),
+            name=data.get("name"),
+            triangles=data.get("triangles"),
+            objects=None if objects is None else list(objects),
+        )
+
+    def to_dict(self, root: Path) -> dict:
+        """The manifest's ``geometry`` object, :attr:`path` relative to the scene folder ``root``."""
+        out = {"type": self.type, self.path_field: _relative(self.path, root), "to_source": _listed(self.to_source)}
+        extra = {"name": self.name} if self.type == "sdf" else {"triangles": self.triangles, "objects": self.objects}
+        return out | extra
+
+
 @dataclass
 class SegmentInfo:
-    """One segment of a loaded manifest.
+    """One segment of a manifest.
 
     Attributes
     ----------
@@ -79,9 +158,9 @@ class SegmentInfo:
         ``"network"`` (an MLP gives the transfer) or ``"analytic"`` (unshadowed transfer, a
         function of the normal alone).
     model : Path or None
-        Absolute, resolved path of the ONNX model; None for analytic segments.
+        The ONNX model (absolute and resolved in a loaded manifest); None for analytic segments.
     glsl : Path or None
-        Absolute, resolved path of the generated GLSL, if any.
+        The generated GLSL, if any.
     glsl_weights : Path or None
         ``.npy`` (H, W, 4) float32 weight texture for GLSL generated with the texture layout.
     bounds : ndarray, shape (2, 3)
@@ -113,44 +192,194 @@ class SegmentInfo:
     def is_network(self) -> bool:
         return self.kind == "network"
 
+    @classmethod
+    def from_dict(cls, data: dict, files: dict[str, Path | None]) -> SegmentInfo:
+        """From one entry of the manifest's ``segments``; ``files`` maps ``model``, ``glsl``
+        and ``glsl_weights`` to resolved paths."""
+        return cls(
+            id=data["id"],
+            kind=data["kind"],
+            model=files.get("model"),
+            glsl=files.get("glsl"),
+            glsl_weights=files.get("glsl_weights"),
+            bounds=np.asarray(data["bounds"], dtype=np.float64),
+            architecture=dict(data["architecture"]) if "architecture" in data else None,
+            flops_per_fragment=data.get("flops_per_fragment", 0),
+            weight_bytes=data.get("weight_bytes", 0),
+            samples=data["samples"],
+            validation={
+                "coeff_mae": data["validation"]["coeff_mae"],
+                "shaded_mae": dict(data["validation"]["shaded_mae"]),
+            },
+        )
+
+    def to_dict(self, root: Path) -> dict:
+        """The manifest's entry of this segment, paths relative to the scene folder ``root``."""
+        out = {
+            "id": self.id,
+            "kind": self.kind,
+            "bounds": _listed(self.bounds),
+            "samples": self.samples,
+            "validation": {"coeff_mae": self.validation["coeff_mae"], "shaded_mae": dict(self.validation["shaded_mae"])},
+        }
+        out |= {key: _relative(p, root) for key, p in self._files().items() if p is not None}
+        if self.is_network:  # analytic segments have no network fields
+            out |= {
+                "architecture": self.architecture,
+                "flops_per_fragment": self.flops_per_fragment,
+                "weight_bytes": self.weight_bytes,
+            }
+        return out
+
+    def _files(self) -> dict[str, Path | None]:
+        return {"model": self.model, "glsl": self.glsl, "glsl_weights": self.glsl_weights}
+
+
+@dataclass
+class LightingInfo:
+    """The scene's default lighting.
+
+    Attributes
+    ----------
+    envmap : Path or None
+        Environment map file (absolute and resolved in a loaded manifest).
+    sh : ndarray, shape (sh_bands**2, 3), or None
+        RGB light coefficients.
+    rotation : ndarray, shape (3, 3), or None
+        Rotation applied to the lighting.
+    """
+
+    envmap: Path | None = None
+    sh: np.ndarray | None = None
+    rotation: np.ndarray | None = None
+
+    @classmethod
+    def from_dict(cls, data: dict, envmap: Path | None) -> LightingInfo:
+        """From the manifest's ``lighting`` object, with its env map already resolved."""
+        return cls(envmap=envmap, sh=_array(data.get("sh")), rotation=_array(data.get("rotation")))
+
+    def to_dict(self, root: Path) -> dict:
+        """The manifest's ``lighting`` object; ``envmap`` is always written (null for none)."""
+        out: dict[str, Any] = {"envmap": None if self.envmap is None else _relative(self.envmap, root)}
+        if self.sh is not None:
+            out["sh"] = _listed(self.sh)
+        if self.rotation is not None:
+            out["rotation"] = _listed(self.rotation)
+        return out
+
+
+@dataclass
+class MaterialInfo:
+    """The scene's default material.
+
+    Attributes
+    ----------
+    type : str
+        ``"diffuse"`` or ``"glossy"``.
+    albedo : ndarray, shape (3,)
+    specular : ndarray, shape (3,), or None
+    exponent : float or None
+        Phong exponent (glossy).
+    """
+
+    type: str
+    albedo: np.ndarray
+    specular: np.ndarray | None = None
+    exponent: float | None = None
+
+    @classmethod
+    def from_dict(cls, data: dict) -> MaterialInfo:
+        """From the manifest's ``material`` object."""
+        exponent = data.get("exponent")
+        return cls(
+            type=data["type"],
+            albedo=np.asarray(data["albedo"], dtype=np.float64),
+            specular=_array(data.get("specular")),
+            exponent=None if exponent is None else float(exponent),
+        )
+
+    def to_dict(self) -> dict:
+        """The manifest's ``material`` object (fields that are None left out)."""
+        out = {"type": self.type, "albedo": _listed(self.albedo)}
+        if self.specular is not None:
+            out["specular"] = _listed(self.specular)
+        if self.exponent is not None:
+            out["exponent"] = self.exponent
+        return out
+
+
+@dataclass
+class CameraInfo:
+    """The scene's default camera; fields a manifest leaves out come from :data:`DEFAULT_CAMERA`.
+
+    Attributes
+    ----------
+    eye, target, up : ndarray, shape (3,)
+    fov : float
+        Vertical field of view in degrees.
+    """
+
+    eye: np.ndarray = field(default_factory=lambda: np.asarray(DEFAULT_CAMERA["eye"], dtype=np.float64))
+    target: np.ndarray = field(default_factory=lambda: np.asarray(DEFAULT_CAMERA["target"], dtype=np.float64))
+    up: np.ndarray = field(default_factory=lambda: np.asarray(DEFAULT_CAMERA["up"], dtype=np.float64))
+    fov: float = float(DEFAULT_CAMERA["fov"])
+
+    @classmethod
+    def from_dict(cls, data: dict) -> CameraInfo:
+        """From the manifest's ``camera`` object (or a part of it)."""
+        cam = {**DEFAULT_CAMERA, **data}
+        vectors = {k: np.asarray(cam[k], dtype=np.float64) for k in ("eye", "target", "up")}
+        return cls(**vectors, fov=float(cam["fov"]))
+
+    def to_dict(self) -> dict:
+        """The manifest's ``camera`` object (all four fields)."""
+        return {"eye": _listed(self.eye), "target": _listed(self.target), "up": _listed(self.up), "fov": self.fov}
+
+
+@dataclass
+class MemoryInfo:
+    """Storage of the scene's networks vs per-vertex transfer, in bytes."""
+
+    weight_bytes: int
+    vertex_storage_bytes: int
+
+    @classmethod
+    def from_dict(cls, data: dict) -> MemoryInfo:
+        return cls(weight_bytes=data["weight_bytes"], vertex_storage_bytes=data["vertex_storage_bytes"])
+
+    def to_dict(self) -> dict:
+        return {"weight_bytes": self.weight_bytes, "vertex_storage_bytes": self.vertex_storage_bytes}
+
 
 @dataclass
 class Manifest:
-    """A loaded, validated ``scene.json``.
+    """A scene manifest: what :func:`load_manifest` returns and the writer serialises.
 
     Attributes
     ----------
     path : Path
-        Absolute, resolved path of the manifest file.
+        The manifest file (absolute and resolved when loaded).
     root : Path
         The scene folder (``path.parent``); every referenced file lies inside it.
     name : str
         Scene name.
     generator : str or None
-        What wrote the manifest, e.g. ``"prt-train 0.1.0"``.
+        What wrote the manifest, e.g. :data:`GENERATOR`.
     sh_bands : int
         SH bands of the transfer; each segment outputs ``sh_bands**2`` coefficients.
-    geometry : dict
-        The manifest's geometry object plus ``"path"``: the absolute, resolved path of its
-        ``file`` (mesh) or ``glsl`` (sdf).
+    geometry : GeometryInfo
     segmentation : dict
         ``roots`` (dict of int object id -> node index), ``nodes`` (list of dicts) and
-        ``leaf_segment`` (int64 ndarray); see :func:`segment_of`.
+        ``leaf_segment`` (int64 ndarray); see :func:`prt.runtime.segmentation.segment_of`.
     segments : list of SegmentInfo
         Indexed by segment id.
-    lighting : dict
-        ``envmap`` (absolute Path or None), ``sh`` ((sh_bands**2, 3) ndarray or None) and
-        ``rotation`` ((3, 3) ndarray or None).
-    material : dict
-        ``type`` (``"diffuse"`` or ``"glossy"``), ``albedo`` ((3,) ndarray), ``specular``
-        ((3,) ndarray or None), ``exponent`` (float or None).
-    camera : dict
-        ``eye``, ``target``, ``up`` ((3,) ndarrays) and ``fov`` (vertical, degrees); fields
-        the manifest leaves out come from :data:`DEFAULT_CAMERA`.
-    memory : dict or None
-        ``weight_bytes`` and ``vertex_storage_bytes``, if recorded.
-    raw : dict
-        The parsed JSON, unchanged.
+    lighting : LightingInfo
+    material : MaterialInfo
+    camera : CameraInfo
+    memory : MemoryInfo or None
+        If recorded.
+    raw : dict or None
+        The parsed JSON, unchanged (None for a manifest not read from a file).
     """
 
     path: Path
@@ -158,64 +387,100 @@ class Manifest:
     name: str
     generator: str | None
     sh_bands: int
-    geometry: dict
+    geometry: GeometryInfo
     segmentation: dict
     segments: list[SegmentInfo]
-    lighting: dict
-    material: dict
-    camera: dict
-    memory: dict | None
-    raw: dict = field(repr=False)
+    lighting: LightingInfo
+    material: MaterialInfo
+    camera: CameraInfo
+    memory: MemoryInfo | None
+    raw: dict | None = field(default=None, repr=False)
 
     @property
     def bounds(self) -> np.ndarray:
         """(S, 2, 3) boxes of all segments, indexed by segment id."""
         return np.stack([s.bounds for s in self.segments])
 
-    @cached_property
-    def _kd_arrays(self) -> tuple[np.ndarray, ...]:
-        """The k-d tree as flat arrays (axis -1 marks a leaf) for vectorised descent."""
-        return kd_arrays(self.segmentation["nodes"])
+    @classmethod
+    def from_dict(cls, data: Any, path: str | Path, source: str | None = None) -> Manifest:
+        """Validate a parsed manifest and resolve its paths against the folder of ``path``.
 
+        Parameters
+        ----------
+        data : dict
+            Parsed JSON of the manifest.
+        path : str or Path
+            The manifest file; its folder is the scene folder.
+        source : str, optional
+            Name used at the start of error messages (default: ``str(path)``).
 
-def kd_arrays(nodes: list[dict]) -> tuple[np.ndarray, ...]:
-    """A k-d tree's nodes as flat arrays ``(axis, split, left, right, leaf)``; axis -1 marks a leaf."""
-    axis = np.array([n.get("axis", -1) for n in nodes], dtype=np.int64)
-    split = np.array([n.get("split", 0.0) for n in nodes], dtype=np.float64)
-    left = np.array([n.get("left", -1) for n in nodes], dtype=np.int64)
-    right = np.array([n.get("right", -1) for n in nodes], dtype=np.int64)
-    leaf = np.array([n.get("leaf", -1) for n in nodes], dtype=np.int64)
-    return axis, split, left, right, leaf
+        Raises
+        ------
+        SpecError
+            As :func:`load_manifest`.
+        """
+        source = str(path) if source is None else source
+        validate_manifest_dict(data, source)
+        resolved = Path(path).resolve()
+        root = resolved.parent
+        files = _resolve_paths(data, root, source)
 
+        geometry = data["geometry"]
+        seg = data["segmentation"]
+        segmentation = {
+            "roots": {int(k): v for k, v in seg["roots"].items()},
+            "nodes": [dict(n) for n in seg["nodes"]],
+            "leaf_segment": np.asarray(seg["leaf_segment"], dtype=np.int64),
+        }
+        segments = [
+            SegmentInfo.from_dict(s, {k: files.get(f"segments[{i}].{k}") for k in ("model", "glsl", "glsl_weights")})
+            for i, s in enumerate(data["segments"])
+        ]
+        return cls(
+            path=resolved,
+            root=root,
+            name=data["name"],
+            generator=data.get("generator"),
+            sh_bands=data["sh_bands"],
+            geometry=GeometryInfo.from_dict(geometry, files[f"geometry.{'file' if geometry['type'] == 'mesh' else 'glsl'}"]),
+            segmentation=segmentation,
+            segments=segments,
+            lighting=LightingInfo.from_dict(data["lighting"], files.get("lighting.envmap")),
+            material=MaterialInfo.from_dict(data["material"]),
+            camera=CameraInfo.from_dict(data.get("camera", {})),
+            memory=MemoryInfo.from_dict(data["memory"]) if "memory" in data else None,
+            raw=data,
+        )
 
-def assign_segments(kd: tuple[np.ndarray, ...], roots: dict[int, int], leaf_segment: np.ndarray,
-                    bounds: np.ndarray, points: np.ndarray, ids: np.ndarray) -> np.ndarray:
-    """The segment rule shared by training and runtime (see :func:`segment_of`).
+    def to_dict(self, root: str | Path | None = None) -> dict:
+        """The manifest as JSON types (format :data:`FORMAT`, version :data:`FORMAT_VERSION`).
 
-    kd : :func:`kd_arrays` of the nodes; roots : object id -> root node; leaf_segment : (L,);
-    bounds : (S, 2, 3) segment boxes; points : (N, 3) float64; ids : (N,) int -> (N,) int64
-    """
-    axis, split, left, right, leaf = kd
-    node = np.full(len(points), -1, dtype=np.int64)
-    for obj, root in roots.items():
-        node[ids == obj] = root
-    # One tree level per pass over the points still at inner nodes; validation ruled out cycles.
-    active = np.flatnonzero(node >= 0)
-    while active.size:
-        current = node[active]
-        inner = axis[current] >= 0
-        active, current = active[inner], current[inner]
-        go_left = points[active, axis[current]] <= split[current]
-        node[active] = np.where(go_left, left[current], right[current])
-
-    out = np.empty(len(points), dtype=np.int64)
-    rooted = node >= 0
-    out[rooted] = np.asarray(leaf_segment)[leaf[node[rooted]]]
-    if not rooted.all():
-        p = points[~rooted][:, None, :]
-        gap = np.maximum(bounds[None, :, 0] - p, 0.0) + np.maximum(p - bounds[None, :, 1], 0.0)
-        out[~rooted] = np.argmin(np.linalg.norm(gap, axis=2), axis=1)
-    return out
+        Parameters
+        ----------
+        root : str or Path, optional
+            The scene folder the paths are written relative to (default: :attr:`root`).
+        """
+        root = Path(self.root if root is None else root)
+        seg = self.segmentation
+        out: dict[str, Any] = {"format": FORMAT, "version": FORMAT_VERSION, "name": self.name}
+        if self.generator is not None:
+            out["generator"] = self.generator
+        out |= {
+            "sh_bands": self.sh_bands,
+            "geometry": self.geometry.to_dict(root),
+            "segmentation": {
+                "roots": {str(k): v for k, v in seg["roots"].items()},
+                "nodes": seg["nodes"],
+                "leaf_segment": _listed(seg["leaf_segment"]),
+            },
+            "segments": [s.to_dict(root) for s in self.segments],
+            "lighting": self.lighting.to_dict(root),
+            "material": self.material.to_dict(),
+            "camera": self.camera.to_dict(),
+        }
+        if self.memory is not None:
+            out["memory"] = self.memory.to_dict()
+        return out
 
 
 # --------------------------------------------------------------------------- messages
@@ -286,6 +551,23 @@ def validate_manifest_dict(
     _check_semantics(data, source)
     if root is not None:
         _resolve_paths(data, Path(root), source)
+
+
+def validate_manifest_field(name: str, value: Any, source: str = MANIFEST_NAME) -> None:
+    """Check one top-level field (``"material"``, ``"camera"``, ...) against its schema.
+
+    The message of a failure is the one :func:`validate_manifest_dict` gives for the same
+    field in a whole manifest, e.g. ``scene.json: material: 'albedo' is a required property``.
+
+    Raises
+    ------
+    SpecError
+        If ``value`` breaks the schema of field ``name``.
+    """
+    schema = {"$defs": SCENE_SCHEMA["$defs"], **SCENE_SCHEMA["properties"][name]}
+    error = best_match(Draft202012Validator(schema).iter_errors(value))
+    if error is not None:
+        raise _fail(source, [name, *error.absolute_path], _schema_message(error))
 
 
 def _check_semantics(data: dict, source: str) -> None:
@@ -468,114 +750,4 @@ def load_manifest(path: str | Path) -> Manifest:
     if path.is_dir():
         path = path / MANIFEST_NAME
     source = str(path)
-    data = _read_json(path, source)
-    validate_manifest_dict(data, source)
-    resolved = path.resolve()
-    root = resolved.parent
-    files = _resolve_paths(data, root, source)
-
-    geometry = dict(data["geometry"])
-    geometry["path"] = files[f"geometry.{'file' if geometry['type'] == 'mesh' else 'glsl'}"]
-
-    seg = data["segmentation"]
-    segmentation = {
-        "roots": {int(k): v for k, v in seg["roots"].items()},
-        "nodes": [dict(n) for n in seg["nodes"]],
-        "leaf_segment": np.asarray(seg["leaf_segment"], dtype=np.int64),
-    }
-
-    segments = [
-        SegmentInfo(
-            id=s["id"],
-            kind=s["kind"],
-            model=files.get(f"segments[{i}].model"),
-            glsl=files.get(f"segments[{i}].glsl"),
-            glsl_weights=files.get(f"segments[{i}].glsl_weights"),
-            bounds=np.asarray(s["bounds"], dtype=np.float64),
-            architecture=dict(s["architecture"]) if "architecture" in s else None,
-            flops_per_fragment=s.get("flops_per_fragment", 0),
-            weight_bytes=s.get("weight_bytes", 0),
-            samples=s["samples"],
-            validation={
-                "coeff_mae": s["validation"]["coeff_mae"],
-                "shaded_mae": dict(s["validation"]["shaded_mae"]),
-            },
-        )
-        for i, s in enumerate(data["segments"])
-    ]
-
-    light = data["lighting"]
-    lighting = {
-        "envmap": files.get("lighting.envmap"),
-        "sh": np.asarray(light["sh"], dtype=np.float64) if "sh" in light else None,
-        "rotation": np.asarray(light["rotation"], dtype=np.float64) if "rotation" in light else None,
-    }
-
-    mat = data["material"]
-    material = {
-        "type": mat["type"],
-        "albedo": np.asarray(mat["albedo"], dtype=np.float64),
-        "specular": np.asarray(mat["specular"], dtype=np.float64) if "specular" in mat else None,
-        "exponent": float(mat["exponent"]) if "exponent" in mat else None,
-    }
-
-    cam = {**DEFAULT_CAMERA, **data.get("camera", {})}
-    camera = {k: np.asarray(cam[k], dtype=np.float64) for k in ("eye", "target", "up")}
-    camera["fov"] = float(cam["fov"])
-
-    return Manifest(
-        path=resolved,
-        root=root,
-        name=data["name"],
-        generator=data.get("generator"),
-        sh_bands=data["sh_bands"],
-        geometry=geometry,
-        segmentation=segmentation,
-        segments=segments,
-        lighting=lighting,
-        material=material,
-        camera=camera,
-        memory=dict(data["memory"]) if "memory" in data else None,
-        raw=data,
-    )
-
-
-# --------------------------------------------------------------------------- segments
-
-
-def segment_of(manifest: Manifest, points: Any, object_ids: Any) -> np.ndarray:
-    """Segment of each surface point, by the manifest's k-d tree.
-
-    From ``roots[object_id]`` the descent goes left when ``point[axis] <= split`` and right
-    otherwise, down to a leaf ``i``; the segment is ``leaf_segment[i]``.  Points of an object
-    with no root go to the segment whose box is nearest (Euclidean distance to the box, 0
-    inside it; ties to the lowest id), the same rule as training.
-
-    Parameters
-    ----------
-    manifest : Manifest
-    points : array_like, shape (N, 3)
-        Scene-space positions.
-    object_ids : array_like of int, shape (N,)
-        Object of each point.
-
-    Returns
-    -------
-    ndarray of int64, shape (N,)
-
-    Raises
-    ------
-    InputError
-        If the shapes or the id dtype are wrong.
-    """
-    points = np.asarray(points, dtype=np.float64)
-    ids = np.asarray(object_ids)
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise InputError(f"segment_of: points must have shape (N, 3), got {points.shape}")
-    if ids.shape != (len(points),):
-        raise InputError(f"segment_of: object_ids must have shape ({len(points)},), got {ids.shape}")
-    if len(ids) and ids.dtype.kind not in "iu":
-        raise InputError(f"segment_of: object_ids must be integers, got dtype {ids.dtype}")
-
-    seg = manifest.segmentation
-    return assign_segments(manifest._kd_arrays, seg["roots"], seg["leaf_segment"], manifest.bounds, points, ids)
+    return Manifest.from_dict(_read_json(path, source), path, source)

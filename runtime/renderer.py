@@ -3,16 +3,17 @@
 A frame runs three stages, each timed (milliseconds in :attr:`Renderer.timings`):
 
 1. G-buffer (``gbuffer``): position, normal, segment id per pixel (rasterised or sphere traced).
-2. Transfer, by the chosen backend:
+2. Transfer, by the backend chosen by name (:mod:`prt.runtime.backends`; its stages timed as
+   it names them):
    - ``"onnx"`` (the analogue of the paper's CUDA path): read the G-buffer back (``readback``),
      pack covered fragments by segment (``pack``), run each segment's ONNX model on its batch
      (``inference``), gather the results per covered pixel (``scatter``);
    - ``"glsl"``: a full-screen pass evaluates each fragment's network in the fragment shader
      (``network``), from GLSL generated out of the ONNX weights.
-3. Shading (``shade``), one definition with two twins tested against each other: the ONNX
-   backend's transfer is on the CPU, so it shades the covered pixels there with
-   :func:`prt.runtime.shading.shade` (numpy); the GLSL backend's transfer is on the GPU, so a
-   full-screen pass shades with ``shading.glsl``.  Then the image is assembled (``readout``).
+3. Shading (``shade``), one definition with two twins tested against each other: a transfer
+   that a backend returns on the CPU (:class:`prt.runtime.backends.CpuTransfer`) is shaded
+   there with :func:`prt.runtime.shading.shade` (numpy); one it leaves on the GPU is shaded by
+   a full-screen pass with ``shading.glsl``.  Then the image is assembled (``readout``).
 
 Transfer depends only on the geometry and the camera: when only the light, the material or
 the backend's shading inputs change, :meth:`Renderer.render` re-shades the cached transfer and
@@ -22,37 +23,29 @@ runs no network (``stats["network_runs"]`` does not move).
 from __future__ import annotations
 
 import functools
-import os
 import time
+from importlib import resources
 from pathlib import Path
-from string import Template
 
 import moderngl
 import numpy as np
 
-from ..shaders import source as shader_source
-from . import sh
-from .camera import Camera
-from .errors import GLContextError, InputError, PRTError
+from ..shaders import assemble
+from .backends import BACKENDS, CpuTransfer, TransferBackend, create_backend
+from .camera import DEFAULT_CAMERA, Camera
+from .envmap import load_envmap_sh
+from .envmaps import BUNDLED_ENVMAPS, DEFAULT_ENVMAP, bundled_envmap_path
+from .errors import InputError
 from .gbuffer import GBufferPass
-from .gl import create_context
+from .gl import ShaderCompileError, bind_framebuffer, compile_program, create_context, draw_fullscreen
 from .manifest import Manifest, load_manifest
-from .onnx_backend import OnnxTransfer
-from .shading import Lighting, Material, glsl_source, shade, shader_uniforms, to_srgb8
+from .shading import GLSL_DEFINES, GLSL_FILES, Lighting, Material, shade, shader_uniforms, to_srgb8
 
 __all__ = ["Scene", "Renderer", "BACKENDS", "demo_scene_path", "ShaderCompileError"]
-
-BACKENDS = ("onnx", "glsl")
-
-
-class ShaderCompileError(PRTError):
-    """A generated or bundled shader failed to compile; the message names the source file."""
 
 
 def demo_scene_path() -> Path:
     """The bundled demo scene (Spot, public domain, small networks)."""
-    from importlib import resources
-
     return Path(str(resources.files(__package__).joinpath("data", "demo", "scene.json")))
 
 
@@ -84,7 +77,7 @@ class Scene:
 
     def __repr__(self) -> str:
         m = self.manifest
-        return f"Scene({m.name!r}, {m.geometry['type']}, {len(m.segments)} segments, {len(self.network_segments)} networks)"
+        return f"Scene({m.name!r}, {m.geometry.type}, {len(m.segments)} segments, {len(self.network_segments)} networks)"
 
 
 class Renderer:
@@ -94,13 +87,13 @@ class Renderer:
     ----------
     scene : Scene
     width, height : image size in pixels
-    backend : ``"onnx"`` or ``"glsl"``
+    backend : a name in :data:`prt.runtime.backends.BACKENDS` (``"onnx"``, ``"glsl"``)
     providers : ONNX Runtime execution providers (default: CUDA where present, else CPU)
     threads : CPU threads for the ONNX backend (default: all cores)
     ctx : an existing moderngl context (e.g. a window's); default: a headless EGL context
     """
 
-    def __init__(self, scene: Scene, width: int = 512, height: int = 512, backend: str = "onnx", *,
+    def __init__(self, scene: Scene, width: int = 512, height: int = 512, backend: str = BACKENDS[0], *,
                  providers=None, threads: int | None = None, ctx: moderngl.Context | None = None):
         if backend not in BACKENDS:
             raise InputError(f"backend must be one of {BACKENDS}, got {backend!r}")
@@ -110,22 +103,23 @@ class Renderer:
         self.width, self.height = int(width), int(height)
         self._own_ctx = ctx is None
         self.ctx = ctx if ctx is not None else create_context()
+        self._bound_fbo = self.ctx.fbo  # bound again on close: a released framebuffer must not stay bound
         m = scene.manifest
         if m.sh_bands != 4:
             raise InputError(f"{m.path}: the renderer's shaders handle 4 SH bands, the scene has {m.sh_bands}")
         self.gbuffer = GBufferPass(self.ctx, m, self.width, self.height)
-        self._providers, self._threads = providers, threads
-        self._onnx: OnnxTransfer | None = None
-        self._glsl: _GlslTransfer | None = None
+        self._backend_options = {"providers": providers, "threads": threads}
+        self._backends: dict[str, TransferBackend] = {}  # created on first use, kept while switching
         size = (self.width, self.height)
         self._t_textures = [self._float_texture(size) for _ in range(4)]
         self._t_fbo = self.ctx.framebuffer(self._t_textures)
         self._out_texture = self._float_texture(size)
         self._out_fbo = self.ctx.framebuffer([self._out_texture])
         self._image = np.empty((self.height, self.width, 4), dtype=np.float32)
-        self._shade_program = self._program(_shade_source(), "shade_pass.frag")
+        shade_source = assemble(*GLSL_FILES, "shade_pass.frag", defines=GLSL_DEFINES)
+        self._shade_program = compile_program(self.ctx, shade_source, "shade_pass.frag")
         self._vao = self.ctx.vertex_array(self._shade_program, [])
-        # ONNX backend state: covered pixels, their transfer, and the image being assembled
+        # A transfer on the CPU: covered pixels, their transfer, and the image being assembled
         self._covered = np.zeros(0, dtype=np.int64)
         self._transfer_cov = np.zeros((0, 16), dtype=np.float32)
         self._geometry_cov: tuple[np.ndarray, np.ndarray] | None = None
@@ -135,16 +129,14 @@ class Renderer:
         self.camera = Camera.from_manifest(m.camera)
         self._envmap_sh: dict[str, np.ndarray] = {}
         lighting = m.lighting
-        if lighting.get("envmap") is not None:
-            self.lighting = Lighting.from_envmap(lighting["envmap"], rotation=lighting.get("rotation"))
-        elif lighting.get("sh") is not None:
-            self.lighting = Lighting.from_sh(lighting["sh"], rotation=lighting.get("rotation"))
+        if lighting.envmap is not None:
+            self.lighting = Lighting.from_envmap(lighting.envmap, rotation=lighting.rotation)
+        elif lighting.sh is not None:
+            self.lighting = Lighting.from_sh(lighting.sh, rotation=lighting.rotation)
         else:
-            from .envmaps import bundled_envmap_path
-
-            self.lighting = Lighting.from_envmap(bundled_envmap_path("potsdamer"))
+            self.lighting = Lighting.from_envmap(bundled_envmap_path(DEFAULT_ENVMAP))
         mat = m.material
-        self.material = Material(kind=mat.get("type", "diffuse"), **{k: mat[k] for k in ("albedo", "specular", "exponent") if mat.get(k) is not None})
+        self.material = Material(kind=mat.type, **{k: getattr(mat, k) for k in ("albedo", "specular", "exponent") if getattr(mat, k) is not None})
         self.backend = backend
         self.timings: dict[str, float] = {}
         self.stats = {"frames": 0, "network_runs": 0, "relight_frames": 0}
@@ -153,7 +145,8 @@ class Renderer:
 
     # ------------------------------------------------------------------ settings
 
-    def set_camera(self, eye=(0.0, 0.6, 3.2), target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov: float = 40.0) -> None:
+    def set_camera(self, eye=DEFAULT_CAMERA["eye"], target=DEFAULT_CAMERA["target"], up=DEFAULT_CAMERA["up"],
+                   fov: float = DEFAULT_CAMERA["fov"]) -> None:
         """Place the camera (scene units; ``fov`` is the vertical field of view in degrees)."""
         try:
             self.camera = Camera(eye=eye, target=target, up=up, fov_y=fov)
@@ -167,11 +160,7 @@ class Renderer:
 
     def set_envmap(self, envmap, rotation=None) -> None:
         """Light with an equirectangular ``.hdr``/``.exr`` file, or a bundled map by name
-        (``potsdamer``, ``interior``, ``studio``); ``rotation`` is a 3x3 matrix."""
-        from .envmaps import BUNDLED_ENVMAPS, bundled_envmap_path
-
-        from .envmap import load_envmap_sh
-
+        (:data:`prt.runtime.envmaps.BUNDLED_ENVMAPS`); ``rotation`` is a 3x3 matrix."""
         path = bundled_envmap_path(envmap) if isinstance(envmap, str) and envmap in BUNDLED_ENVMAPS else envmap
         key = str(Path(path).resolve()) if Path(path).exists() else str(path)
         if key not in self._envmap_sh:  # turning the light must not re-read and re-project the file
@@ -256,30 +245,20 @@ class Renderer:
     def _compute_transfer(self, timings: dict) -> None:
         t0 = time.perf_counter()
         self.gbuffer.render(self.camera)
-        if self.backend == "onnx":
-            self.ctx.finish()
-            t1 = time.perf_counter()
-            packed = self.gbuffer.read_packed()
-            t2 = time.perf_counter()
-            onnx = self._onnx_backend()
-            segment = packed[:, 7].astype(np.int32)
-            covered, transfer = onnx.compute(packed, segment, columns=(0, 1, 2, 4, 5, 6))
-            t3 = time.perf_counter()
-            self._cpu_image[self._covered] = 0.0  # the previous view's pixels
-            self._covered, self._transfer_cov = covered, transfer
-            self._packed, self._geometry_cov = packed, None
-            timings.update({"gbuffer": 1e3 * (t1 - t0), "readback": 1e3 * (t2 - t1), **onnx.timings})
-            timings["pack"] += 1e3 * (t3 - t2) - sum(onnx.timings.values())  # the segment-id column
-            self._transfer_on_cpu = True
-        else:
-            self.ctx.finish()
-            t1 = time.perf_counter()
-            self._glsl_backend().run(self._t_fbo, self.gbuffer)
-            self.ctx.finish()
-            t2 = time.perf_counter()
-            timings.update({"gbuffer": 1e3 * (t1 - t0), "network": 1e3 * (t2 - t1)})
-            self._transfer_on_cpu = False
+        self.ctx.finish()
+        t1 = time.perf_counter()
+        backend = self._backend()
+        result = backend.run(self.gbuffer, self._t_fbo)
+        timings.update({"gbuffer": 1e3 * (t1 - t0), **backend.timings})
+        if result is not None:
+            self._take_cpu_transfer(result)
+        self._transfer_on_cpu = result is not None
         self._transfer_valid = True
+
+    def _take_cpu_transfer(self, result: CpuTransfer) -> None:
+        self._cpu_image[self._covered] = 0.0  # the previous view's pixels
+        self._covered, self._transfer_cov = result.covered, result.transfer
+        self._packed, self._geometry_cov = result.packed, None
 
     def _shade_cpu(self) -> np.ndarray:
         """Radiance of the covered pixels (M, 3) from the cached transfer (numpy twin of the shader)."""
@@ -310,17 +289,12 @@ class Renderer:
             program[f"u_t{k}"].value = 2 + k
         program["u_position"].value = 0
         program["u_normal"].value = 1
-        _draw_fullscreen(self.ctx, self._out_fbo, self._vao, textures)
+        draw_fullscreen(self.ctx, self._out_fbo, self._vao, textures)
 
-    def _onnx_backend(self) -> OnnxTransfer:
-        if self._onnx is None:
-            self._onnx = OnnxTransfer(self.scene.manifest, providers=self._providers, threads=self._threads)
-        return self._onnx
-
-    def _glsl_backend(self) -> "_GlslTransfer":
-        if self._glsl is None:
-            self._glsl = _GlslTransfer(self.ctx, self.scene.manifest)
-        return self._glsl
+    def _backend(self) -> TransferBackend:
+        if self.backend not in self._backends:
+            self._backends[self.backend] = create_backend(self.backend, self.ctx, self.scene.manifest, **self._backend_options)
+        return self._backends[self.backend]
 
     @property
     def network_calls(self) -> int:
@@ -334,18 +308,13 @@ class Renderer:
         tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
         return tex
 
-    def _program(self, fragment: str, name: str) -> moderngl.Program:
-        return compile_program(self.ctx, fragment, name)
-
     def close(self) -> None:
         """Release GPU resources and ONNX sessions (also on ``with`` exit)."""
-        if self._onnx is not None:
-            self._onnx.close()
-            self._onnx = None
-        if self._glsl is not None:
-            self._glsl.release()
-            self._glsl = None
+        for backend in self._backends.values():
+            backend.release()
+        self._backends.clear()
         self.gbuffer.release()
+        bind_framebuffer(self.ctx, self._bound_fbo)
         for obj in [*self._t_textures, self._t_fbo, self._out_texture, self._out_fbo, self._vao, self._shade_program]:
             obj.release()
         if self._own_ctx:
@@ -363,76 +332,3 @@ def _blas_controller():
     from threadpoolctl import ThreadpoolController
 
     return ThreadpoolController()
-
-
-def _draw_fullscreen(ctx, fbo, vao, textures) -> None:
-    """Clear ``fbo`` and draw one full-screen triangle with ``textures`` ((texture, unit) pairs) bound."""
-    for tex, unit in textures:
-        tex.use(unit)
-    fbo.use()
-    ctx.disable(moderngl.DEPTH_TEST | moderngl.BLEND | moderngl.CULL_FACE)
-    fbo.clear(0.0, 0.0, 0.0, 0.0)
-    vao.render(moderngl.TRIANGLES, vertices=3)
-
-
-def _shade_source() -> str:
-    return "#version 330\n" + glsl_source() + "\n" + shader_source("shade_pass.frag")
-
-
-def compile_program(ctx, fragment: str, name: str, vertex: str | None = None) -> moderngl.Program:
-    """Compile a full-screen program; a failure becomes one line naming ``name`` and the driver's message."""
-    try:
-        return ctx.program(vertex_shader=vertex or shader_source("fullscreen.vert"), fragment_shader=fragment)
-    except moderngl.Error as exc:
-        lines = [ln.strip() for ln in str(exc).splitlines() if "error" in ln.lower()]
-        raise ShaderCompileError(f"{name}: GLSL compile failed: {(lines or [str(exc).strip()])[0][:300]}") from None
-
-
-class _GlslTransfer:
-    """All network segments' generated GLSL in one full-screen program, compiled once per scene."""
-
-    def __init__(self, ctx, manifest: Manifest):
-        self.ctx = ctx
-        parts, cases, self._weights = [], [], []
-        lam = sh.zonal_to_band_factors(sh.clamped_cosine(4)) / np.pi
-        analytic_scale = sh.band_factors_to_coeff_scale(lam).astype(np.float32).reshape(4, 4)
-        for seg in manifest.segments:
-            if seg.kind == "analytic":
-                cases.append(f"            case {seg.id}: prt_analytic_transfer(ns.xyz, t); break;")
-                continue
-            if seg.glsl is None:
-                raise InputError(f"{manifest.path}: segments[{seg.id}] has no generated GLSL (needed by the glsl backend)")
-            try:
-                parts.append(f"// ---- {seg.glsl.name}\n" + seg.glsl.read_text())
-            except OSError as exc:
-                raise InputError(f"{seg.glsl}: cannot read ({exc.strerror})") from None
-            cases.append(f"            case {seg.id}: seg{seg.id}_transfer(p.xyz, ns.xyz, t); break;")
-            if seg.glsl_weights is not None:
-                self._weights.append((f"seg{seg.id}_transfer_weights", np.load(seg.glsl_weights)))
-        body = Template(shader_source("transfer_pass.frag")).substitute(dispatch="\n".join(cases))
-        source = "#version 330\n" + shader_source("sh_basis.glsl") + "\n" + "\n".join(parts) + "\n" + body
-        t0 = time.perf_counter()
-        self.program = compile_program(ctx, source, f"{manifest.path.parent / 'segments'}/*.glsl (transfer pass)")
-        self.compile_s = time.perf_counter() - t0
-        if "u_analytic_scale" in self.program:  # optimised away when no segment is analytic
-            self.program["u_analytic_scale"].write(analytic_scale.tobytes())
-        self.program["u_position"].value = 0
-        self.program["u_normal"].value = 1
-        self._textures = []
-        for unit, (name, data) in enumerate(self._weights, start=2):
-            tex = ctx.texture((data.shape[1], data.shape[0]), 4, data=np.ascontiguousarray(data, dtype=np.float32).tobytes(), dtype="f4")
-            tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
-            self._textures.append((tex, unit))
-            if name in self.program:
-                self.program[name].value = unit
-        self.vao = ctx.vertex_array(self.program, [])
-
-    def run(self, fbo, gbuffer) -> None:
-        textures = ((gbuffer.position_texture, 0), (gbuffer.normal_texture, 1), *self._textures)
-        _draw_fullscreen(self.ctx, fbo, self.vao, textures)
-
-    def release(self) -> None:
-        for tex, _ in self._textures:
-            tex.release()
-        self.vao.release()
-        self.program.release()

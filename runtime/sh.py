@@ -709,7 +709,7 @@ def apply_window(coeffs, w) -> np.ndarray:
     return coeffs * (scale if coeffs.ndim == 1 else scale[:, None])
 
 
-def unshadowed_transfer(normals, bands: int = 4) -> np.ndarray:
+def unshadowed_transfer(normals, bands: int = 4, dtype=np.float64) -> np.ndarray:
     """Diffuse transfer of unshadowed points: the clamped cosine / pi turned to each normal.
 
     The one definition of the "analytic" transfer (segments that need no network, the
@@ -721,13 +721,17 @@ def unshadowed_transfer(normals, bands: int = 4) -> np.ndarray:
         Unit normals.
     bands : int
         Number of bands.
+    dtype : {np.float64, np.float32}
+        Precision of the arithmetic (basis and scaling); the ONNX backend's per-frame
+        analytic segments use float32.
 
     Returns
     -------
     ndarray, shape (N, bands**2), float32
     """
     lam = zonal_to_band_factors(clamped_cosine(bands)) / np.pi
-    return (basis(np.asarray(normals, dtype=np.float64), bands) * band_factors_to_coeff_scale(lam)).astype(np.float32)
+    scale = band_factors_to_coeff_scale(lam).astype(dtype)
+    return (basis(np.asarray(normals, dtype=dtype), bands) * scale).astype(np.float32, copy=False)
 
 
 def unshadowed_coeff_scale(bands: int = 4) -> np.ndarray:

@@ -45,7 +45,8 @@ Display
 ACES filmic fit of Narkowicz (2015) per channel,
 ``f(x) = clip(x (2.51 x + 0.03) / (x (2.43 x + 0.59) + 0.14), 0, 1)`` (monotone, ``f(0) = 0``,
 1 from ``x ~ 7.24``), and the sRGB OETF (:func:`linear_to_srgb`).  :func:`to_srgb8` rounds that
-to 8 bits.  ``prt_tonemap`` in ``shading.glsl`` is the GLSL twin.
+to 8 bits.  ``prt_tonemap`` in ``tonemap.glsl`` is the GLSL twin; its ceiling is
+:data:`TONEMAP_MAX`, passed in as the ``#define PRT_TONEMAP_MAX`` of :data:`GLSL_DEFINES`.
 """
 
 from __future__ import annotations
@@ -55,7 +56,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..shaders import source as shader_source
+from ..shaders import assemble
 from . import sh
 from .envmap import load_envmap_sh
 from .errors import InputError
@@ -69,6 +70,9 @@ __all__ = [
     "shade",
     "shader_uniforms",
     "glsl_source",
+    "GLSL_FILES",
+    "GLSL_DEFINES",
+    "TONEMAP_MAX",
     "tonemap",
     "linear_to_srgb",
     "to_srgb8",
@@ -83,6 +87,10 @@ GLSL_BANDS = 4
 _SHADE_CHUNK = 1 << 16
 # Tone-mapping input ceiling: the curve is already 1 beyond ~7.3, and x * x stays finite.
 TONEMAP_MAX = 1.0e4
+# The GLSL twin of this module, in the order prt.shaders.assemble includes it, and the values
+# it takes from here (the one definition of each).
+GLSL_FILES = ("sh_basis.glsl", "shading.glsl", "tonemap.glsl")
+GLSL_DEFINES = {"PRT_TONEMAP_MAX": TONEMAP_MAX}
 # ACES filmic fit (Narkowicz 2015): x (a x + b) / (x (c x + d) + e).
 _ACES = (2.51, 0.03, 2.43, 0.59, 0.14)
 
@@ -416,8 +424,8 @@ def shader_uniforms(lighting: Lighting, material: Material) -> dict[str, np.ndar
 
 
 def glsl_source() -> str:
-    """``sh_basis.glsl`` followed by ``shading.glsl``: paste after a ``#version 330`` header."""
-    return shader_source("sh_basis.glsl") + "\n" + shader_source("shading.glsl")
+    """The GLSL twin (:data:`GLSL_FILES` with :data:`GLSL_DEFINES`), to paste after a ``#version`` line."""
+    return assemble(*GLSL_FILES, defines=GLSL_DEFINES, version=None)
 
 
 # --------------------------------------------------------------------------- display

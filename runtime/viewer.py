@@ -12,26 +12,64 @@ FPS and stage timings are shown in the window title.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
+import imageio.v3 as iio
+import moderngl
 import numpy as np
 
+from ..shaders import assemble
+from .backends import BACKENDS
+from .envmaps import BUNDLED_ENVMAPS, DEFAULT_ENVMAP
 from .errors import PRTError
+from .gl import compile_program
+from .renderer import Renderer
+from .shading import GLSL_DEFINES, to_srgb8
 
-__all__ = ["run_window", "HELP"]
+__all__ = ["run_window", "ViewerOptions", "HELP"]
 
 HELP = __doc__.split("Controls (also printed on ``h``):\n", 1)[1]
-ENVMAPS = ("potsdamer", "interior", "studio")
+ENVMAPS = tuple(BUNDLED_ENVMAPS)
 
-_BLIT_FRAGMENT = """#version 330
-uniform sampler2D u_image;
-uniform float u_exposure;
-out vec4 f_color;
-void main() {
-    vec3 c = texelFetch(u_image, ivec2(gl_FragCoord.xy), 0).rgb;
-    f_color = vec4(prt_tonemap(c, u_exposure), 1.0);
-}
-"""
+
+@dataclass(frozen=True)
+class ViewerOptions:
+    """What the viewer (and the headless orbit) starts with; ``prt-runtime`` builds it from its flags.
+
+    ``envmap`` is a bundled name or a file (None: the scene's light); ``material`` overrides
+    the scene's kind (None: keep it), keeping its albedo, with ``exponent`` for glossy.
+    """
+
+    width: int = 512
+    height: int = 512
+    backend: str = BACKENDS[0]
+    envmap: str | None = None
+    material: str | None = None
+    exponent: float = 16.0
+    exposure: float = 1.0
+    providers: list[str] | None = None
+    threads: int | None = None
+
+    def renderer(self, scene, ctx: moderngl.Context | None = None) -> Renderer:
+        """A :class:`Renderer` of ``scene`` at this size and backend, with the options applied."""
+        r = Renderer(scene, self.width, self.height, backend=self.backend, providers=self.providers,
+                     threads=self.threads, ctx=ctx)  # fmt: skip
+        try:
+            self.apply(r)
+        except BaseException:
+            r.close()
+            raise
+        return r
+
+    def apply(self, r: Renderer) -> None:
+        """Set the light and the material of ``r`` from these options."""
+        if self.envmap:
+            r.set_envmap(self.envmap)
+        if self.material == "glossy":
+            r.set_material("glossy", albedo=r.material.albedo, specular=(0.3, 0.3, 0.3), exponent=self.exponent)
+        elif self.material == "diffuse":
+            r.set_material("diffuse", albedo=r.material.albedo)
 
 
 def _rotation_y(angle: float) -> np.ndarray:
@@ -39,17 +77,14 @@ def _rotation_y(angle: float) -> np.ndarray:
     return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
 
 
-def run_window(scene, width: int, height: int, args, providers=None) -> int:
-    """Open the viewer window; returns the exit code."""
+def run_window(scene, options: ViewerOptions) -> int:
+    """Open the viewer window on ``scene``; returns the exit code."""
     try:
-        import pygame
+        import pygame  # optional: the [viewer] extra
     except ImportError:
         raise PRTError('the viewer window needs pygame (pip install "prt-runtime[viewer]"); or pass --headless') from None
-    import moderngl
 
-    from .renderer import Renderer, compile_program
-    from .shading import to_srgb8
-
+    width, height = options.width, options.height
     pygame.init()
     pygame.display.gl_set_attribute(pygame.GL_CONTEXT_MAJOR_VERSION, 3)
     pygame.display.gl_set_attribute(pygame.GL_CONTEXT_MINOR_VERSION, 3)
@@ -61,16 +96,13 @@ def run_window(scene, width: int, height: int, args, providers=None) -> int:
         pygame.quit()
         raise PRTError(f"cannot open an OpenGL 3.3 window ({' '.join(str(exc).split())}); pass --headless") from None
     screen = ctx.detect_framebuffer()
-    renderer = Renderer(scene, width, height, backend=args.backend, providers=providers, threads=args.threads, ctx=ctx)
-    from .cli import _apply_options
-
-    _apply_options(renderer, args)
-    blit = compile_program(ctx, _BLIT_FRAGMENT.replace("out vec4 f_color;", "out vec4 f_color;\n" + _tonemap_glsl()), "viewer blit")
+    renderer = options.renderer(scene, ctx=ctx)
+    blit = compile_program(ctx, assemble("tonemap.glsl", "viewer_blit.frag", defines=GLSL_DEFINES), "viewer_blit.frag")
     blit_vao = ctx.vertex_array(blit, [])
     display = ctx.texture((width, height), 3, dtype="f4")
-    envmap_index = ENVMAPS.index(args.envmap) if args.envmap in ENVMAPS else 0
+    envmap_index = ENVMAPS.index(options.envmap) if options.envmap in ENVMAPS else ENVMAPS.index(DEFAULT_ENVMAP)
     light_angle = 0.0
-    exposure = args.exposure
+    exposure = options.exposure
     base_camera = renderer.camera
     yaw, pitch, zoom = 0.0, 0.0, 1.0
     dragging = None
@@ -111,7 +143,7 @@ def run_window(scene, width: int, height: int, args, providers=None) -> int:
                         envmap_index = (envmap_index + (1 if key == "n" else -1)) % len(ENVMAPS)
                         _relight(renderer, envmap_index, light_angle)
                     elif key == "b":
-                        renderer.set_backend("glsl" if renderer.backend == "onnx" else "onnx")
+                        renderer.set_backend(BACKENDS[(BACKENDS.index(renderer.backend) + 1) % len(BACKENDS)])
                     elif key == "g":
                         m = renderer.material
                         if m.kind == "diffuse":
@@ -126,8 +158,6 @@ def run_window(scene, width: int, height: int, args, providers=None) -> int:
                         exposure *= 1.25 if key == "e" else 0.8
                     elif key == "s":
                         path = Path(f"prt_screenshot_{time.strftime('%Y%m%d_%H%M%S')}.png")
-                        import imageio.v3 as iio
-
                         iio.imwrite(path, to_srgb8(image, exposure))
                         print(f"screenshot: {path}")
             if camera_dirty:
@@ -164,11 +194,3 @@ def run_window(scene, width: int, height: int, args, providers=None) -> int:
 def _relight(renderer, envmap_index: int, angle: float) -> None:
     renderer.set_envmap(ENVMAPS[envmap_index], rotation=_rotation_y(angle))
 
-
-def _tonemap_glsl() -> str:
-    """The ``prt_tonemap`` function of shading.glsl (and what it needs), without the uniforms."""
-    from ..shaders import source as shader_source
-
-    text = shader_source("shading.glsl")
-    start = text.index("vec3 prt_tonemap")
-    return "const float PRT_TONEMAP_MAX = 1.0e4;\n" + text[start:]

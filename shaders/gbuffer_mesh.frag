@@ -1,6 +1,6 @@
 #version 330
-// G-buffer of a triangle mesh, fragment stage (runtime/gbuffer.py inserts the #defines and
-// segment_lookup.glsl after the #version line).
+// G-buffer of a triangle mesh, fragment stage (runtime/gbuffer.py assembles it after
+// segment_lookup.glsl, with that file's #defines).
 //   attachment 0: position.xyz, covered (1)
 //   attachment 1: unit normal facing the camera, segment id
 // Back faces of closed surfaces are discarded here rather than culled by GL, because

@@ -1,10 +1,12 @@
 #version 330
 // G-buffer of an SDF scene: one full-screen pass (vertex stage fullscreen.vert) sphere
 // traces the pixel's ray and writes the same targets as the mesh pass (gbuffer_mesh.frag).
-// runtime/gbuffer.py inserts after the #version line: the #defines PRT_MAX_STEPS,
-// PRT_HIT_EPS (hit threshold per unit of ray length), PRT_SCENE_BOX (half size of the box
-// holding the scene) and those of segment_lookup.glsl, then segment_lookup.glsl and the
-// scene's GLSL defining float scene_sdf(vec3 p).  The scene is object id 0.
+// runtime/gbuffer.py assembles it (prt.shaders.assemble) after segment_lookup.glsl, with the
+// #defines PRT_MAX_STEPS, PRT_HIT_EPS (hit threshold per unit of ray length), PRT_SCENE_BOX
+// (half size of the box holding the scene) and those of segment_lookup.glsl, and with
+// the placeholder scene_sdf filled with the scene's GLSL defining float scene_sdf(vec3 p).  The scene is object id 0.
+
+${scene_sdf}
 
 uniform vec3 u_eye;               // ray origin, scene space
 uniform vec3 u_forward;           // unit view direction

@@ -1,7 +1,7 @@
 // Shading pass of the GLSL backend: one fragment per pixel reads the G-buffer and the pixel's
 // transfer (four (W, H) RGBA32F textures written by the transfer pass), then shades with
-// prt_shade (shading.glsl).  Assembled by prt.runtime.renderer: "#version 330",
-// sh_basis.glsl, shading.glsl, then this file.
+// prt_shade (shading.glsl).  Assembled by prt.runtime.renderer with prt.shaders.assemble:
+// the files of prt.runtime.shading.GLSL_FILES (with its GLSL_DEFINES), then this file.
 uniform sampler2D u_position;  // xyz, covered
 uniform sampler2D u_normal;    // xyz, segment
 uniform vec3 u_eye;

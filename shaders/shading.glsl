@@ -1,6 +1,6 @@
 // PRT shading for 4 SH bands: the GLSL twin of prt.runtime.shading (see that module's
-// docstring for the definitions).  Include by concatenation after sh_basis.glsl (no #version
-// line here).  Every uniform is produced by prt.runtime.shading.shader_uniforms().
+// docstring for the definitions).  Assembled after sh_basis.glsl by prt.shaders.assemble (no
+// #version line here).  Every uniform is produced by prt.runtime.shading.shader_uniforms().
 //
 // Layouts (coefficient i of a 16-vector lives in component i % 4 of element i / 4):
 //   u_light[i]          L[i, :], the (rotated) RGB lighting coefficients.
@@ -22,7 +22,6 @@ uniform int u_material_kind;
 const int PRT_MATERIAL_DIFFUSE = 0;
 const int PRT_MATERIAL_GLOSSY = 1;
 const float PRT_PI = 3.14159265358979323846;
-const float PRT_TONEMAP_MAX = 1.0e4;
 
 // v / |v|, or 0 for a zero vector (numpy's twin does the same instead of producing NaN).
 vec3 prt_unit(vec3 v) {
@@ -63,20 +62,4 @@ vec3 prt_shade(vec4 t[4], vec3 n, vec3 v) {
     }
     // Four SH bands ring below zero near strong lights; negative radiance is not meaningful.
     return max(radiance, vec3(0.0));
-}
-
-// Linear -> sRGB-encoded display value in [0, 1]: exposure, ACES filmic fit (Narkowicz 2015)
-// per channel, then the sRGB OETF.  NaN and +-Inf become 0.  Twin of shading.tonemap().
-vec3 prt_tonemap(vec3 radiance, float exposure) {
-    vec3 x = radiance;
-    for (int i = 0; i < 3; ++i) {
-        if (isnan(x[i]) || isinf(x[i])) {
-            x[i] = 0.0;
-        }
-    }
-    // The curve is already 1 beyond ~7.3; the upper clamp keeps x * x finite.
-    x = clamp(x * exposure, 0.0, PRT_TONEMAP_MAX);
-    vec3 mapped = clamp((x * (2.51 * x + 0.03)) / (x * (2.43 * x + 0.59) + 0.14), 0.0, 1.0);
-    vec3 encoded = 1.055 * pow(mapped, vec3(1.0 / 2.4)) - 0.055;
-    return mix(encoded, 12.92 * mapped, lessThanEqual(mapped, vec3(0.0031308)));
 }

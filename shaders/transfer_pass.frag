@@ -1,7 +1,10 @@
 // GLSL backend transfer pass: one fragment per pixel evaluates its segment's network (the
 // paper's way) and writes the 16 coefficients to four RGBA32F targets.  Assembled by
-// prt.runtime.renderer: "#version 330", sh_basis.glsl, each segment's generated network
-// function, then this file with its dispatch placeholder filled in (a switch over segment ids).
+// prt.runtime.backends.glsl with prt.shaders.assemble: sh_basis.glsl, then this file with its
+// placeholders filled in: networks (each segment's generated network function) and dispatch
+// (a switch over segment ids).
+
+${networks}
 uniform sampler2D u_position;  // xyz, covered
 uniform sampler2D u_normal;    // xyz, segment
 layout(location = 0) out vec4 o_t0;

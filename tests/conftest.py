@@ -5,15 +5,15 @@ from pathlib import Path
 
 import pytest
 
-BENCH = Path(__file__).resolve().parents[1] / "bench"
+STUDIES = Path(__file__).resolve().parents[1] / "bench" / "studies"
 
 
 @pytest.fixture(scope="session")
 def bench_module():
-    """Import a script of ``bench/`` (not a package) by name: ``bench_module("paper_table")``."""
+    """Import a study script of ``bench/studies/`` (not a package) by name: ``bench_module("paper_table")``."""
 
     def load(name):
-        spec = importlib.util.spec_from_file_location(name, BENCH / f"{name}.py")
+        spec = importlib.util.spec_from_file_location(name, STUDIES / f"{name}.py")
         module = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(module)
         return module

@@ -12,7 +12,11 @@ import onnxruntime as ort
 import pytest
 import trimesh
 
+from prt.runtime.camera import DEFAULT_CAMERA
 from prt.runtime.manifest import load_manifest
+from prt.train.build import PRECOMPUTE_FIELDS, BuildSpec, spec_from_dict
+from prt.train.precompute import PrecomputeSettings
+from prt.train.train_cli import main as prt_train_main
 
 DATA = Path(__file__).parent / "data"
 QUICK = ["--samples", 4000, "--validation", 1500, "--rays", 64, "--epochs", 4, "--batch", 512, "--no-progress"]
@@ -33,7 +37,7 @@ def spot_build(tmp_path_factory):
 def test_build_writes_a_loadable_scene(spot_build):
     out, proc = spot_build
     manifest = load_manifest(out / "scene.json")
-    assert manifest.sh_bands == 4 and manifest.geometry["type"] == "mesh"
+    assert manifest.sh_bands == 4 and manifest.geometry.type == "mesh"
     assert len(manifest.segments) >= 1
     rng = np.random.default_rng(0)
     for seg in manifest.segments:
@@ -68,7 +72,7 @@ def test_unshadowed_segments_need_no_network(tmp_path):
     assert proc.returncode == 0, proc.stderr
     manifest = load_manifest(out / "scene.json")
     assert all(seg.kind == "analytic" and seg.model is None for seg in manifest.segments)
-    assert manifest.memory["weight_bytes"] == 0
+    assert manifest.memory.weight_bytes == 0
     assert "analytic" in proc.stdout
 
 
@@ -101,14 +105,14 @@ def test_match_right_sizes_against_a_reference_size(tmp_path):
     assert ref_flops is not None
 
 
-def test_spec_file_and_its_errors(tmp_path):
+def test_spec_file_and_its_errors(tmp_path, capsys):
     spec = {"geometry": "sphere_plane", "samples": 3000, "validation": 1000, "rays": 32, "epochs": 2,
             "batch": 512, "segments": 2, "fixed": {"hidden": 8, "layers": 1, "pos_freqs": 2}, "glsl_layout": "texture"}
     (tmp_path / "ok.json").write_text(json.dumps(spec))
     proc = prt_train(tmp_path / "ok.json", "-o", tmp_path / "ok", "--no-progress", "--no-analytic")
     assert proc.returncode == 0, proc.stderr
     m = load_manifest(tmp_path / "ok" / "scene.json")
-    assert m.geometry["type"] == "sdf" and (tmp_path / "ok" / "scene_sdf.glsl").is_file()
+    assert m.geometry.type == "sdf" and (tmp_path / "ok" / "scene_sdf.glsl").is_file()
     assert {s.architecture["hidden"] for s in m.segments} == {8}
     for seg in m.segments:  # texture layout: the weights travel as a texture file
         texture = np.load(seg.glsl_weights)
@@ -126,13 +130,25 @@ def test_spec_file_and_its_errors(tmp_path):
     }
     for name, (content, field) in bad.items():
         (tmp_path / name).write_text(json.dumps(content) if content is not None else "{oops")
-        proc = prt_train(tmp_path / name, "-o", tmp_path / "x")
-        assert proc.returncode == 2, proc.stderr
-        line = proc.stderr.strip()
+        assert prt_train_main([str(tmp_path / name), "-o", str(tmp_path / "x")]) == 2
+        line = capsys.readouterr().err.strip()
         assert "\n" not in line and field in line and name in line, line
 
 
-def test_bad_inputs_fail_in_one_line(tmp_path):
+def test_spec_is_flat_outside_and_composed_inside():
+    """Spec files and build.json name the precompute settings flat; the spec holds a PrecomputeSettings."""
+    spec = BuildSpec()
+    assert spec.precompute == PrecomputeSettings() and spec.camera == json.loads(json.dumps(DEFAULT_CAMERA))
+    flat = spec.to_dict()
+    assert "precompute" not in flat and "chunk_size" not in flat and set(PRECOMPUTE_FIELDS) < set(flat)
+    assert list(flat)[:2] == ["geometry", "name"]
+    again = spec_from_dict({**flat, "geometry": "x", "samples": 123, "merge": False, "epochs": 3})
+    assert again.precompute == PrecomputeSettings(samples=123, merge=False)
+    assert (again.epochs, again.bands, again.seed) == (3, 4, 0)
+    assert spec_from_dict(again.to_dict()) == again
+
+
+def test_bad_inputs_fail_in_one_line(tmp_path, capsys):
     (tmp_path / "file").write_text("x")
     cases = [
         ["no_such_sdf", "-o", tmp_path / "a"],
@@ -141,16 +157,16 @@ def test_bad_inputs_fail_in_one_line(tmp_path):
         [DATA / "spot.obj", "-o", tmp_path / "c", "--match", "64"],
     ]
     for args in cases:
-        proc = prt_train(*args, "--no-progress")
-        assert proc.returncode == 2, proc.stderr
-        assert len(proc.stderr.strip().splitlines()) == 1 and "Traceback" not in proc.stderr
+        assert prt_train_main([*map(str, args), "--no-progress"]) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
 
 
 def test_static_int8_study_runs_on_a_build(spot_build, tmp_path):
-    """bench/int8_static.py: three versions per segment, each timed and each about as accurate."""
+    """bench/studies/int8_static.py: three versions per segment, each timed and each about as accurate."""
     out, _ = spot_build
     report = tmp_path / "int8.json"
-    script = Path(__file__).resolve().parents[1] / "bench" / "int8_static.py"
+    script = Path(__file__).resolve().parents[1] / "bench" / "studies" / "int8_static.py"
     proc = subprocess.run([sys.executable, str(script), str(out / "scene.json"), "--rows", "256", "--repeats", "2",
                            "--calibration", "256", "--json", str(report)], capture_output=True, text=True)  # fmt: skip
     assert proc.returncode == 0, proc.stderr
@@ -164,10 +180,10 @@ def test_static_int8_study_runs_on_a_build(spot_build, tmp_path):
 
 
 def test_graph_fold_study_runs_on_a_build(spot_build, tmp_path):
-    """bench/onnx_graph_fold.py: both graphs timed per segment, and they agree on held-out samples."""
+    """bench/studies/onnx_graph_fold.py: both graphs timed per segment, and they agree on held-out samples."""
     out, _ = spot_build
     report = tmp_path / "fold.json"
-    script = Path(__file__).resolve().parents[1] / "bench" / "onnx_graph_fold.py"
+    script = Path(__file__).resolve().parents[1] / "bench" / "studies" / "onnx_graph_fold.py"
     proc = subprocess.run([sys.executable, str(script), str(out / "scene.json"), "--rows", "256", "--repeats", "2",
                            "--json", str(report)], capture_output=True, text=True)  # fmt: skip
     assert proc.returncode == 0, proc.stderr

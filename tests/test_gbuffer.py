@@ -18,7 +18,8 @@ from prt.export.manifest import write_manifest
 from prt.runtime.camera import Camera
 from prt.runtime.errors import GeometryError
 from prt.runtime.gbuffer import GBufferPass, segment_tables
-from prt.runtime.manifest import load_manifest, segment_of
+from prt.runtime.manifest import load_manifest
+from prt.runtime.segmentation import segment_of
 from prt.train.sdf import SDF, Sphere, get_sdf
 
 RADIUS = 0.6
@@ -464,7 +465,7 @@ def test_bad_mesh_file_is_a_geometry_error(gl_ctx, scenes, tmp_path):
     manifest = load_manifest(scenes["sphere_mesh"])
     bad = tmp_path / "bad.npz"
     np.savez(bad, vertices=np.zeros((3, 3), np.float32), faces=np.array([[0, 1, 5]], np.uint32))
-    manifest.geometry["path"] = bad
+    manifest.geometry.path = bad
     with pytest.raises(GeometryError, match="outside"):
         GBufferPass(gl_ctx, manifest, 8, 8)
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import json
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -17,12 +18,19 @@ from prt.export.manifest import relative_to_scene, write_manifest
 from prt.runtime.errors import InputError, SpecError
 from prt.runtime.manifest import (
     DEFAULT_CAMERA,
+    FORMAT,
+    FORMAT_VERSION,
+    GENERATOR,
     SCENE_SCHEMA,
+    CameraInfo,
+    LightingInfo,
     Manifest,
+    MemoryInfo,
     load_manifest,
-    segment_of,
     validate_manifest_dict,
+    validate_manifest_field,
 )
+from prt.runtime.segmentation import segment_of
 
 
 def _write_onnx(path: Path) -> None:
@@ -141,6 +149,9 @@ def _spec_error(path: Path) -> str:
 def test_schema_is_valid_draft_2020_12():
     Draft202012Validator.check_schema(SCENE_SCHEMA)
     assert SCENE_SCHEMA["$schema"] == "https://json-schema.org/draft/2020-12/schema"
+    # the schema pins the format the model writes
+    assert SCENE_SCHEMA["properties"]["format"]["const"] == FORMAT
+    assert SCENE_SCHEMA["properties"]["version"]["const"] == FORMAT_VERSION == 1
 
 
 def test_round_trip(scene: Path):
@@ -151,7 +162,9 @@ def test_round_trip(scene: Path):
     assert m.root == root and m.path == root / "scene.json"
     assert m.name == "bunny" and m.generator == "prt-train 0.1.0" and m.sh_bands == 4
 
-    assert m.geometry["path"] == root / "geometry.npz" and m.geometry["triangles"] == 12
+    assert m.geometry.type == "mesh" and m.geometry.objects == ["body", "base"]
+    assert m.geometry.path == root / "geometry.npz" and m.geometry.triangles == 12
+    np.testing.assert_array_equal(m.geometry.to_source, _SCENE["geometry"]["to_source"])
     seg0, seg1 = m.segments
     assert seg0.model == root / "segments" / "seg000.onnx" and seg0.model.is_absolute()
     assert seg0.glsl == root / "segments" / "seg000.glsl"
@@ -165,14 +178,14 @@ def test_round_trip(scene: Path):
 
     assert m.segmentation["roots"] == {0: 0, 1: 5}
     assert m.segmentation["leaf_segment"].tolist() == [0, 1, 0, 1]
-    assert m.lighting["envmap"] == root / "envmaps" / "sky.hdr"
-    assert m.lighting["sh"].shape == (16, 3) and m.lighting["rotation"] is None
-    assert m.material["type"] == "glossy" and m.material["exponent"] == 32.0
-    np.testing.assert_array_equal(m.material["albedo"], [0.8, 0.7, 0.6])
-    np.testing.assert_array_equal(m.camera["eye"], [0, 1, 3])
-    assert m.camera["fov"] == 45.0
-    assert m.memory == {"weight_bytes": 40000, "vertex_storage_bytes": 456}
-    for p in [m.geometry["path"], seg0.model, seg0.glsl, m.lighting["envmap"]]:
+    assert m.lighting.envmap == root / "envmaps" / "sky.hdr"
+    assert m.lighting.sh.shape == (16, 3) and m.lighting.rotation is None
+    assert m.material.type == "glossy" and m.material.exponent == 32.0
+    np.testing.assert_array_equal(m.material.albedo, [0.8, 0.7, 0.6])
+    np.testing.assert_array_equal(m.camera.eye, [0, 1, 3])
+    assert m.camera.fov == 45.0
+    assert m.memory == MemoryInfo(weight_bytes=40000, vertex_storage_bytes=456)
+    for p in [m.geometry.path, seg0.model, seg0.glsl, m.lighting.envmap]:
         assert p.is_absolute() and p.is_relative_to(root) and p.is_file()
 
 
@@ -184,10 +197,10 @@ def test_loading_the_folder_and_optional_fields(scene: Path):
     _edit(scene, drop_optional)
     m = load_manifest(scene)  # the folder works as well as the file
     assert m.generator is None and m.memory is None and m.segments[0].glsl is None
-    assert m.lighting == {"envmap": None, "sh": None, "rotation": None}
-    np.testing.assert_array_equal(m.camera["eye"], DEFAULT_CAMERA["eye"])
-    np.testing.assert_array_equal(m.camera["up"], (0, 1, 0))
-    assert m.camera["fov"] == 40.0
+    assert m.lighting == LightingInfo(envmap=None, sh=None, rotation=None)
+    np.testing.assert_array_equal(m.camera.eye, DEFAULT_CAMERA["eye"])
+    np.testing.assert_array_equal(m.camera.up, (0, 1, 0))
+    assert m.camera.fov == 40.0
 
 
 def test_written_file_is_ordered_stable_and_atomic(scene: Path):
@@ -199,6 +212,45 @@ def test_written_file_is_ordered_stable_and_atomic(scene: Path):
     write_manifest(scene, shuffled)  # a folder names scene.json inside it
     assert path.read_text() == text
     assert sorted(p.name for p in scene.iterdir()) == ["envmaps", "geometry.npz", "scene.json", "segments"]
+
+
+def test_model_round_trip_is_byte_identical(scene: Path, tmp_path: Path):
+    """load -> to_dict -> write gives the same bytes; the writer accepts the model itself."""
+    path = scene / "scene.json"
+    text = path.read_text()
+    m = load_manifest(scene)
+    assert m.to_dict() == _scene_data() and m.generator == GENERATOR  # ints come back as floats
+    write_manifest(path, m)
+    once = path.read_text()
+    assert json.loads(once) == json.loads(text)
+    write_manifest(path, load_manifest(scene))
+    assert path.read_text() == once
+    # Written elsewhere, the model's files are referenced relative to the new folder.
+    other = tmp_path / "other"
+    other.mkdir()
+    write_manifest(other / "scene.json", m, check_files=False)
+    raw = json.loads((other / "scene.json").read_text())
+    assert raw["segments"][0]["model"] == os.path.relpath(m.segments[0].model, other.resolve())
+
+
+def test_demo_scene_round_trips_byte_identical(tmp_path: Path):
+    demo = tmp_path / "demo"
+    shutil.copytree(Path(__file__).resolve().parents[1] / "runtime" / "data" / "demo", demo)
+    text = (demo / "scene.json").read_bytes()
+    write_manifest(demo / "scene.json", load_manifest(demo))
+    assert (demo / "scene.json").read_bytes() == text
+
+
+def test_model_defaults_and_part_checks():
+    camera = CameraInfo()
+    assert camera.to_dict() == {k: list(v) if isinstance(v, tuple) else v for k, v in DEFAULT_CAMERA.items()}
+    validate_manifest_field("camera", {"fov": 30.0})
+    with pytest.raises(SpecError, match=r"^out/scene\.json: material: 'albedo' is a required property$"):
+        validate_manifest_field("material", {"type": "diffuse"}, "out/scene.json")
+    data = _scene_data()
+    del data["material"]["albedo"]
+    with pytest.raises(SpecError, match=r"^scene\.json: material: 'albedo' is a required property$"):
+        validate_manifest_dict(data)  # the same message as for the whole manifest
 
 
 def test_writer_converts_numpy_and_paths(scene: Path):

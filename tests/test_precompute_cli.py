@@ -14,19 +14,22 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
+from prt.train.precompute import PrecomputeSettings
+from prt.train.precompute_cli import build_parser, main, settings_from_args
+
 DATA = Path(__file__).parent / "data"
 CORNELL = str(DATA / "CornellBox-Original.obj")
 
 
 def cli(*args, **kwargs):
     return subprocess.run(
-        [sys.executable, "-m", "prt.train.cli", *map(str, args)], capture_output=True, text=True, **kwargs
+        [sys.executable, "-m", "prt.train.precompute_cli", *map(str, args)], capture_output=True, text=True, **kwargs
     )
 
 
 def start(*args):
     return subprocess.Popen(
-        [sys.executable, "-m", "prt.train.cli", *map(str, args)],
+        [sys.executable, "-m", "prt.train.precompute_cli", *map(str, args)],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -88,7 +91,7 @@ def test_an_interrupted_run_resumes_bit_identically(tmp_path, sig):
             assert np.array_equal(a[key], b[key]), key
 
 
-def test_bad_input_gives_one_line_and_no_output(tmp_path):
+def test_bad_input_gives_one_line_and_no_output(tmp_path, capsys):
     cases = {
         "unknown": ["no_such_scene_or_file", "-o", tmp_path / "a"],
         "corrupt": [tmp_path / "bad.obj", "-o", tmp_path / "b"],
@@ -100,12 +103,23 @@ def test_bad_input_gives_one_line_and_no_output(tmp_path):
     (tmp_path / "sky.hdr").write_bytes(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 4 +X 8\n\x01\x02")
     (tmp_path / "bad.obj").write_bytes(b"v 0 0 0\nf 1 2 9\n\x00\xff garbage")
     (tmp_path / "file.txt").write_text("not a folder")
-    for name, args in cases.items():
-        proc = cli(*args, "--samples", 100, "--no-progress")
-        assert proc.returncode == 2, (name, proc.stderr)
-        lines = proc.stderr.strip().splitlines()
-        assert len(lines) == 1 and lines[0].startswith("prt-precompute: error:"), (name, proc.stderr)
-        assert "Traceback" not in proc.stderr
+    for name, args in cases.items():  # in-process: the command's own error handling, without start-up time
+        assert main([*map(str, args), "--samples", "100", "--no-progress"]) == 2, name
+        err = capsys.readouterr().err
+        lines = err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("prt-precompute: error:"), (name, err)
     for folder in "bd":
         assert not (tmp_path / folder / "samples.npz").exists()
     assert "bad.obj" in cli(*cases["corrupt"], "--no-progress").stderr
+
+
+def test_options_map_onto_the_settings():
+    """Every option of the settings table lands in its PrecomputeSettings field; defaults are the dataclass's."""
+    assert settings_from_args(build_parser().parse_args(["x"])) == PrecomputeSettings()
+    args = build_parser().parse_args(
+        ["x", "--samples", "7", "--validation", "3", "--rays", "5", "--bands", "3", "--segments", "2", "--delta", "0.1",
+         "--merge-tolerance", "0.2", "--no-merge", "--no-object-split", "--seed", "9"]
+    )  # fmt: skip
+    assert settings_from_args(args) == PrecomputeSettings(
+        samples=7, validation=3, rays=5, bands=3, segments=2, delta=0.1, merge_tolerance=0.2, merge=False, by_object=False, seed=9
+    )

@@ -1,4 +1,8 @@
-"""The runtime end to end: both backends agree, relighting runs no network, no NaN, clear errors."""
+"""The runtime end to end: the backends agree, relighting runs no network, no NaN, clear errors.
+
+Every renderer draws in the session's GL context (``gl_ctx``), so the conftest's GL error check
+covers it; backends come from the ``backend`` fixture, one run per registered backend.
+"""
 
 from __future__ import annotations
 
@@ -11,9 +15,14 @@ import numpy as np
 import pytest
 
 from prt.runtime import EnvmapError, InputError, SpecError
+from prt.runtime.backends import BACKENDS, create_backend
+from prt.runtime.backends.onnx import OnnxTransfer
+from prt.runtime.orbit import render_orbit
 from prt.runtime.renderer import Renderer, Scene, ShaderCompileError, demo_scene_path
+from prt.runtime.viewer import ViewerOptions
 
 SIZE = 96
+REFERENCE = "onnx"  # the backend the others are compared with
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
@@ -36,31 +45,47 @@ def sdf_scene(tmp_path_factory):
     return out / "scene.json"
 
 
+@pytest.fixture(params=BACKENDS)
+def backend(request) -> str:
+    return request.param
+
+
 def scenes(sdf_scene):
     return {"demo": Scene.load(), "sdf": Scene.load(sdf_scene)}
 
 
+def render(gl_ctx, scene, backend, material, size=SIZE):
+    with Renderer(scene, size, size, backend=backend, ctx=gl_ctx) as r:
+        if material == "glossy":
+            r.set_material("glossy", albedo=(0.5, 0.5, 0.5), specular=(0.4, 0.4, 0.4), exponent=16)
+        return r.render()
+
+
 @pytest.mark.parametrize("material", ["diffuse", "glossy"])
-def test_backends_render_the_same_image(sdf_scene, material):
+@pytest.mark.parametrize("backend", [b for b in BACKENDS if b != REFERENCE])
+def test_backends_render_the_same_image(gl_ctx, sdf_scene, backend, material):
     for name, scene in scenes(sdf_scene).items():
-        images = {}
-        for backend in ("onnx", "glsl"):
-            with Renderer(scene, SIZE, SIZE, backend=backend) as r:
-                if material == "glossy":
-                    r.set_material("glossy", albedo=(0.5, 0.5, 0.5), specular=(0.4, 0.4, 0.4), exponent=16)
-                images[backend] = r.render()
-        assert images["onnx"].max() > 0.05, name  # something was lit
-        assert psnr(images["glsl"], images["onnx"]) >= 60.0, (name, material)
+        reference = render(gl_ctx, scene, REFERENCE, material)
+        assert reference.max() > 0.05, name  # something was lit
+        assert psnr(render(gl_ctx, scene, backend, material), reference) >= 60.0, (name, backend, material)
 
 
-def test_relighting_reuses_the_transfer_without_running_a_network(monkeypatch):
-    from prt.runtime import onnx_backend
+def test_unknown_backend_is_an_input_error(gl_ctx):
+    scene = Scene.load()
+    with pytest.raises(InputError, match="backend must be one of"):
+        Renderer(scene, 8, 8, backend="cuda", ctx=gl_ctx)
+    with pytest.raises(InputError, match="backend must be one of"):
+        create_backend("cuda", gl_ctx, scene.manifest)
+    with Renderer(scene, 8, 8, ctx=gl_ctx) as r, pytest.raises(InputError, match="backend must be one of"):
+        r.set_backend("cuda")
 
-    with Renderer(Scene.load(), SIZE, SIZE, backend="onnx") as r:
+
+def test_relighting_reuses_the_transfer_without_running_a_network(gl_ctx, monkeypatch):
+    with Renderer(Scene.load(), SIZE, SIZE, backend="onnx", ctx=gl_ctx) as r:
         first = r.render()
         calls = []
-        original = onnx_backend.OnnxTransfer.compute
-        monkeypatch.setattr(onnx_backend.OnnxTransfer, "compute", lambda *a, **k: calls.append(1) or original(*a, **k))
+        original = OnnxTransfer.compute
+        monkeypatch.setattr(OnnxTransfer, "compute", lambda *a, **k: calls.append(1) or original(*a, **k))
         runs = r.stats["network_runs"]
         r.set_envmap("studio")
         studio = r.render()
@@ -80,9 +105,12 @@ def test_relighting_reuses_the_transfer_without_running_a_network(monkeypatch):
         assert np.array_equal(relit, full)
 
 
-def test_white_furnace_gives_the_albedo_on_unshadowed_surfaces(tmp_path):
+@pytest.fixture(scope="module")
+def ball_scene(tmp_path_factory):
+    """An unshadowed sphere built by prt-train (its segments may be analytic)."""
     import trimesh
 
+    tmp_path = tmp_path_factory.mktemp("ball")
     trimesh.creation.icosphere(subdivisions=4).export(tmp_path / "ball.ply")
     proc = subprocess.run(
         [sys.executable, "-m", "prt.train.train_cli", str(tmp_path / "ball.ply"), "-o", str(tmp_path / "ball"),
@@ -90,23 +118,25 @@ def test_white_furnace_gives_the_albedo_on_unshadowed_surfaces(tmp_path):
         capture_output=True, text=True,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
+    return tmp_path / "ball"
+
+
+def test_white_furnace_gives_the_albedo_on_unshadowed_surfaces(gl_ctx, ball_scene, backend):
     light = np.zeros((16, 3))
     light[0] = np.sqrt(4 * np.pi)
-    for backend in ("onnx", "glsl"):
-        with Renderer(Scene.load(tmp_path / "ball"), SIZE, SIZE, backend=backend) as r:
-            r.set_lighting_sh(light)
-            r.set_material("diffuse", albedo=(0.25, 0.5, 0.75))
-            image = r.render()
-            covered = r.gbuffer_image().covered
-        assert covered.sum() > 1000
-        assert np.allclose(image[covered], [0.25, 0.5, 0.75], atol=2e-4)
-        assert (image[~covered] == 0).all()
+    with Renderer(Scene.load(ball_scene), SIZE, SIZE, backend=backend, ctx=gl_ctx) as r:
+        r.set_lighting_sh(light)
+        r.set_material("diffuse", albedo=(0.25, 0.5, 0.75))
+        image = r.render()
+        covered = r.gbuffer_image().covered
+    assert covered.sum() > 1000
+    assert np.allclose(image[covered], [0.25, 0.5, 0.75], atol=2e-4)
+    assert (image[~covered] == 0).all()
 
 
-@pytest.mark.parametrize("backend", ["onnx", "glsl"])
-def test_no_nan_reaches_a_pixel(sdf_scene, backend):
+def test_no_nan_reaches_a_pixel(gl_ctx, sdf_scene, backend):
     for scene in scenes(sdf_scene).values():
-        with Renderer(scene, 64, 48, backend=backend) as r:
+        with Renderer(scene, 64, 48, backend=backend, ctx=gl_ctx) as r:
             views = [
                 dict(eye=(0, 0.6, 3.2)),
                 dict(eye=(0, 0, 5), target=(0, 0, 10)),  # looking away: all background
@@ -129,14 +159,14 @@ def copy_demo(tmp_path) -> Path:
     return dst
 
 
-def test_bad_models_shaders_and_envmaps_raise_specific_errors(tmp_path):
+def test_bad_models_shaders_and_envmaps_raise_specific_errors(gl_ctx, tmp_path):
     import onnx
     from onnx import TensorProto, helper
 
     scene_dir = copy_demo(tmp_path)
     # corrupt ONNX file
     (scene_dir / "segments" / "seg000.onnx").write_bytes(b"not a model")
-    with Renderer(Scene.load(scene_dir), 32, 32) as r, pytest.raises(InputError, match="seg000.onnx"):
+    with Renderer(Scene.load(scene_dir), 32, 32, ctx=gl_ctx) as r, pytest.raises(InputError, match="seg000.onnx"):
         r.render()
     # a model with the wrong input shape
     graph = helper.make_graph(
@@ -147,17 +177,17 @@ def test_bad_models_shaders_and_envmaps_raise_specific_errors(tmp_path):
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
     model.ir_version = 8
     onnx.save(model, scene_dir / "segments" / "seg000.onnx")
-    with Renderer(Scene.load(scene_dir), 32, 32) as r, pytest.raises(InputError, match=r"\[N, 6\]"):
+    with Renderer(Scene.load(scene_dir), 32, 32, ctx=gl_ctx) as r, pytest.raises(InputError, match=r"\[N, 6\]"):
         r.render()
     # a generated shader that does not compile: the message names the shader and the driver's error
     scene_dir = copy_demo(tmp_path / "b")
     glsl = scene_dir / "segments" / "seg001.glsl"
     glsl.write_text(glsl.read_text() + "\nthis is not glsl;\n")
-    with Renderer(Scene.load(scene_dir), 32, 32, backend="glsl") as r, pytest.raises(ShaderCompileError) as err:
+    with Renderer(Scene.load(scene_dir), 32, 32, backend="glsl", ctx=gl_ctx) as r, pytest.raises(ShaderCompileError) as err:
         r.render()
     assert "transfer pass" in str(err.value) and "error" in str(err.value).lower() and "\n" not in str(err.value)
     # env map not found / not readable
-    with Renderer(Scene.load(), 32, 32) as r:
+    with Renderer(Scene.load(), 32, 32, ctx=gl_ctx) as r:
         with pytest.raises(EnvmapError, match="nope.hdr"):
             r.set_envmap(tmp_path / "nope.hdr")
         with pytest.raises(EnvmapError):
@@ -167,6 +197,19 @@ def test_bad_models_shaders_and_envmaps_raise_specific_errors(tmp_path):
     (scene_dir / "scene.json").write_text(manifest)
     with pytest.raises(SpecError, match="escapes"):
         Scene.load(scene_dir)
+
+
+def test_orbit_renders_the_views_and_restores_the_camera(gl_ctx, tmp_path, backend):
+    options = ViewerOptions(width=24, height=16, backend=backend, envmap="studio", material="glossy", exponent=8.0)
+    with options.renderer(Scene.load(), ctx=gl_ctx) as r:
+        start = r.camera
+        assert r.material.kind == "glossy" and r.material.exponent == 8.0
+        summary = render_orbit(r, 2, tmp_path / "frames", warmup=1)
+        assert r.camera is start
+        frames = r.stats["frames"]
+    assert frames == 3 and summary.frames == 2 and summary.backend == backend and summary.fps > 0
+    assert sorted(p.name for p in (tmp_path / "frames").iterdir()) == ["frame_000.png", "frame_001.png"]
+    assert "FPS" in str(summary) and "frame" in summary.median_ms
 
 
 def test_viewer_cli_headless_frames_and_errors(tmp_path):

@@ -13,7 +13,10 @@ from prt.runtime.envmap import load_envmap_sh
 from prt.runtime.envmaps import bundled_envmap_path
 from prt.runtime.gl import run_fragment_program
 from prt.runtime.shading import (
+    GLSL_DEFINES,
+    GLSL_FILES,
     MATERIAL_KINDS,
+    TONEMAP_MAX,
     Lighting,
     Material,
     compute_light_matrix,
@@ -25,6 +28,7 @@ from prt.runtime.shading import (
     to_srgb8,
     tonemap,
 )
+from prt.shaders import assemble
 from prt.shaders import source as shader_source
 
 BANDS = 4
@@ -320,7 +324,7 @@ def test_shade_accepts_image_shapes_and_clamps_negative():
 
 
 def test_glsl_sources_are_includable():
-    for name in ("sh_basis.glsl", "shading.glsl"):
+    for name in GLSL_FILES:
         text = shader_source(name)
         assert not re.search(r"^\s*#\s*version", text, flags=re.M)
         for kind, ident in re.findall(r"^\s*(uniform|const)\s+\w+\s+(\w+)", text, flags=re.M):
@@ -330,6 +334,24 @@ def test_glsl_sources_are_includable():
     declared = set(re.findall(r"^uniform\s+\w+\s+(\w+)", shader_source("shading.glsl"), flags=re.M))
     uniforms = shader_uniforms(Lighting.from_sh(WHITE), Material())
     assert declared == set(uniforms)
+
+
+def test_tonemap_ceiling_has_one_definition():
+    # The GLSL gets shading.TONEMAP_MAX through the assembly's #define, never a copy of its own.
+    for name in GLSL_FILES:
+        assert "1.0e4" not in shader_source(name) and "10000" not in shader_source(name)
+    assert GLSL_DEFINES["PRT_TONEMAP_MAX"] == TONEMAP_MAX
+    assert f"#define PRT_TONEMAP_MAX {TONEMAP_MAX!r}\n" in glsl_source()
+    assert not glsl_source().startswith("#version")
+
+
+def test_assemble_fills_named_placeholders_and_refuses_missing_ones():
+    source = assemble("packed_eval.frag", defines={"PRT_N": 3, "PRT_X": 0.1}, fills={"body": "void main() { f_out = vec4($x); }"})
+    lines = source.splitlines()
+    assert lines[:3] == ["#version 330", "#define PRT_N 3", "#define PRT_X 0.1"]
+    assert source.count("#version") == 1 and "void main() { f_out = vec4($x); }" in source  # fills are not scanned
+    with pytest.raises(KeyError, match="body"):
+        assemble("packed_eval.frag")
 
 
 def test_shader_uniforms_layout():
@@ -365,16 +387,14 @@ def test_glsl_sh_basis_matches_numpy(gl_ctx):
     assert np.abs(got - expected).max() <= 1e-6
 
 
-_SHADE_HARNESS = """#version 330
+_SHADE_MAIN = """
 uniform sampler2D u_t0;
 uniform sampler2D u_t1;
 uniform sampler2D u_t2;
 uniform sampler2D u_t3;
 uniform sampler2D u_normal;
 uniform sampler2D u_view;
-out vec4 f_out;
-{library}
-void main() {{
+void main() {
     ivec2 p = ivec2(gl_FragCoord.xy);
     vec4 t[4];
     t[0] = texelFetch(u_t0, p, 0);
@@ -382,48 +402,15 @@ void main() {{
     t[2] = texelFetch(u_t2, p, 0);
     t[3] = texelFetch(u_t3, p, 0);
     f_out = vec4(prt_shade(t, texelFetch(u_normal, p, 0).xyz, texelFetch(u_view, p, 0).xyz), 1.0);
-}}
+}
 """
 
 
-def glsl_shade(ctx: moderngl.Context, uniforms: dict, T, normals, views, width: int = 64) -> np.ndarray:
+def glsl_shade(ctx: moderngl.Context, uniforms: dict, T, normals, views) -> np.ndarray:
     """Run ``prt_shade`` once per row: T (N, 16), normals and views (N, 3) -> (N, 3) float32."""
-    n = T.shape[0]
-    height = -(-n // width)
-
-    def texture(values: np.ndarray):
-        grid = np.zeros((height * width, 4), dtype=np.float32)
-        grid[:n, : values.shape[1]] = values
-        tex = ctx.texture((width, height), 4, grid.tobytes(), dtype="f4")
-        tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
-        return tex
-
-    fragment = _SHADE_HARNESS.format(library=glsl_source())
-    program = ctx.program(vertex_shader=shader_source("fullscreen.vert"), fragment_shader=fragment)
+    fragment = glsl_source() + _SHADE_MAIN  # assembled into packed_eval.frag (f_out) by the harness
     inputs = {f"u_t{i}": T[:, 4 * i : 4 * i + 4] for i in range(4)} | {"u_normal": normals, "u_view": views}
-    textures = [texture(values) for values in inputs.values()]
-    target = ctx.renderbuffer((width, height), 4, dtype="f4")
-    fbo = ctx.framebuffer(color_attachments=[target])
-    vao = ctx.vertex_array(program, [])
-    previous = ctx.fbo
-    try:
-        for unit_index, (name, tex) in enumerate(zip(inputs, textures)):
-            tex.use(unit_index)
-            program[name] = unit_index
-        for name, value in uniforms.items():
-            program[name].write(value.tobytes())
-        fbo.use()
-        fbo.viewport = (0, 0, width, height)
-        vao.render(moderngl.TRIANGLES, vertices=3)
-        out = np.frombuffer(fbo.read(components=4, dtype="f4"), dtype=np.float32).reshape(-1, 4)
-    finally:
-        # The released framebuffer must not stay bound (moderngl re-binds ctx.fbo later).
-        if previous is None or isinstance(previous.mglo, moderngl.InvalidObject):
-            previous = ctx.detect_framebuffer(0)
-        previous.use()
-        for obj in [vao, fbo, target, program, *textures]:
-            obj.release()
-    return out[:n, :3].copy()
+    return run_fragment_program(ctx, fragment, inputs, components=3, uniforms=uniforms)
 
 
 @pytest.mark.parametrize("kind", MATERIAL_KINDS)
@@ -454,6 +441,15 @@ def test_glsl_tonemap_matches_numpy(gl_ctx):
     main = "void main() { f_out = vec4(prt_tonemap(prt_input().rgb, 1.5), 1.0); }"
     got = run_fragment_program(gl_ctx, glsl_source() + main, radiance)[:, :3]
     assert np.abs(got - tonemap(radiance, exposure=1.5)).max() <= 1e-5
+
+
+def test_viewer_blit_tonemaps_like_numpy(gl_ctx):
+    # The viewer window's program, assembled as the viewer does, run over an "image" of rows.
+    radiance = np.exp(np.random.default_rng(16).uniform(-6.0, 3.0, size=(500, 3))).astype(np.float32)
+    source = assemble("tonemap.glsl", "viewer_blit.frag", defines=GLSL_DEFINES)
+    uniforms = {"u_exposure": np.float32(0.75)}
+    got = run_fragment_program(gl_ctx, source, {"u_image": radiance}, components=3, uniforms=uniforms)
+    assert np.abs(got - tonemap(radiance, exposure=0.75)).max() <= 1e-5
 
 
 # --------------------------------------------------------------------------- tone mapping

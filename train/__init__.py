@@ -1,4 +1,4 @@
-"""prt.train: from geometry to ground-truth transfer (and, later, fitted networks).
+"""prt.train: from geometry to ground-truth transfer to fitted networks (exported by prt.export).
 
 May use torch, trimesh and embreex; install with ``pip install "prt-runtime[train]"``.
 
@@ -6,7 +6,10 @@ May use torch, trimesh and embreex; install with ``pip install "prt-runtime[trai
 - :func:`sample_surface`    area-uniform surface samples (:class:`SurfaceSamples`)
 - :func:`compute_transfer`  ray-traced SH transfer at any surface points
 - :func:`segment_samples`   object/spatial split, CPCA-style merging, seam margins
-- :func:`run_precompute`    the whole stage, resumable, on disk (CLI: ``prt-precompute``)
+- :func:`run_precompute`    the whole stage, resumable, on disk (CLI: ``prt-precompute``,
+                            :mod:`prt.train.precompute_cli`)
+- :mod:`prt.train.build`    precompute -> fit -> export, cached (CLI: ``prt-train``,
+                            :mod:`prt.train.train_cli`); imports torch, so not loaded here
 """
 
 from .geometry import Geometry, load_geometry

@@ -4,14 +4,13 @@ Each stage is cached in the output folder and resumes after an interruption:
 
     OUTDIR/precompute/          samples, ground-truth transfer, segments (prt.train.precompute)
     OUTDIR/train/segNNN.json    per-segment fit: chosen size, errors, sizes tried (+ .npz weights)
-    OUTDIR/segments/segNNN.onnx one network per segment, and segNNN.glsl generated from it
-    OUTDIR/geometry.npz         the normalised mesh (or scene_sdf.glsl for an SDF scene)
-    OUTDIR/scene.json           the manifest the runtime loads
+    OUTDIR/segments/, geometry.npz, scene.json   the scene folder, written by prt.export.scene
     OUTDIR/build.json           the report: per-segment table, memory, timings
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import hashlib
 import json
@@ -20,38 +19,42 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+import torch
+from tqdm import tqdm
 
-from ..runtime import sh
+from ..export.scene import TrainedSegment, export_scene
+from ..runtime.camera import DEFAULT_CAMERA
+from ..runtime.envmap import load_envmap_sh
+from ..runtime.envmaps import BUNDLED_ENVMAPS, bundled_envmap_path
 from ..runtime.errors import SpecError
-from ..runtime.files import atomic_save_npy, atomic_save_npz, atomic_write_bytes, atomic_write_json
-from .fit import DEFAULT_LADDER, FitSettings, fit_segment, right_size, right_size_matching
+from ..runtime.files import atomic_save_npz, atomic_write_json
+from ..runtime.sh import unshadowed_transfer
+from .fit import DEFAULT_LADDER, FitResult, FitSettings, fit_segment, right_size, right_size_matching, shaded_error
+from .geometry import load_geometry
 from .network import Architecture
 from .precompute import PrecomputeSettings, load_precompute, run_precompute
 
-__all__ = ["BuildSpec", "load_spec", "run_build", "analytic_transfer", "ENV_LIGHTS"]
+__all__ = ["BuildSpec", "load_spec", "spec_from_dict", "run_build", "ENV_LIGHTS"]
 
-ENV_LIGHTS = ("potsdamer", "interior", "studio")
+ENV_LIGHTS = tuple(BUNDLED_ENVMAPS)  # the shaded-error lightings, in the bundled order
 TRAIN_FORMAT = 1
 FIT_FORMAT = 1  # layout of the fit cache (precompute/fits/)
+
+# The precompute settings a build spec sets, by their flat names (chunk_size is not a spec field).
+PRECOMPUTE_FIELDS = tuple(f.name for f in dataclasses.fields(PrecomputeSettings) if f.name != "chunk_size")
 
 
 @dataclass
 class BuildSpec:
-    """Everything a build does.  Defaults reproduce the paper's setting where it has one."""
+    """Everything a build does.  Defaults reproduce the paper's setting where it has one.
+
+    A spec file (JSON) and :meth:`to_dict` are flat: the fields of :attr:`precompute`
+    (:data:`PRECOMPUTE_FIELDS`) sit beside the others.
+    """
 
     geometry: str = ""
     name: str = ""
-    # precompute
-    samples: int = 1_000_000
-    validation: int = 0
-    rays: int = 512
-    bands: int = 4
-    seed: int = 0
-    segments: int = 8
-    delta: float = 0.05
-    merge: bool = True
-    merge_tolerance: float = 0.01
-    by_object: bool = True
+    precompute: PrecomputeSettings = field(default_factory=PrecomputeSettings)
     # training
     epochs: int = 100
     batch: int = 8192
@@ -67,21 +70,22 @@ class BuildSpec:
     # export
     glsl_layout: str = "auto"
     material: dict = field(default_factory=lambda: {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]})
-    camera: dict = field(default_factory=lambda: {"eye": [0.0, 0.6, 3.2], "target": [0.0, 0.0, 0.0], "up": [0.0, 1.0, 0.0], "fov": 40.0})
+    camera: dict = field(default_factory=lambda: {k: list(v) if isinstance(v, tuple) else v for k, v in DEFAULT_CAMERA.items()})
 
-    def precompute_settings(self) -> PrecomputeSettings:
-        return PrecomputeSettings(
-            samples=self.samples,
-            validation=self.validation,
-            rays=self.rays,
-            bands=self.bands,
-            seed=self.seed,
-            segments=self.segments,
-            by_object=self.by_object,
-            merge=self.merge,
-            merge_tolerance=self.merge_tolerance,
-            delta=self.delta,
-        )
+    @property
+    def bands(self) -> int:
+        return self.precompute.bands
+
+    @property
+    def seed(self) -> int:
+        return self.precompute.seed
+
+    def to_dict(self) -> dict:
+        """The spec as flat JSON fields (what a spec file holds and ``build.json`` records)."""
+        out = {"geometry": self.geometry, "name": self.name}
+        out |= {k: getattr(self.precompute, k) for k in PRECOMPUTE_FIELDS}
+        out |= {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in out and f.name != "precompute"}
+        return copy.deepcopy(out)
 
     def fit_settings(self) -> FitSettings:
         return FitSettings(epochs=self.epochs, batch=self.batch, lr=self.lr, patience=self.patience, seed=self.seed, bf16=self.bf16)
@@ -119,7 +123,12 @@ def _architecture(d: dict, bands: int, where: str) -> Architecture:
     )
 
 
-_TYPES = {f.name: f.type for f in dataclasses.fields(BuildSpec)}
+# Flat spec field -> its annotation (the precompute fields come from PrecomputeSettings).
+_TYPES = {
+    **{f.name: f.type for f in dataclasses.fields(BuildSpec) if f.name in ("geometry", "name")},
+    **{f.name: f.type for f in dataclasses.fields(PrecomputeSettings) if f.name in PRECOMPUTE_FIELDS},
+    **{f.name: f.type for f in dataclasses.fields(BuildSpec) if f.name not in ("geometry", "name", "precompute")},
+}
 
 
 def load_spec(path) -> BuildSpec:
@@ -144,6 +153,7 @@ def load_spec(path) -> BuildSpec:
 
 
 def spec_from_dict(data: dict) -> BuildSpec:
+    """A checked spec from flat fields (as :meth:`BuildSpec.to_dict` gives them).  Errors name the field."""
     known = set(_TYPES)
     for key, value in data.items():
         if key not in known:
@@ -163,10 +173,12 @@ def spec_from_dict(data: dict) -> BuildSpec:
             raise SpecError(f"{key}: expected {kind}, got {type(value).__name__} {value!r}")
     if "geometry" not in data:
         raise SpecError("geometry: missing (a mesh file or a built-in SDF scene name)")
-    spec = BuildSpec(**data)
+    precompute = PrecomputeSettings(**{k: v for k, v in data.items() if k in PRECOMPUTE_FIELDS})
+    spec = BuildSpec(**{k: v for k, v in data.items() if k not in PRECOMPUTE_FIELDS}, precompute=precompute)
+    flat = spec.to_dict()
     for key in ("samples", "rays", "bands", "segments", "epochs", "batch", "patience"):
-        if getattr(spec, key) < 1:
-            raise SpecError(f"{key}: must be positive, got {getattr(spec, key)}")
+        if flat[key] < 1:
+            raise SpecError(f"{key}: must be positive, got {flat[key]}")
     if spec.glsl_layout not in ("auto", "const", "texture"):
         raise SpecError(f"glsl_layout: expected 'auto', 'const' or 'texture', got {spec.glsl_layout!r}")
     spec.architectures()  # validates ladder / fixed
@@ -179,16 +191,7 @@ def spec_from_dict(data: dict) -> BuildSpec:
     return spec
 
 
-def analytic_transfer(normals: np.ndarray, bands: int = 4) -> np.ndarray:
-    """Transfer of an unshadowed point: the clamped cosine / pi turned to the normal. (N, bands^2)"""
-    lam = sh.zonal_to_band_factors(sh.clamped_cosine(bands)) / np.pi
-    return (sh.basis(np.asarray(normals, dtype=np.float64), bands) * sh.band_factors_to_coeff_scale(lam)).astype(np.float32)
-
-
 def _env_lights(bands: int) -> dict[str, np.ndarray]:
-    from ..runtime.envmap import load_envmap_sh
-    from ..runtime.envmaps import bundled_envmap_path
-
     return {name: load_envmap_sh(bundled_envmap_path(name), bands) for name in ENV_LIGHTS}
 
 
@@ -198,12 +201,6 @@ def _hash(*parts) -> str:
 
 def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress: bool = True, log=print) -> dict:
     """Run (or resume) a build; returns the report written to ``build.json``."""
-    import torch
-
-    from ..export.manifest import write_manifest
-    from ..export.onnx_model import build_model, save_model
-    from .geometry import load_geometry
-
     t_start = time.perf_counter()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -215,7 +212,7 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
 
     # -- stage 1: precompute
     t0 = time.perf_counter()
-    pre_summary = run_precompute(geometry, out / "precompute", spec.precompute_settings(), threads=threads, progress=progress, log=log)
+    pre_summary = run_precompute(geometry, out / "precompute", spec.precompute, threads=threads, progress=progress, log=log)
     data = load_precompute(out / "precompute")
     precompute_s = time.perf_counter() - t0
     samples, valid, members = data["samples"], data["validation"], data["members"]
@@ -250,38 +247,33 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
 
     # -- stage 3: export
     t0 = time.perf_counter()
-    manifest_segments, weight_bytes = _export_segments(spec, out, segments, build_model, save_model)
-    geometry_entry = _export_geometry(geometry, out)
-    vertex_bytes = int(len(geometry.mesh.vertices) * spec.bands**2 * 4)
-    manifest = {
-        "format": "prt-scene",
-        "version": 1,
-        "name": name,
-        "generator": "prt-train 0.1.0",
-        "sh_bands": spec.bands,
-        "geometry": geometry_entry,
-        "segmentation": {
-            "roots": seg_json["roots"],
+    manifest = export_scene(
+        out,
+        name=name,
+        geometry=geometry,
+        segmentation={
+            "roots": {int(k): v for k, v in seg_json["roots"].items()},
             "nodes": seg_json["nodes"],
-            "leaf_segment": seg_json["leaf_segment"],
+            "leaf_segment": np.asarray(seg_json["leaf_segment"], dtype=np.int64),
         },
-        "segments": manifest_segments,
-        "lighting": {"envmap": None, "sh": lights["potsdamer"].tolist()},
-        "material": spec.material,
-        "camera": spec.camera,
-        "memory": {"weight_bytes": weight_bytes, "vertex_storage_bytes": vertex_bytes},
-    }
-    write_manifest(out / "scene.json", manifest)
+        segments=[_trained_segment(record, out) for record in segments],
+        sh_bands=spec.bands,
+        lighting_sh=lights["potsdamer"],
+        material=spec.material,
+        camera=spec.camera,
+        glsl_layout=spec.glsl_layout,
+    )
+    memory = manifest.memory
     export_s = time.perf_counter() - t0
 
     report = {
         "name": name,
         "source": geometry.source,
-        "spec": asdict(spec),
+        "spec": spec.to_dict(),
         "segments": [{k: v for k, v in r.items() if k not in ("key", "history")} for r in segments],
         "memory": {
-            "weight_bytes": weight_bytes,
-            "vertex_storage_bytes": vertex_bytes,
+            "weight_bytes": memory.weight_bytes,
+            "vertex_storage_bytes": memory.vertex_storage_bytes,
             "vertices": int(len(geometry.mesh.vertices)),
         },
         "timings": {
@@ -333,8 +325,6 @@ class _FitCache:
         return self.folder / f"{key}.json", self.folder / f"{key}.npz"
 
     def get(self, arch):
-        from .fit import FitResult
-
         meta_path, weights_path = self._paths(arch)
         if not (meta_path.is_file() and weights_path.is_file()):
             return None
@@ -379,9 +369,7 @@ def _train_segment(spec, s, seg, samples, valid, member_idx, archs, fit_settings
     reference = spec.reference_architecture()
     analytic = None
     if spec.analytic:
-        from .fit import shaded_error
-
-        pred = analytic_transfer(vn, spec.bands)
+        pred = unshadowed_transfer(vn, spec.bands)
         mae = float(np.abs(pred - vt).mean())
         analytic = {**base, "kind": "analytic", "val_mae": mae, "shaded": shaded_error(pred, vt, lights), "tried": [], "flops_per_fragment": 0, "weight_bytes": 0}
         if mae <= spec.target and reference is None:
@@ -403,8 +391,6 @@ def _train_segment(spec, s, seg, samples, valid, member_idx, archs, fit_settings
     def _fit(arch):
         bar = None
         if progress:
-            from tqdm import tqdm
-
             bar = tqdm(total=fit_settings.epochs, desc=f"  seg {s} {arch.label()}", unit="epoch", leave=False, mininterval=0.5)
 
         def on_epoch(epoch, train_l1, val_mae):
@@ -447,66 +433,15 @@ def _train_segment(spec, s, seg, samples, valid, member_idx, archs, fit_settings
     }
 
 
-def _export_segments(spec, out, segments, build_model, save_model):
-    from ..export.glsl import choose_layout, generate_glsl, weight_texture
-
-    entries = []
-    weight_bytes = 0
-    for record in segments:
-        s = record["id"]
-        entry = {
-            "id": s,
-            "kind": record["kind"],
-            "bounds": record["bounds"],
-            "samples": record["samples"],
-            "validation": {"coeff_mae": record["val_mae"], "shaded_mae": record["shaded"]},
-        }
-        if record["kind"] == "network":
-            with np.load(out / "train" / f"seg{s:03d}.npz") as f:
-                arrays = dict(f)
-            onnx_rel = f"segments/seg{s:03d}.onnx"
-            glsl_rel = f"segments/seg{s:03d}.glsl"
-            save_model(build_model(arrays, record["arch"], name=f"segment{s}"), out / onnx_rel)
-            layout = spec.glsl_layout
-            if layout == "auto":
-                layout = choose_layout(record["arch"])
-            source = generate_glsl(out / onnx_rel, function_name=f"seg{s}_transfer", layout=layout)
-            atomic_write_bytes(out / glsl_rel, source.encode())
-            if layout == "texture":  # the runtime uploads these weights; it cannot read ONNX initialisers
-                weights_rel = f"segments/seg{s:03d}_weights.npy"
-                atomic_save_npy(out / weights_rel, weight_texture(out / onnx_rel)[0])
-                entry["glsl_weights"] = weights_rel
-            entry.update(
-                {
-                    "model": onnx_rel,
-                    "glsl": glsl_rel,
-                    "architecture": {k: record["arch"][k] for k in ("hidden", "layers", "pos_freqs", "normal_freqs", "input_dim")},
-                    "flops_per_fragment": record["flops_per_fragment"],
-                    "weight_bytes": record["weight_bytes"],
-                }
-            )
-            weight_bytes += record["weight_bytes"]
-        entries.append(entry)
-    return entries, weight_bytes
-
-
-def _export_geometry(geometry, out) -> dict:
-    to_source = np.asarray(geometry.to_source, dtype=np.float64).tolist()
-    if geometry.sdf is not None:
-        atomic_write_bytes(out / "scene_sdf.glsl", geometry.sdf.glsl("scene_sdf").encode())
-        return {"type": "sdf", "name": geometry.sdf.name, "glsl": "scene_sdf.glsl", "to_source": to_source}
-    mesh = geometry.mesh
-    atomic_save_npz(
-        out / "geometry.npz",
-        vertices=np.asarray(mesh.vertices, dtype=np.float32),
-        faces=np.asarray(mesh.faces, dtype=np.uint32),
-        object_ids=np.asarray(geometry.object_ids, dtype=np.int32),
-        two_sided=np.asarray(geometry.two_sided, dtype=bool),
-    )
-    return {
-        "type": "mesh",
-        "file": "geometry.npz",
-        "to_source": to_source,
-        "triangles": int(len(mesh.faces)),
-        "objects": list(geometry.object_names),
-    }
+def _trained_segment(record: dict, out: Path) -> TrainedSegment:
+    """What export needs of a segment's training record (weights from ``train/segNNN.npz``)."""
+    s = record["id"]
+    segment = TrainedSegment(id=s, bounds=record["bounds"], samples=record["samples"],
+                             coeff_mae=record["val_mae"], shaded_mae=record["shaded"])  # fmt: skip
+    if record["kind"] == "network":
+        with np.load(out / "train" / f"seg{s:03d}.npz") as f:
+            segment.arrays = dict(f)
+        segment.architecture = record["arch"]
+        segment.flops_per_fragment = record["flops_per_fragment"]
+        segment.weight_bytes = record["weight_bytes"]
+    return segment

@@ -12,7 +12,7 @@
    of its box, so two networks agree where they meet.
 
 The tree is kept, so ``assign(points, object_ids)`` tells the segment of any surface point
-(the runtime needs the same rule for fragments).  Every sample knows its segment.
+by the rule of :mod:`prt.runtime.segmentation` (the runtime applies it to fragments).  Every sample knows its segment.
 """
 
 from __future__ import annotations
@@ -20,6 +20,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from ..runtime.segmentation import assign_segments, kd_arrays
 
 __all__ = ["Segmentation", "segment_samples"]
 
@@ -83,8 +85,6 @@ class Segmentation:
 
         Points of an object that received no samples go to the segment with the nearest box.
         """
-        from ..runtime.manifest import assign_segments, kd_arrays
-
         return assign_segments(
             kd_arrays(self.nodes), self.roots, self.leaf_segment, self.bounds,
             np.asarray(points, dtype=np.float64), np.asarray(object_ids),

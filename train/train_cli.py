@@ -4,7 +4,7 @@ usage: prt-train INPUT -o OUTDIR [--samples N] [--rays R] [--segments S] [--epoc
                  [--hidden K --layers L] [--target MAE | --match 64x4]
 
 INPUT is a mesh file, a built-in SDF scene name (``prt-precompute --list-sdf``) or a build spec
-(``.json``; its fields are those of :class:`prt.train.build.BuildSpec`, flags override them).
+(``.json``; the flat fields of :meth:`prt.train.build.BuildSpec.to_dict`, flags override them).
 Every stage is cached in OUTDIR: rerun the same command after an interruption to resume.
 """
 
@@ -16,13 +16,13 @@ import sys
 from pathlib import Path
 
 from ..runtime.errors import PRTError, SpecError
+from .build import BuildSpec, load_spec, run_build, spec_from_dict
+from .precompute_cli import check_writable
 
 __all__ = ["main", "build_parser"]
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .build import BuildSpec
-
     d = BuildSpec()
     p = argparse.ArgumentParser(
         prog="prt-train",
@@ -34,10 +34,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("input", help="mesh file, built-in SDF scene name, or build spec (.json)")
     p.add_argument("-o", "--out", type=Path, required=True, help="output folder (created; stages cached and resumable)")
     p.add_argument("--name", default=None, help="scene name in the manifest (default: the input's stem)")
-    p.add_argument("--samples", type=int, default=None, help=f"training surface samples [{d.samples:,}]")
+    p.add_argument("--samples", type=int, default=None, help=f"training surface samples [{d.precompute.samples:,}]")
     p.add_argument("--validation", type=int, default=None, help="held-out samples [5%% of --samples, at least 1000]")
-    p.add_argument("--rays", type=int, default=None, help=f"rays per sample for the ground truth [{d.rays}]")
-    p.add_argument("--segments", type=int, default=None, help=f"leaf budget of the spatial split before merging [{d.segments}]")
+    p.add_argument("--rays", type=int, default=None, help=f"rays per sample for the ground truth [{d.precompute.rays}]")
+    p.add_argument("--segments", type=int, default=None, help=f"leaf budget of the spatial split before merging [{d.precompute.segments}]")
     p.add_argument("--epochs", type=int, default=None, help=f"most epochs per network (early stopping on validation) [{d.epochs}]")
     p.add_argument("--batch", type=int, default=None, help=f"batch size [{d.batch}]")
     p.add_argument("--lr", type=float, default=None, help=f"peak learning rate (warm-up, then cosine) [{d.lr}]")
@@ -57,8 +57,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _spec_from_args(args):
-    from .build import BuildSpec, load_spec, spec_from_dict
-
     source = str(args.input)
     if source.lower().endswith(".json"):
         spec = load_spec(source)
@@ -78,7 +76,7 @@ def _spec_from_args(args):
         "match_tolerance": args.match_tolerance,
         "glsl_layout": args.glsl_layout,
     }
-    data = {k: v for k, v in vars(spec).items()}
+    data = spec.to_dict()
     data.update({k: v for k, v in overrides.items() if v is not None})
     if args.no_analytic:
         data["analytic"] = False
@@ -105,11 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         spec = _spec_from_args(args)
-        from .cli import _check_writable
-
-        _check_writable(args.out)
-        from .build import run_build
-
+        check_writable(args.out)
         report = run_build(spec, args.out, threads=args.threads, progress=not args.no_progress)
     except PRTError as exc:
         print(f"prt-train: error: {exc}", file=sys.stderr)

@@ -13,14 +13,31 @@ import os
 import sys
 from pathlib import Path
 
+from ..runtime.envmap import read_envmap
 from ..runtime.errors import PRTError
+from .geometry import load_geometry
+from .precompute import PrecomputeSettings, run_precompute
+from .sdf import sdf_names
 
-__all__ = ["main", "build_parser"]
+__all__ = ["main", "build_parser", "settings_from_args", "check_writable"]
+
+# The options that set PrecomputeSettings, in --help order: (field, flag, help).  Types and
+# defaults come from the dataclass; a --no-* flag clears a field that is True by default.
+SETTINGS_OPTIONS = (
+    ("samples", "--samples", "training surface samples"),
+    ("validation", "--validation", "held-out samples (0: 5%% of --samples, at least 1000)"),
+    ("rays", "--rays", "cosine-weighted rays per sample"),
+    ("bands", "--bands", "SH bands (4 -> 16 coefficients)"),
+    ("segments", "--segments", "leaf budget of the spatial split before merging"),
+    ("delta", "--delta", "seam margin sampled into neighbouring segments (scene units)"),
+    ("merge_tolerance", "--merge-tolerance", "largest RMS PCA residual of a merged segment"),
+    ("merge", "--no-merge", "keep every leaf of the split as its own segment"),
+    ("by_object", "--no-object-split", "let segments span several objects"),
+    ("seed", "--seed", "random seed (samples and ray frames)"),
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .precompute import PrecomputeSettings
-
     d = PrecomputeSettings()
     p = argparse.ArgumentParser(
         prog="prt-precompute",
@@ -30,16 +47,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("input", nargs="?", help="mesh file or built-in SDF scene name")
     p.add_argument("-o", "--out", type=Path, help="output folder (created; resumable)")
-    p.add_argument("--samples", type=int, default=d.samples, help="training surface samples")
-    p.add_argument("--validation", type=int, default=d.validation, help="held-out samples (0: 5%% of --samples, at least 1000)")
-    p.add_argument("--rays", type=int, default=d.rays, help="cosine-weighted rays per sample")
-    p.add_argument("--bands", type=int, default=d.bands, help="SH bands (4 -> 16 coefficients)")
-    p.add_argument("--segments", type=int, default=d.segments, help="leaf budget of the spatial split before merging")
-    p.add_argument("--delta", type=float, default=d.delta, help="seam margin sampled into neighbouring segments (scene units)")
-    p.add_argument("--merge-tolerance", type=float, default=d.merge_tolerance, help="largest RMS PCA residual of a merged segment")
-    p.add_argument("--no-merge", action="store_true", help="keep every leaf of the split as its own segment")
-    p.add_argument("--no-object-split", action="store_true", help="let segments span several objects")
-    p.add_argument("--seed", type=int, default=d.seed, help="random seed (samples and ray frames)")
+    for name, flag, text in SETTINGS_OPTIONS:
+        default = getattr(d, name)
+        if flag.startswith("--no-"):
+            p.add_argument(flag, action="store_true", help=text)
+        else:
+            p.add_argument(flag, type=type(default), default=default, help=text)
     p.add_argument("--envmap", type=Path, default=None, help="equirectangular .hdr/.exr lighting the preview (default: a procedural sky)")
     p.add_argument("--threads", type=int, default=os.cpu_count(), help="worker threads")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -47,13 +60,20 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def settings_from_args(args: argparse.Namespace) -> PrecomputeSettings:
+    """The PrecomputeSettings of parsed :func:`build_parser` options."""
+    values = {}
+    for name, flag, _ in SETTINGS_OPTIONS:
+        value = getattr(args, flag[2:].replace("-", "_"))
+        values[name] = not value if flag.startswith("--no-") else value
+    return PrecomputeSettings(**values)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
         if args.list_sdf:
-            from .sdf import sdf_names
-
             print("\n".join(sdf_names()))
             return 0
         if not args.input or args.out is None:
@@ -61,30 +81,14 @@ def main(argv: list[str] | None = None) -> int:
         for name in ("samples", "rays", "bands", "segments", "threads"):
             if getattr(args, name) is None or getattr(args, name) < 1:
                 raise PRTError(f"--{name} must be a positive integer")
-        _check_writable(args.out)
-
-        from .geometry import load_geometry
-        from .precompute import PrecomputeSettings, run_precompute
+        check_writable(args.out)
 
         envmap = None
         if args.envmap is not None:  # read first: a bad file must fail before hours of work
-            from ..runtime.envmap import read_envmap
-
             envmap = read_envmap(args.envmap)
         geometry = load_geometry(args.input)
         print(geometry.summary())
-        settings = PrecomputeSettings(
-            samples=args.samples,
-            validation=args.validation,
-            rays=args.rays,
-            bands=args.bands,
-            seed=args.seed,
-            segments=args.segments,
-            by_object=not args.no_object_split,
-            merge=not args.no_merge,
-            merge_tolerance=args.merge_tolerance,
-            delta=args.delta,
-        )
+        settings = settings_from_args(args)
         summary = run_precompute(
             geometry, args.out, settings, threads=args.threads, progress=not args.no_progress, preview_envmap=envmap
         )
@@ -102,7 +106,8 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _check_writable(out: Path) -> None:
+def check_writable(out: Path) -> None:
+    """Create ``out`` if needed; PRTError unless a file can be written in it."""
     try:
         out.mkdir(parents=True, exist_ok=True)
         probe = out / ".write-test"

@@ -1,12 +1,18 @@
-"""Transfer per pixel with ONNX Runtime: pack covered fragments by segment, infer, scatter back.
+"""The ``"onnx"`` backend: transfer per pixel with ONNX Runtime (pack covered fragments by
+segment, infer, scatter back), the analogue of the paper's CUDA path.
+
+Readback: the G-buffer comes back to the CPU as one packed array (:meth:`GBufferPass.read_packed`).
 
 Packing: the segment id of every pixel comes from the G-buffer; one pass per segment over the
 covered pixels (``flatnonzero``, no argsort), then one gather of the six input floats.
 Inference: each network segment's batch is cut into cache-sized slices that a small pool of
 threads feeds to the segment's session concurrently (one intra-op thread per call, spinning
 off), which keeps two cores busy without thread pools fighting each other.  Analytic
-(unshadowed) segments skip the network: their transfer is the clamped cosine turned to the
-normal.  The result is one transfer row per covered pixel, in pixel order.
+(unshadowed) segments skip the network: their transfer is :func:`prt.runtime.sh.unshadowed_transfer`
+(in float32).  The result is one transfer row per covered pixel, in pixel order.
+
+:class:`OnnxTransfer` is the engine (sessions and packed inference, no OpenGL); :class:`OnnxBackend`
+puts it behind :class:`prt.runtime.backends.TransferBackend`.
 """
 
 from __future__ import annotations
@@ -17,10 +23,12 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from . import sh
-from .errors import InputError
+from .. import sh
+from ..errors import InputError
+from ..gbuffer import PACKED_COLUMNS, PACKED_SEGMENT
+from .base import CpuTransfer, TransferBackend
 
-__all__ = ["OnnxTransfer", "analytic_transfer", "default_providers"]
+__all__ = ["OnnxBackend", "OnnxTransfer", "default_providers"]
 
 
 def default_providers() -> list[str]:
@@ -29,13 +37,6 @@ def default_providers() -> list[str]:
 
     available = ort.get_available_providers()
     return [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in available]
-
-
-def analytic_transfer(normals: np.ndarray, bands: int = 4) -> np.ndarray:
-    """Transfer of unshadowed points (N, 3) -> (N, bands^2) float32: clamped cosine / pi at n."""
-    lam = sh.zonal_to_band_factors(sh.clamped_cosine(bands)) / np.pi
-    scale = sh.band_factors_to_coeff_scale(lam).astype(np.float32)
-    return sh.basis(np.asarray(normals, dtype=np.float32), bands) * scale
 
 
 class OnnxTransfer:
@@ -127,7 +128,7 @@ class OnnxTransfer:
             transfer[rows[a : a + self.slice_rows]] = y
         for s, rows, x in batches:
             if s in self.analytic:
-                transfer[rows] = analytic_transfer(x[:, 3:6], self.bands)
+                transfer[rows] = sh.unshadowed_transfer(x[:, 3:6], self.bands, dtype=np.float32)
         t3 = time.perf_counter()
         self.timings = {"pack": 1e3 * (t1 - t0), "inference": 1e3 * (t2 - t1), "scatter": 1e3 * (t3 - t2)}
         return covered, transfer
@@ -144,6 +145,33 @@ class OnnxTransfer:
         if self._pool is None:
             return [run(j) for j in jobs]
         return list(self._pool.map(run, jobs))
+
+
+class OnnxBackend(TransferBackend):
+    """:class:`OnnxTransfer` on the packed G-buffer: the transfer comes back on the CPU.
+
+    Timings: ``readback`` (the packed G-buffer), ``pack``, ``inference``, ``scatter``.
+    """
+
+    name = "onnx"
+
+    def __init__(self, ctx, manifest, *, providers=None, threads: int | None = None):
+        super().__init__(ctx, manifest)
+        self.engine = OnnxTransfer(manifest, providers=providers, threads=threads)
+
+    def run(self, gbuffer, target) -> CpuTransfer:
+        t0 = time.perf_counter()
+        packed = gbuffer.read_packed()
+        t1 = time.perf_counter()
+        segment = packed[:, PACKED_SEGMENT].astype(np.int32)
+        covered, transfer = self.engine.compute(packed, segment, columns=PACKED_COLUMNS)
+        t2 = time.perf_counter()
+        self.timings = {"readback": 1e3 * (t1 - t0), **self.engine.timings}
+        self.timings["pack"] += 1e3 * (t2 - t1) - sum(self.engine.timings.values())  # the segment-id column
+        return CpuTransfer(covered, transfer, packed)
+
+    def release(self) -> None:
+        self.engine.close()
 
 
 def _check_signature(sess, path, n_out: int) -> None:

@@ -1,0 +1,213 @@
+"""Writing a built scene: segment files (ONNX + generated GLSL), geometry, and ``scene.json``.
+
+The build (:mod:`prt.train.build`) hands over what training produced; this module owns the
+files of a scene folder:
+
+    OUTDIR/segments/segNNN.onnx         one network per network segment
+    OUTDIR/segments/segNNN.glsl         GLSL generated from it
+    OUTDIR/segments/segNNN_weights.npy  its weight texture (texture layout only)
+    OUTDIR/geometry.npz                 the normalised mesh (or scene_sdf.glsl for an SDF scene)
+    OUTDIR/scene.json                   the manifest the runtime loads
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..runtime.camera import DEFAULT_CAMERA
+from ..runtime.files import atomic_save_npy, atomic_save_npz, atomic_write_bytes
+from ..runtime.manifest import (
+    GENERATOR,
+    MANIFEST_NAME,
+    CameraInfo,
+    GeometryInfo,
+    LightingInfo,
+    Manifest,
+    MaterialInfo,
+    MemoryInfo,
+    SegmentInfo,
+    validate_manifest_field,
+)
+from .glsl import choose_layout, generate_glsl, weight_texture
+from .manifest import write_manifest
+from .onnx_model import build_model, save_model
+
+__all__ = ["TrainedSegment", "export_segment", "export_geometry", "export_scene"]
+
+# Architecture fields the manifest records (the ONNX metadata also has ``bands``).
+_ARCHITECTURE_FIELDS = ("hidden", "layers", "pos_freqs", "normal_freqs", "input_dim")
+
+
+@dataclass
+class TrainedSegment:
+    """One segment as training left it.
+
+    Attributes
+    ----------
+    id : int
+    bounds : array_like, shape (2, 3)
+        Box the network's input encoding normalises to.
+    samples : int
+        Training samples of the segment.
+    coeff_mae : float
+        Validation MAE of the SH coefficients.
+    shaded_mae : dict
+        Lighting name -> validation error of shaded radiance.
+    arrays : dict or None
+        Initialiser name -> float32 array of the fitted network; None for an analytic segment.
+    architecture : dict or None
+        ``hidden``, ``layers``, ``pos_freqs``, ``normal_freqs``, ``bands``, ``input_dim``.
+    flops_per_fragment, weight_bytes : int
+        Cost of the network (0 when analytic).
+    """
+
+    id: int
+    bounds: Any
+    samples: int
+    coeff_mae: float
+    shaded_mae: dict = field(default_factory=dict)
+    arrays: dict | None = None
+    architecture: dict | None = None
+    flops_per_fragment: int = 0
+    weight_bytes: int = 0
+
+    @property
+    def is_network(self) -> bool:
+        return self.arrays is not None
+
+
+def export_segment(out: Path, segment: TrainedSegment, glsl_layout: str = "auto") -> SegmentInfo:
+    """Write a network segment's ONNX model and GLSL into ``out/segments``; its manifest entry.
+
+    ``glsl_layout`` is ``"auto"``, ``"const"`` or ``"texture"`` (see :func:`prt.export.glsl.choose_layout`).
+    An analytic segment writes nothing.
+    """
+    s = segment.id
+    info = SegmentInfo(
+        id=s, kind="network" if segment.is_network else "analytic", model=None, glsl=None,
+        bounds=segment.bounds, architecture=None, flops_per_fragment=0, weight_bytes=0,
+        samples=segment.samples, validation={"coeff_mae": segment.coeff_mae, "shaded_mae": segment.shaded_mae},
+    )  # fmt: skip
+    if not segment.is_network:
+        return info
+    arch = segment.architecture
+    info.model = out / f"segments/seg{s:03d}.onnx"
+    info.glsl = out / f"segments/seg{s:03d}.glsl"
+    save_model(build_model(segment.arrays, arch, name=f"segment{s}"), info.model)
+    layout = choose_layout(arch) if glsl_layout == "auto" else glsl_layout
+    source = generate_glsl(info.model, function_name=f"seg{s}_transfer", layout=layout)
+    atomic_write_bytes(info.glsl, source.encode())
+    if layout == "texture":  # the runtime uploads these weights; it cannot read ONNX initialisers
+        info.glsl_weights = out / f"segments/seg{s:03d}_weights.npy"
+        atomic_save_npy(info.glsl_weights, weight_texture(info.model)[0])
+    info.architecture = {k: arch[k] for k in _ARCHITECTURE_FIELDS}
+    info.flops_per_fragment = segment.flops_per_fragment
+    info.weight_bytes = segment.weight_bytes
+    return info
+
+
+def export_geometry(geometry, out: Path) -> GeometryInfo:
+    """Write the scene's geometry into ``out``; its manifest entry.
+
+    Parameters
+    ----------
+    geometry : prt.train.geometry.Geometry
+        Uses ``mesh`` (vertices, faces), ``object_ids``, ``object_names``, ``two_sided``,
+        ``to_source`` and ``sdf`` (an SDF scene: ``name`` and ``glsl(function_name)``).
+    out : Path
+        The scene folder.
+    """
+    to_source = np.asarray(geometry.to_source, dtype=np.float64)
+    if geometry.sdf is not None:
+        path = out / "scene_sdf.glsl"
+        atomic_write_bytes(path, geometry.sdf.glsl("scene_sdf").encode())
+        return GeometryInfo(type="sdf", path=path, to_source=to_source, name=geometry.sdf.name)
+    mesh = geometry.mesh
+    path = out / "geometry.npz"
+    atomic_save_npz(
+        path,
+        vertices=np.asarray(mesh.vertices, dtype=np.float32),
+        faces=np.asarray(mesh.faces, dtype=np.uint32),
+        object_ids=np.asarray(geometry.object_ids, dtype=np.int32),
+        two_sided=np.asarray(geometry.two_sided, dtype=bool),
+    )
+    return GeometryInfo(
+        type="mesh", path=path, to_source=to_source, triangles=int(len(mesh.faces)), objects=list(geometry.object_names)
+    )
+
+
+def export_scene(
+    out: str | Path,
+    *,
+    name: str,
+    geometry,
+    segmentation: dict,
+    segments: list[TrainedSegment],
+    sh_bands: int,
+    lighting_sh: np.ndarray,
+    material: dict,
+    camera: dict,
+    glsl_layout: str = "auto",
+) -> Manifest:
+    """Write a whole scene folder: segment files, geometry, then ``scene.json``.
+
+    Parameters
+    ----------
+    out : str or Path
+        The scene folder (must exist).
+    name : str
+        Scene name.
+    geometry : prt.train.geometry.Geometry
+        See :func:`export_geometry`.
+    segmentation : dict
+        ``roots`` (object id -> node), ``nodes`` and ``leaf_segment`` of the k-d tree.
+    segments : list of TrainedSegment
+        Indexed by segment id.
+    sh_bands : int
+    lighting_sh : ndarray, shape (sh_bands**2, 3)
+        The scene's default lighting.
+    material, camera : dict
+        Manifest ``material`` and ``camera`` objects (fields the camera leaves out come from
+        :data:`~prt.runtime.camera.DEFAULT_CAMERA`).
+    glsl_layout : str
+        ``"auto"``, ``"const"`` or ``"texture"``.
+
+    Returns
+    -------
+    Manifest
+        The manifest written (paths inside ``out``).
+
+    Raises
+    ------
+    SpecError
+        If the manifest would be invalid (nothing is written to ``scene.json`` then).
+    """
+    out = Path(out)
+    path = out / MANIFEST_NAME
+    infos = [export_segment(out, segment, glsl_layout) for segment in segments]
+    geometry_info = export_geometry(geometry, out)
+    for key, value in (("material", material), ("camera", camera)):
+        validate_manifest_field(key, value, str(path))
+    manifest = Manifest(
+        path=path,
+        root=out,
+        name=name,
+        generator=GENERATOR,
+        sh_bands=sh_bands,
+        geometry=geometry_info,
+        segmentation=segmentation,
+        segments=infos,
+        lighting=LightingInfo(sh=lighting_sh),
+        material=MaterialInfo(**material),
+        camera=CameraInfo(**{**DEFAULT_CAMERA, **camera}),
+        memory=MemoryInfo(
+            weight_bytes=sum(s.weight_bytes for s in infos if s.is_network),
+            vertex_storage_bytes=int(len(geometry.mesh.vertices) * sh_bands**2 * 4),
+        ),
+    )
+    write_manifest(path, manifest)
+    return manifest

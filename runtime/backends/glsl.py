@@ -1,0 +1,82 @@
+"""The ``"glsl"`` backend: every segment's network evaluated in one full-screen fragment pass.
+
+The program is assembled once per scene (``shaders/transfer_pass.frag`` after
+``sh_basis.glsl``, with each network segment's generated GLSL and a switch over segment ids),
+as in the paper; analytic (unshadowed) segments evaluate the clamped cosine turned to the
+normal, scaled by :func:`prt.runtime.sh.unshadowed_coeff_scale`.  The transfer is written to
+the renderer's four RGBA32F targets and stays on the GPU.
+"""
+
+from __future__ import annotations
+
+import time
+
+import moderngl
+import numpy as np
+
+from ...shaders import assemble
+from .. import sh
+from ..errors import InputError
+from ..gl import compile_program, draw_fullscreen
+from .base import TransferBackend
+
+__all__ = ["GlslBackend"]
+
+
+class GlslBackend(TransferBackend):
+    """All network segments' generated GLSL in one full-screen program, compiled once per scene.
+
+    Timings: ``network`` (the transfer pass, finished).  ``compile_s`` is the compile time.
+    """
+
+    name = "glsl"
+
+    def __init__(self, ctx, manifest, *, providers=None, threads: int | None = None):
+        super().__init__(ctx, manifest)
+        networks, cases, self._weights = [], [], []
+        analytic_scale = sh.unshadowed_coeff_scale(4).astype(np.float32).reshape(4, 4)
+        for seg in manifest.segments:
+            if seg.kind == "analytic":
+                cases.append(f"            case {seg.id}: prt_analytic_transfer(ns.xyz, t); break;")
+                continue
+            if seg.glsl is None:
+                raise InputError(f"{manifest.path}: segments[{seg.id}] has no generated GLSL (needed by the glsl backend)")
+            try:
+                networks.append(f"// ---- {seg.glsl.name}\n" + seg.glsl.read_text())
+            except OSError as exc:
+                raise InputError(f"{seg.glsl}: cannot read ({exc.strerror})") from None
+            cases.append(f"            case {seg.id}: seg{seg.id}_transfer(p.xyz, ns.xyz, t); break;")
+            if seg.glsl_weights is not None:
+                self._weights.append((f"seg{seg.id}_transfer_weights", np.load(seg.glsl_weights)))
+        source = assemble(
+            "sh_basis.glsl", "transfer_pass.frag", fills={"networks": "\n".join(networks), "dispatch": "\n".join(cases)}
+        )
+        t0 = time.perf_counter()
+        self.program = compile_program(ctx, source, f"{manifest.path.parent / 'segments'}/*.glsl (transfer pass)")
+        self.compile_s = time.perf_counter() - t0
+        if "u_analytic_scale" in self.program:  # optimised away when no segment is analytic
+            self.program["u_analytic_scale"].write(analytic_scale.tobytes())
+        self.program["u_position"].value = 0
+        self.program["u_normal"].value = 1
+        self._textures = []
+        for unit, (name, data) in enumerate(self._weights, start=2):
+            tex = ctx.texture((data.shape[1], data.shape[0]), 4, data=np.ascontiguousarray(data, dtype=np.float32).tobytes(), dtype="f4")
+            tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+            self._textures.append((tex, unit))
+            if name in self.program:
+                self.program[name].value = unit
+        self.vao = ctx.vertex_array(self.program, [])
+
+    def run(self, gbuffer, target) -> None:
+        t0 = time.perf_counter()
+        textures = ((gbuffer.position_texture, 0), (gbuffer.normal_texture, 1), *self._textures)
+        draw_fullscreen(self.ctx, target, self.vao, textures)
+        self.ctx.finish()
+        self.timings = {"network": 1e3 * (time.perf_counter() - t0)}
+        return None
+
+    def release(self) -> None:
+        for tex, _ in self._textures:
+            tex.release()
+        self.vao.release()
+        self.program.release()
