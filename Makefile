@@ -11,6 +11,6 @@ test: install
 	.venv/bin/python -m pytest -q
 
 bench: install
-	.venv/bin/python bench/precompute_bench.py --json docs/benchmarks/precompute_bunny.json
-	.venv/bin/python bench/train_bench.py --json docs/benchmarks/train_bunny.json
-	.venv/bin/python bench/runtime_bench.py --json docs/benchmarks/runtime.json
+	.venv/bin/python bench/studies/precompute_bench.py --json docs/benchmarks/precompute_bunny.json
+	.venv/bin/python bench/studies/train_bench.py --json docs/benchmarks/train_bunny.json
+	.venv/bin/python bench/studies/runtime_bench.py --json docs/benchmarks/runtime.json

@@ -1,4 +1,4 @@
-"""prt-bench (prt.train.benchmark) on a tiny scene: report keys, errors, baselines, precision variants, plot."""
+"""prt-bench (prt.bench) on a tiny scene: report keys, errors, baselines, precision variants, plot."""
 
 from __future__ import annotations
 
@@ -14,6 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from prt.bench import cli, machine, metrics, scene_bench
+from prt.bench import report as report_format
+from prt.export.precision import PRECISIONS, model_weight_bytes, variant_manifest
+from prt.runtime.normals import CREASE_COS, corner_normals, vertex_normals
+
 ROOT = Path(__file__).resolve().parents[1]
 SIZE = 40
 VIEWS = 2
@@ -21,8 +26,6 @@ VIEWS = 2
 # fp16 rounds the encoding's arguments (up to 2^5 pi |x|) to 11 bits: a few 1e-2 at worst.
 TOLERANCE = {"fp16": 5e-2, "fp16-mlp": 2e-3, "int8": 5e-2}
 
-
-from prt.train import benchmark as pb  # noqa: E402
 # The tool renders with both backends and rasterises the vertex baseline.
 pytestmark = pytest.mark.gl
 
@@ -49,31 +52,31 @@ def report(tiny_scene, tmp_path_factory):
     argv = [str(tiny_scene), "--size", str(SIZE), "--views", str(VIEWS), "--ref-rays", "64", "--warmup", "1",
             "--gemm-size", "256", "--json", str(paths["json"]), "--md", str(paths["md"]), "--plot", str(paths["plot"]),
             "--images", str(out / "images")]  # fmt: skip
-    assert pb.main(argv) == 0
+    assert cli.main(argv) == 0
     return json.loads(paths["json"].read_text()), paths
 
 
 def test_report_has_every_documented_key(report):
     data, _ = report
-    documented = set(re.findall(r"``(\w+)``", pb.__doc__))
-    for keys in (pb.REPORT_KEYS, pb.MACHINE_KEYS, pb.SCENE_KEYS, pb.PACKING_KEYS, pb.RECORD_KEYS):
+    documented = set(re.findall(r"``(\w+)``", report_format.__doc__))
+    for keys in (report_format.REPORT_KEYS, report_format.MACHINE_KEYS, report_format.SCENE_KEYS, report_format.PACKING_KEYS, report_format.RECORD_KEYS):
         assert set(keys) <= documented, set(keys) - documented
-    assert set(pb.REPORT_KEYS) <= set(data)
-    assert set(pb.MACHINE_KEYS) <= set(data["machine"])
+    assert set(report_format.REPORT_KEYS) <= set(data)
+    assert set(report_format.MACHINE_KEYS) <= set(data["machine"])
     machine = data["machine"]
     assert machine["gemm_numpy_gflops"] > 0 and machine["gemm_onnxruntime_gflops"] > 0
     # the limit is the faster library, so no network stage is measured against a slow BLAS
     assert machine["machine_gflops"] == max(machine["gemm_numpy_gflops"], machine["gemm_onnxruntime_gflops"])
     for scene in data["scenes"]:
-        assert set(pb.SCENE_KEYS) <= set(scene)
+        assert set(report_format.SCENE_KEYS) <= set(scene)
         for packing in scene["packing"]:
-            assert set(pb.PACKING_KEYS) <= set(packing)
+            assert set(report_format.PACKING_KEYS) <= set(packing)
     configs = {(r["backend"], r["precision"], r["material"]) for r in data["records"]}
-    expected = {("onnx", p, m) for p in pb.PRECISIONS for m in pb.MATERIALS}
-    expected |= {(b, "fp32", m) for b in ("glsl", "vertex") for m in pb.MATERIALS}
+    expected = {("onnx", p, m) for p in PRECISIONS for m in scene_bench.MATERIALS}
+    expected |= {(b, "fp32", m) for b in ("glsl", "vertex") for m in scene_bench.MATERIALS}
     assert configs == expected
     for record in data["records"]:
-        missing = set(pb.RECORD_KEYS) - set(record)
+        missing = set(report_format.RECORD_KEYS) - set(record)
         assert not missing, (record["label"], missing)
         assert record["resolution"] == f"{SIZE}x{SIZE}" and record["views"] == VIEWS
         assert record["fps"] > 0 and record["stages_ms"]
@@ -87,29 +90,29 @@ def test_an_interrupted_run_resumes_from_its_scene_checkpoints(report, tiny_scen
             "--gemm-size", "256", "--cache", str(out / "r_cache"), "--json", str(tmp_path / "again.json"),
             "--images", str(out / "images")]  # fmt: skip
     capsys.readouterr()
-    assert pb.main(argv) == 0
+    assert cli.main(argv) == 0
     assert "kept in" in capsys.readouterr().out
     again = json.loads((tmp_path / "again.json").read_text())
     assert again["scenes"] == data["scenes"] and again["records"] == data["records"]  # not measured again
     checkpoint = Path(data["scenes"][0]["checkpoint"])
     assert checkpoint.is_file() and not list(checkpoint.parent.glob(".*.tmp"))
     # --fresh measures again (its FPS differ from the first run's at the timer's resolution).
-    assert pb.main([*argv, "--fresh"]) == 0
+    assert cli.main([*argv, "--fresh"]) == 0
     assert "kept in" not in capsys.readouterr().out
     fresh = json.loads((tmp_path / "again.json").read_text())
     assert [r["frame_ms"] for r in fresh["records"]] != [r["frame_ms"] for r in data["records"]]
     # Other settings, or changed scene files, key another checkpoint.
-    settings = pb.Settings(views=VIEWS, sizes=(SIZE,), ref_rays=64, warmup=1, gemm_size=256, cache=out / "r_cache",
+    settings = scene_bench.Settings(views=VIEWS, sizes=(SIZE,), ref_rays=64, warmup=1, gemm_size=256, cache=out / "r_cache",
                            images=out / "images")  # fmt: skip
-    assert pb.scene_checkpoint(tiny_scene, settings) == checkpoint
-    assert pb.scene_checkpoint(tiny_scene, dataclasses.replace(settings, warmup=2)) != checkpoint
-    assert pb.scene_checkpoint(tiny_scene, dataclasses.replace(settings, cache=tmp_path)).name == checkpoint.name
+    assert report_format.scene_checkpoint(tiny_scene, settings) == checkpoint
+    assert report_format.scene_checkpoint(tiny_scene, dataclasses.replace(settings, warmup=2)) != checkpoint
+    assert report_format.scene_checkpoint(tiny_scene, dataclasses.replace(settings, cache=tmp_path)).name == checkpoint.name
     copy = tmp_path / "scene"
     shutil.copytree(tiny_scene.parent, copy)
-    assert pb.scene_checkpoint(copy / "scene.json", settings) == checkpoint  # same files, same key
+    assert report_format.scene_checkpoint(copy / "scene.json", settings) == checkpoint  # same files, same key
     model = next(copy.rglob("*.onnx"))
     model.write_bytes(model.read_bytes() + b"\0")
-    assert pb.scene_checkpoint(copy / "scene.json", settings) != checkpoint
+    assert report_format.scene_checkpoint(copy / "scene.json", settings) != checkpoint
 
 
 def test_error_maps_show_reference_and_every_configuration(report):
@@ -119,7 +122,7 @@ def test_error_maps_show_reference_and_every_configuration(report):
     data, _ = report
     (path,) = data["scenes"][0]["error_images"]
     image = np.asarray(Image.open(path).convert("RGB"))
-    configs = len(data["records"]) // len(pb.MATERIALS)
+    configs = len(data["records"]) // len(scene_bench.MATERIALS)
     # (1 + configs) panels of ~2.6 in at 100 dpi across, two rows down
     assert image.shape[1] > 200 * (1 + configs) and image.shape[0] > 2 * 200
     assert image.std() > 10  # not blank
@@ -146,7 +149,7 @@ def test_reference_noise_is_reported(report):
     assert cache.name == "transfer" and any(cache.glob("view000-*.npz")) and any(cache.glob("vertices-front-*.npz"))
     data, _ = report
     noise = data["scenes"][0]["reference"]["noise_psnr"][f"{SIZE}x{SIZE}"]
-    assert set(noise) == set(pb.MATERIALS)
+    assert set(noise) == set(scene_bench.MATERIALS)
     assert all(math.isfinite(v) and v > 20.0 for v in noise.values())
     assert data["scenes"][0]["reference"]["rays"] == 64
 
@@ -166,16 +169,16 @@ def test_naive_path_runs_every_pixel_through_every_network(report):
 def test_pareto_front_of_hand_made_points():
     points = [(1.0, 10.0), (2.0, 9.0), (3.0, 3.0), (1.5, 8.0), (2.0, 9.0), (0.5, 11.0), (3.0, 2.0), (0.4, 11.0)]
     # (1.5, 8) loses to (2, 9); (3, 2) to (3, 3); (0.4, 11) to (0.5, 11); the duplicates both stay.
-    assert pb.pareto_front(points) == [5, 0, 1, 4, 2]
-    assert pb.pareto_front([(1.0, 1.0)]) == [0]
-    assert pb.pareto_front([]) == []
+    assert metrics.pareto_front(points) == [5, 0, 1, 4, 2]
+    assert metrics.pareto_front([(1.0, 1.0)]) == [0]
+    assert metrics.pareto_front([]) == []
 
 
 def test_pareto_front_in_report_and_plot(report):
     data, paths = report
     assert data["pareto"] and all(data["pareto"].values())
     for group, labels in data["pareto"].items():
-        members = [r for r in data["records"] if pb._group_key(r) == group]
+        members = [r for r in data["records"] if metrics.group_key(r) == group]
         front = {r["label"] for r in members if r["pareto"]}
         assert front == set(labels)
         for r in members:  # nothing on the front is beaten in both FPS and PSNR
@@ -201,7 +204,7 @@ def test_precision_variants_stay_close_to_fp32(tiny_scene, tmp_path):
         return ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(None, {"x": x})[0]
 
     for precision, limit in TOLERANCE.items():
-        variant = pb.variant_manifest(manifest, precision, tmp_path)
+        variant = variant_manifest(manifest, precision, tmp_path)
         for seg, original in zip(variant.segments, manifest.segments):
             if seg.kind != "network":
                 continue
@@ -209,7 +212,7 @@ def test_precision_variants_stay_close_to_fp32(tiny_scene, tmp_path):
             got, want = run(seg.model), run(original.model)
             assert got.dtype == np.float32 and got.shape == want.shape
             assert np.abs(got - want).max() < limit, (precision, seg.id, float(np.abs(got - want).max()))
-        assert pb.model_weight_bytes(variant) < pb.model_weight_bytes(manifest)
+        assert model_weight_bytes(variant) < model_weight_bytes(manifest)
 
 
 def test_variant_records_match_fp32_transfer(report):
@@ -233,13 +236,13 @@ def test_network_profile_splits_the_run_into_ops(report):
 
 def test_budget_keeps_view_zero_and_spreads_the_rest():
     views = list(range(30))
-    assert pb.budget_views(views, None, 0.5) == views  # no budget: every view
-    assert pb.budget_views(views, 60.0, None) == views  # nothing timed yet
-    assert pb.budget_views(views, 60.0, 1.0) == views  # 60 frames fit
-    few = pb.budget_views(views, 10.0, 1.0)
+    assert scene_bench.budget_views(views, None, 0.5) == views  # no budget: every view
+    assert scene_bench.budget_views(views, 60.0, None) == views  # nothing timed yet
+    assert scene_bench.budget_views(views, 60.0, 1.0) == views  # 60 frames fit
+    few = scene_bench.budget_views(views, 10.0, 1.0)
     assert len(few) == 10 and few[0] == 0 and few[-1] == 29 and few == sorted(set(few))
-    assert len(pb.budget_views(views, 1.0, 16.0)) == 4  # a 16 s frame still gets the minimum
-    assert pb.spread(views, None) == views and pb.spread(views, 1) == [0] and pb.spread(views, 3) == [0, 14, 29]
+    assert len(scene_bench.budget_views(views, 1.0, 16.0)) == 4  # a 16 s frame still gets the minimum
+    assert scene_bench.spread(views, None) == views and scene_bench.spread(views, 1) == [0] and scene_bench.spread(views, 3) == [0, 14, 29]
 
 
 def test_onnxruntime_gemm_limit_counts_the_flops_of_a_product():
@@ -247,7 +250,7 @@ def test_onnxruntime_gemm_limit_counts_the_flops_of_a_product():
 
     A formula that forgot a power of n (or timed the session set-up) would drift by 2x-8x.
     """
-    small, large = pb.ort_gemm_gflops(256, repeats=5), pb.ort_gemm_gflops(512, repeats=5)
+    small, large = machine.ort_gemm_gflops(256, repeats=5), machine.ort_gemm_gflops(512, repeats=5)
     assert small > 0 and large > 0
     assert 0.25 < large / small < 8.0
 
@@ -257,7 +260,20 @@ def test_image_metrics_of_identical_images():
     image = rng.uniform(0, 1, (32, 32, 3))
     covered = np.zeros((32, 32), dtype=bool)
     covered[8:24, 8:24] = True
-    same = pb.image_metrics(image, image, covered)
-    assert same == {"mae": 0.0, "psnr": pb.PSNR_CAP, "ssim": pytest.approx(1.0), "psnr_whole": pb.PSNR_CAP}
-    darker = pb.image_metrics(image * 0.9, image, covered)
-    assert 0 < darker["mae"] and darker["psnr"] < pb.PSNR_CAP and darker["ssim"] < 1.0
+    same = metrics.image_metrics(image, image, covered)
+    assert same == {"mae": 0.0, "psnr": metrics.PSNR_CAP, "ssim": pytest.approx(1.0), "psnr_whole": metrics.PSNR_CAP}
+    darker = metrics.image_metrics(image * 0.9, image, covered)
+    assert 0 < darker["mae"] and darker["psnr"] < metrics.PSNR_CAP and darker["ssim"] < 1.0
+
+
+def test_vertex_baseline_normals_are_the_g_buffers_smooth_normals():
+    """The vertex baseline traces transfer at the normals the G-buffer interpolates (away from creases)."""
+    with np.load(ROOT / "runtime" / "data" / "demo" / "geometry.npz") as data:
+        vertices, faces = data["vertices"], data["faces"].astype(np.int64)
+    per_vertex = vertex_normals(vertices, faces)
+    face, corner = corner_normals(vertices, faces)
+    smooth = np.einsum("fkc,fc->fk", per_vertex[faces], face) >= CREASE_COS
+    assert smooth.mean() > 0.5
+    np.testing.assert_array_equal(corner[smooth], per_vertex[faces][smooth])
+    used = np.unique(faces)
+    np.testing.assert_allclose(np.linalg.norm(per_vertex[used], axis=1), 1.0, atol=1e-12)

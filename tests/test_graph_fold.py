@@ -1,4 +1,4 @@
-"""bench/onnx_graph_fold.py's folded graph computes what the exported one does."""
+"""bench/studies/onnx_graph_fold.py's folded graph computes what the exported one does."""
 
 from pathlib import Path
 

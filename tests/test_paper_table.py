@@ -1,4 +1,4 @@
-"""The paper table's verdicts (bench/paper_table.py), on the committed full report and edits of it."""
+"""The paper table's verdicts (bench/studies/paper_table.py), on the committed full report and edits of it."""
 
 import copy
 import json

@@ -1,6 +1,6 @@
 """Precompute throughput: end-to-end transfer rays/s next to raw Embree occlusion rays/s.
 
-usage: python bench/precompute_bench.py [--mesh PATH] [--samples N] [--rays R] [--threads T] [--repeat K] [--json OUT]
+usage: python bench/studies/precompute_bench.py [--mesh PATH] [--samples N] [--rays R] [--threads T] [--repeat K] [--json OUT]
 
 Both figures come from one run on the same machine: first the end-to-end precompute
 (``compute_transfer``: ray generation, Embree, integration, SH rotation, all threads), then
@@ -27,15 +27,14 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import default_mesh, write_figures  # noqa: E402
+from common import default_mesh, write_figures  # beside this script (its folder is sys.path[0])
+
+from prt.train.geometry import load_geometry
+from prt.train.sampling import sample_surface
+from prt.train.transfer import DEFAULT_CHUNK, EmbreeTracer, TransferIntegrator, compute_transfer
 
 
 def main(argv=None) -> int:
-    from prt.train.geometry import load_geometry
-    from prt.train.sampling import sample_surface
-    from prt.train.transfer import DEFAULT_CHUNK, EmbreeTracer, TransferIntegrator, compute_transfer
-
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--mesh", type=Path, default=None)
     p.add_argument("--samples", type=int, default=1_000_000)

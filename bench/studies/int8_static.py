@@ -1,6 +1,6 @@
 """Does static int8 (QDQ, calibrated activations) make the ONNX network stage faster?
 
-usage: python bench/int8_static.py SCENE.json [--rows 4096] [--repeats 30] [--json out.json]
+usage: python bench/studies/int8_static.py SCENE.json [--rows 4096] [--repeats 30] [--json out.json]
 
 For every network segment of a scene built by ``prt-train`` (its ``precompute/`` beside
 ``scene.json``), three versions of the model run one slice of ``--rows`` held-out surface
@@ -26,15 +26,14 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType, quantize_static
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from segment_bench import StudyError, interleaved_ms, network_segments, session, write_report  # noqa: E402
+from prt.bench.segment_study import StudyError, interleaved_ms, network_segments, session, write_report
+from prt.export.precision import build_variant
 
 
 def static_int8(source: Path, calibration: np.ndarray, path: Path) -> Path:
     """Write a QDQ static int8 copy of ``source`` (MLP Gemms and LeakyRelus only) to ``path``."""
-    from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType, quantize_static
-
     class Reader(CalibrationDataReader):
         def __init__(self):
             self.batches = iter([{"x": calibration[i : i + 512]} for i in range(0, len(calibration), 512)])
@@ -64,8 +63,6 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=30)
     p.add_argument("--json", type=Path, default=None)
     args = p.parse_args(argv)
-
-    from prt.train.benchmark import build_variant
 
     try:
         segments = network_segments(args.scene)

@@ -1,6 +1,6 @@
 """Training time per scene at the paper's setting: 1M samples, k = 64, l = 4, on this CPU.
 
-usage: python bench/train_bench.py [--mesh PATH] [--samples N] [--out DIR] [--json OUT] [--no-fp32]
+usage: python bench/studies/train_bench.py [--mesh PATH] [--samples N] [--out DIR] [--json OUT] [--no-fp32]
 
 Runs ``prt-train``'s build (precompute cached in --out, so only the first run pays for it) with
 the paper's fixed size, once with bf16 autocast (where the CPU has native bf16) and once in
@@ -23,14 +23,14 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import default_mesh, write_figures  # noqa: E402
+from common import default_mesh, write_figures  # beside this script (its folder is sys.path[0])
+
+from prt.train.build import BuildSpec, run_build
+from prt.train.fit import bf16_supported
+from prt.train.precompute import PrecomputeSettings
 
 
 def main(argv=None) -> int:
-    from prt.train.build import BuildSpec, run_build
-    from prt.train.fit import bf16_supported
-
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--mesh", type=Path, default=None)
     p.add_argument("--samples", type=int, default=1_000_000)
@@ -45,7 +45,7 @@ def main(argv=None) -> int:
     if not args.no_fp32 or not variants:
         variants.append(("fp32", False))
     for label, bf16 in variants:
-        spec = BuildSpec(geometry=str(mesh), samples=args.samples, fixed={"hidden": 64, "layers": 4}, analytic=False, bf16=bf16)
+        spec = BuildSpec(geometry=str(mesh), precompute=PrecomputeSettings(samples=args.samples), fixed={"hidden": 64, "layers": 4}, analytic=False, bf16=bf16)
         out = args.out / label
         # share the (expensive) precompute between the two runs
         if label != variants[0][0] and not (out / "precompute").exists():

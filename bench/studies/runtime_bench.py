@@ -1,7 +1,7 @@
 """Runtime frame timings: per-stage milliseconds, the share of a frame spent outside the
 network, and the speed-up of relight-only frames (cached transfer, no network).
 
-usage: python bench/runtime_bench.py [--scene scene.json] [--size 512] [--views 30] [--json OUT]
+usage: python bench/studies/runtime_bench.py [--scene scene.json] [--size 512] [--views 30] [--json OUT]
 
 Without --scene it builds (once, cached in /tmp/prt-runtime-bench) the paper-size network
 (k = 64, l = 4) on the bundled Spot, 300k samples.  Both backends, diffuse, after warm-up;
@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import write_figures  # noqa: E402
+from common import ROOT, write_figures  # beside this script (its folder is sys.path[0])
+
+from prt.runtime.renderer import Renderer, Scene
 
 
 def build_default_scene(work: Path) -> Path:
@@ -40,8 +40,6 @@ def rotation_y(a: float) -> np.ndarray:
 
 
 def main(argv=None) -> int:
-    from prt.runtime.renderer import Renderer, Scene
-
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scene", type=Path, default=None)
     p.add_argument("--size", type=int, default=512)

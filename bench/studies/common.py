@@ -1,11 +1,14 @@
-"""Shared by the benchmark scripts: which mesh to use, and writing the figures."""
+"""Shared by the stage-timing studies beside it: which mesh to use, and writing the figures.
+
+A sibling script imports it as ``common`` (a script's own folder is first on ``sys.path``).
+"""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]  # the checkout
 SHARED_BUNNY = ROOT.parent / "shared" / "data" / "meshes" / "stanford_bunny_hr.obj"
 BUNDLED_SPOT = ROOT / "tests" / "data" / "spot.obj"
 

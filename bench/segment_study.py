@@ -1,4 +1,4 @@
-"""Shared by the per-segment ONNX studies (``int8_static.py``, ``onnx_graph_fold.py``).
+"""Shared by the per-segment ONNX studies (``bench/studies/int8_static.py``, ``onnx_graph_fold.py``).
 
 A scene built by ``prt-train`` keeps its training and held-out samples in ``precompute/``
 beside ``scene.json``; these helpers read them, give each network segment its own samples,
@@ -8,16 +8,18 @@ that machine noise hits them alike.
 
 from __future__ import annotations
 
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import onnxruntime as ort
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT.parent) not in sys.path:
-    sys.path.insert(0, str(ROOT.parent))  # run from a checkout without installing
+from prt.runtime.errors import PRTError
+from prt.runtime.files import atomic_write_json
+from prt.runtime.manifest import load_manifest
+
+__all__ = ["StudyError", "SegmentSamples", "network_segments", "session", "interleaved_ms", "write_report"]
 
 
 class StudyError(Exception):
@@ -34,9 +36,6 @@ class SegmentSamples:
 
 def network_segments(scene: Path):
     """Every network segment of ``scene`` with its own samples (those with none are skipped)."""
-    from prt.runtime.errors import PRTError
-    from prt.runtime.manifest import load_manifest
-
     try:
         manifest = load_manifest(scene)
     except PRTError as exc:
@@ -62,8 +61,6 @@ def network_segments(scene: Path):
 
 def session(model):
     """A one-thread CPU session of an ONNX file (path) or serialised model (bytes)."""
-    import onnxruntime as ort
-
     opts = ort.SessionOptions()
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     opts.intra_op_num_threads = 1
@@ -88,9 +85,5 @@ def write_report(path: Path | None, scene: Path, rows: int, repeats: int, segmen
     """The study's JSON report (atomically), when ``path`` is given."""
     if path is None:
         return
-    import onnxruntime
-
-    from prt.runtime.files import atomic_write_json
-
     atomic_write_json(path, {"scene": str(scene), "rows": rows, "repeats": repeats, "threads": 1,
-                             "onnxruntime": onnxruntime.__version__, "segments": segments, "median": median})  # fmt: skip
+                             "onnxruntime": ort.__version__, "segments": segments, "median": median})  # fmt: skip

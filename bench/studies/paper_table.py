@@ -1,6 +1,6 @@
 """The paper-style table, reproduced by one command.
 
-usage: python bench/paper_table.py [--samples 1000000] [--views 30] [--size 512] [--ref-rays 1024]
+usage: python bench/studies/paper_table.py [--samples 1000000] [--views 30] [--size 512] [--ref-rays 1024]
                                    [--backends onnx glsl vertex] [--work /tmp/prt-paper]
                                    [--meshes bunny ...] [--sizes k64 k128 right-sized] [--build-only]
                                    [--warmup 3] [--config-budget SECONDS] [--packing-views N]
@@ -33,7 +33,7 @@ import numpy as np
 
 from prt.runtime.files import atomic_write_bytes
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]  # the checkout
 SHARED = ROOT.parent / "shared" / "data" / "meshes"
 MESHES = {
     "bunny": SHARED / "stanford_bunny_hr.obj",
@@ -193,7 +193,7 @@ def main(argv=None) -> int:
     if args.build_only:
         print(f"built {len(scenes)} scenes under {args.work}")
         return 0
-    bench = [sys.executable, "-m", "prt.train.benchmark", *map(str, scenes),
+    bench = [sys.executable, "-m", "prt.bench.cli", *map(str, scenes),
              "--views", str(args.views), "--size", str(args.size), "--ref-rays", str(args.ref_rays),
              "--json", str(args.out.with_suffix(".json")), "--md", str(args.out.with_suffix(".md")),
              "--plot", str(args.out.with_suffix(".png")), "--backends", *args.backends, "--warmup", str(args.warmup),
@@ -203,7 +203,7 @@ def main(argv=None) -> int:
     print(f"== benchmark: {shlex.join(bench[1:])}", flush=True)
     subprocess.run(bench, check=True)
 
-    command = "python bench/paper_table.py " + shlex.join(argv if argv is not None else sys.argv[1:])
+    command = "python bench/studies/paper_table.py " + shlex.join(argv if argv is not None else sys.argv[1:])
     table = args.out.with_suffix(".md").read_text()
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
     doc = args.doc

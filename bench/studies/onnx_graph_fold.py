@@ -1,6 +1,6 @@
 """How much of a k = 64 network call would a leaner ONNX graph of the encoding save?
 
-usage: python bench/onnx_graph_fold.py SCENE.json [--rows 4096] [--repeats 30] [--json out.json]
+usage: python bench/studies/onnx_graph_fold.py SCENE.json [--rows 4096] [--repeats 30] [--json out.json]
 
 The exported graph (``prt.export.onnx_model``) spends ~40 % of a k = 64 call outside the
 MLP's Gemms: Split, Sub, Mul (broadcast over 3 columns), Sin and Cos of two angle matrices,
@@ -29,18 +29,15 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import onnx
+from onnx import TensorProto, helper, numpy_helper
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from segment_bench import StudyError, interleaved_ms, network_segments, session, write_report  # noqa: E402
+from prt.bench.segment_study import StudyError, interleaved_ms, network_segments, session, write_report
+from prt.export.onnx_model import LEAKY_SLOPE, NORMAL_EPS, OPSET, POSITION_CLIP, read_arrays
 
 
 def folded_model(arrays: dict[str, np.ndarray], architecture: dict) -> bytes:
     """The folded graph (see the module docstring) of one exported network, serialised."""
-    import onnx
-    from onnx import TensorProto, helper, numpy_helper
-
-    from prt.export.onnx_model import LEAKY_SLOPE, NORMAL_EPS, OPSET, POSITION_CLIP
-
     F, G = int(architecture["pos_freqs"]), int(architecture["normal_freqs"])
     layers, outputs = int(architecture["layers"]), int(architecture["bands"]) ** 2
     nodes, inits = [], []
@@ -124,8 +121,6 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=30)
     p.add_argument("--json", type=Path, default=None)
     args = p.parse_args(argv)
-
-    from prt.export.onnx_model import read_arrays
 
     try:
         segments = network_segments(args.scene)

@@ -1,0 +1,26 @@
+"""prt.bench: speed against error of the PRT renderer (the ``prt-bench`` command).
+
+Needs the ``train`` extra (ray tracing the reference, ONNX variants, SSIM); may import
+train, export and runtime (never the other way round).
+
+- :mod:`~prt.bench.scene_bench`  :class:`Settings`, :class:`SceneBench` (every configuration of one
+  scene), :func:`run` (every scene: the report)
+- :mod:`~prt.bench.reference`    the ray-traced reference, its cache and its noise
+- :mod:`~prt.bench.metrics`      PSNR, SSIM, MAE of tone-mapped images; the FPS-PSNR Pareto front
+- :mod:`~prt.bench.machine`      float32 GEMM limit (numpy, ONNX Runtime), CPU, load, network profile
+- :mod:`~prt.bench.vertex_prt`   the per-vertex PRT baseline (Sloan et al. 2002)
+- :mod:`~prt.bench.packing`      every network on every pixel against the packed path
+- :mod:`~prt.bench.report`       JSON keys, Markdown, plot, error maps, scene checkpoints
+- :mod:`~prt.bench.cli`          ``prt-bench`` (:func:`~prt.bench.cli.main`)
+- :mod:`~prt.bench.segment_study`  helpers of the per-segment ONNX studies in ``bench/studies/``
+
+The precision variants (fp16, fp16-mlp, int8) are built by :mod:`prt.export.precision`.
+Study scripts (paper table, int8, graph folding, stage timings) live in ``bench/studies/``
+of a checkout and are not installed.
+"""
+
+from prt.bench.metrics import image_metrics, pareto_front
+from prt.bench.report import markdown, plot
+from prt.bench.scene_bench import SceneBench, Settings, run
+
+__all__ = ["Settings", "SceneBench", "run", "markdown", "plot", "image_metrics", "pareto_front"]

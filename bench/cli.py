@@ -1,0 +1,92 @@
+"""Speed against error of the PRT renderer, with baselines, precision variants and the machine limit.
+
+usage::
+
+    prt-bench scene.json [more scenes] [--json out.json] [--md out.md]
+        [--plot out.png] [--views 30] [--size 512 [256 ...]] [--ref-rays 1024] [--warmup 3]
+        [--precisions fp32 fp16 fp16-mlp int8] [--backends onnx glsl vertex] [--cache DIR]
+        [--gemm-size 4096] [--blas-threads N] [--config-budget SECONDS] [--packing-views N]
+        [--images DIR] [--fresh]
+
+What is measured: :mod:`prt.bench.scene_bench`; the report's format: :mod:`prt.bench.report`.
+Also ``python -m prt.bench.cli``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from prt.bench.report import markdown, plot
+from prt.bench.scene_bench import Settings, run
+from prt.export.precision import PRECISIONS
+from prt.runtime.files import atomic_write_bytes, atomic_write_json
+
+__all__ = ["parse_args", "main"]
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    """The command line's options, checked (``fp32`` is always measured: the others are compared with it)."""
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("scenes", nargs="+", type=Path, help="scene.json files (or their folders)")
+    p.add_argument("--json", type=Path, default=None, help="write the JSON report here")
+    p.add_argument("--md", type=Path, default=None, help="write the Markdown table here")
+    p.add_argument("--plot", type=Path, default=None, help="write the FPS-PSNR plot (PNG) here")
+    p.add_argument("--views", type=int, default=30, help="orbit views per configuration (default 30)")
+    p.add_argument("--size", type=int, nargs="+", default=[512], help="image sizes, square (default 512)")
+    p.add_argument("--ref-rays", type=int, default=1024, help="rays per pixel of the reference (default 1024)")
+    p.add_argument("--warmup", type=int, default=3, help="frames before timing each configuration (default 3)")
+    p.add_argument("--packing-views", type=int, default=None, metavar="N",
+                   help="views of the naive-vs-packed baseline, spread over the orbit (default: all; the naive path "
+                        "runs every pixel through every network, seconds per view at 512x512)")  # fmt: skip
+    p.add_argument("--config-budget", type=float, default=None, metavar="SECONDS",
+                   help="time budget of one configuration's frames: one slower than budget/views per frame (the GLSL "
+                        "backend at k = 128 on llvmpipe) measures fewer views, at least 4, spread over the orbit; "
+                        "its record's 'views' says how many (default: every view)")  # fmt: skip
+    p.add_argument("--precisions", nargs="+", choices=PRECISIONS, default=list(PRECISIONS))
+    p.add_argument("--backends", nargs="+", choices=("onnx", "glsl", "vertex"), default=["onnx", "glsl", "vertex"])
+    p.add_argument("--cache", type=Path, default=None, help="reference / variant cache (default: next to --json)")
+    p.add_argument("--gemm-size", type=int, default=4096, help="matrix size of the machine-limit GEMM (default 4096)")
+    p.add_argument("--blas-threads", type=int, default=None,
+                   help="limit numpy's BLAS threads while rendering (default: leave as found)")  # fmt: skip
+    p.add_argument("--images", type=Path, default=None, metavar="DIR",
+                   help="write one PNG per scene and size into DIR: view 0's reference and every configuration's "
+                        "error map, on one colour scale")  # fmt: skip
+    p.add_argument("--fresh", action="store_true",
+                   help="measure every scene again (default: a scene measured earlier with the same files and "
+                        "settings is taken from its checkpoint in the cache, so an interrupted run resumes)")  # fmt: skip
+    args = p.parse_args(argv)
+    if args.views < 1 or min(args.size) < 1 or args.ref_rays < 1 or args.warmup < 0:
+        p.error("--views, --size and --ref-rays must be positive, --warmup >= 0")
+    if "fp32" not in args.precisions:
+        args.precisions = ["fp32", *args.precisions]  # the other precisions are compared with it
+    return args
+
+
+def main(argv=None) -> int:
+    """``prt-bench``: measure, print the Markdown table, write the reports asked for; the exit status."""
+    args = parse_args(argv)
+    cache = args.cache
+    if cache is None and args.json is not None:
+        cache = args.json.parent / f"{args.json.stem}_cache"
+    settings = Settings(
+        views=args.views, sizes=tuple(args.size), ref_rays=args.ref_rays, warmup=args.warmup, config_budget=args.config_budget,
+        packing_views=args.packing_views,
+        precisions=tuple(dict.fromkeys(args.precisions)), backends=tuple(args.backends), cache=cache,
+        gemm_size=args.gemm_size, blas_threads=args.blas_threads, fresh=args.fresh, images=args.images,
+    )  # fmt: skip
+    report = run(args.scenes, settings)
+    text = markdown(report)
+    print(text)
+    if args.json:
+        atomic_write_json(args.json, report)
+    if args.md:
+        atomic_write_bytes(args.md, text.encode())
+    if args.plot:
+        plot(report, args.plot)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

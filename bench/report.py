@@ -1,0 +1,335 @@
+"""The benchmark's outputs: JSON report, Markdown table, plot, error-map figures, scene checkpoints.
+
+JSON report (``--json``)
+    ``tool``, ``created`` (ISO time), ``settings`` (the arguments), ``machine``: ``cpu``,
+    ``cores``, ``gl_renderer``, ``onnxruntime``, ``numpy``, ``gemm_size``, ``gemm_numpy_gflops``
+    and ``gemm_onnxruntime_gflops`` (float32 n x n GEMM through numpy's BLAS and through ONNX
+    Runtime's MatMul on all cores, medians of 3), ``machine_gflops`` (the higher of the two: the
+    machine's limit), ``resumed`` (the scenes taken from checkpoints of an earlier run, each
+    with ``scene`` and ``measured``: their records keep that run's ``machine_gflops``; empty
+    when every scene was measured in this run), ``load_average`` (1-minute load at the start),
+    ``other_cpu_share`` (CPU time other processes used during the run, as a share of all
+    cores' time; Linux only, else None): other work makes every timing slower and noisier.
+
+    ``scenes``: one entry per scene: ``scene``, ``path``, ``geometry`` (``type``, ``source``
+    used, ``checksum``, ``matches_build_source``: the vertex checksum of ``build.json``'s
+    source re-loaded against ``geometry.npz``, or None), ``networks``, ``weight_bytes``,
+    ``reference`` (``rays``, ``seed``, ``cache``, ``noise_psnr``: {size: {material: dB}},
+    ``noise_note``), ``packing``: one entry per size with ``resolution``, ``all_pixels``,
+    ``covered_pixels`` (median), ``network_segments``, ``naive_rows_per_segment``
+    ({segment: rows}, each H*W),
+    ``naive_total_rows``, ``naive_inference_ms``, ``packed_inference_ms`` (medians over
+    the views, or ``--packing-views`` of them spread over the orbit), ``packing_views``, ``packing_speedup`` (naive / packed), ``pixel_ratio`` (all / covered pixels),
+    ``work_ratio`` (naive rows / covered pixels), ``naive_max_abs_diff`` (naive vs packed
+    transfer on covered pixels), ``network_profile`` (ONNX Runtime's profiler on one slice of
+    the largest network segment of the first view, one thread: ``segment``, ``rows``,
+    ``run_us``, ``op_us`` per op type, ``gemm_share``: the share of the run in the MLP's
+    Gemms; the rest is the encoding and element-wise ops); ``vertex_baseline`` (``vertices``, ``back_vertices``,
+    ``weight_bytes``, ``coverage_agreement`` or ``note`` when skipped), ``error_images``
+    (the ``--images`` figures of this scene, one per size: view 0's reference and each
+    configuration's error map; empty without ``--images``), ``measured`` (ISO time
+    the scene was measured) and ``checkpoint`` (where its measurement is kept: a later run with
+    the same scene files and settings takes it from there instead of measuring again, unless
+    ``--fresh``; its records then keep the ``machine_gflops`` of the run that measured them).
+
+    ``records``: one per configuration, with ``scene``, ``backend`` (onnx, glsl, vertex),
+    ``precision`` (fp32, fp16, fp16-mlp, int8), ``material``, ``resolution`` (``"WxH"``),
+    ``width``, ``height``, ``views``, ``fps`` (1000 / median frame ms), ``frame_ms``,
+    ``stages_ms`` (median per stage), ``network_ms`` (inference / network stage; 0 for
+    vertex), ``mae``, ``psnr``, ``ssim``, ``psnr_whole``, ``weight_bytes`` (ONNX initialiser
+    bytes of the models run; the fp32 models' for glsl; 16 float32 per vertex for vertex),
+    ``flops_per_fragment`` (manifest FLOPs, weighted by the covered pixels of each segment;
+    the manifest counts a multiply-add as 2 and each sin, cos or tanh as about 20),
+    ``covered_pixels`` (median), ``achieved_gflops`` (FLOPs of the covered pixels / network
+    seconds, median over views), ``machine_gflops``, ``machine_percent``,
+    ``transfer_max_abs_diff`` (transfer against the fp32 ONNX path at view 0, covered pixels),
+    ``ref_rays``, ``ref_noise_psnr``, ``label``, ``pareto`` (on the FPS-PSNR Pareto front of
+    its scene, resolution and material).
+
+    ``pareto``: {``"scene WxH material"``: [labels on the front, by increasing FPS]}: only
+    configurations with the same reference image compete.
+
+Markdown (``--md``): the records as a table, then packing, reference noise and machine lines.
+Plot (``--plot``): FPS (log) against PSNR, one panel per scene and resolution, one labelled
+point per configuration, the Pareto front of each material ringed and connected.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+from collections import defaultdict
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+
+import numpy as np
+
+from prt.bench.metrics import image_metrics, pareto_front
+from prt.runtime.files import atomic_write_bytes
+from prt.runtime.manifest import load_manifest
+
+__all__ = [
+    "REPORT_KEYS", "MACHINE_KEYS", "SCENE_KEYS", "PACKING_KEYS", "RECORD_KEYS", "ERROR_MAP_MAX",
+    "markdown", "plot", "error_figure", "scene_checkpoint", "save_figure",
+]  # fmt: skip
+
+# The report's keys (documented in the module docstring; the tests hold the output to them).
+REPORT_KEYS = ("tool", "created", "settings", "machine", "scenes", "records", "pareto")
+MACHINE_KEYS = ("cpu", "cores", "gl_renderer", "onnxruntime", "numpy", "gemm_size", "gemm_numpy_gflops",
+                "gemm_onnxruntime_gflops", "machine_gflops", "resumed", "load_average", "other_cpu_share")
+SCENE_KEYS = ("scene", "path", "geometry", "networks", "weight_bytes", "reference", "packing", "vertex_baseline",
+              "error_images", "measured", "checkpoint")  # fmt: skip
+PACKING_KEYS = (
+    "resolution", "all_pixels", "covered_pixels", "network_segments", "naive_rows_per_segment", "naive_total_rows",
+    "naive_inference_ms", "packed_inference_ms", "packing_speedup", "pixel_ratio", "work_ratio", "naive_max_abs_diff",
+    "packing_views", "network_profile",
+)  # fmt: skip
+RECORD_KEYS = (
+    "scene", "backend", "precision", "material", "resolution", "width", "height", "views", "fps", "frame_ms",
+    "stages_ms", "network_ms", "mae", "psnr", "ssim", "psnr_whole", "weight_bytes", "flops_per_fragment",
+    "covered_pixels", "achieved_gflops", "machine_gflops", "machine_percent", "transfer_max_abs_diff", "ref_rays",
+    "ref_noise_psnr", "label", "pareto",
+)  # fmt: skip
+
+
+def _pyplot():
+    """matplotlib's pyplot on the Agg backend.
+
+    matplotlib is imported here, on first use, not at module top: only ``--plot`` and
+    ``--images`` draw, it is slow to import, and choosing its backend at import time would
+    change it for everything else in a process that merely imports :mod:`prt.bench`.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def markdown(report: dict) -> str:
+    """The report as Markdown: the configurations' table, then packing, reference and machine lines."""
+    machine = report["machine"]
+    lines = [
+        "| scene | size | backend | precision | material | FPS | frame ms | network ms | PSNR (covered) | PSNR (whole) "
+        "| SSIM | MAE | weights (bytes) | network GFLOP/s (% of GEMM) | Pareto |",
+        "|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|:-:|",
+    ]
+    settings_views = report["settings"]["views"]
+    for r in report["records"]:
+        gflops = f"{r['achieved_gflops']:.1f} ({r['machine_percent']:.1f} %)" if r["achieved_gflops"] else "-"
+        fps = f"{r['fps']:.1f}" + (f" ({r['views']} views)" if r["views"] != settings_views else "")
+        lines.append(
+            f"| {r['scene']} | {r['resolution']} | {r['backend']} | {r['precision']} | {r['material']} | {fps} "
+            f"| {r['frame_ms']:.1f} | {r['network_ms']:.1f} | {r['psnr']:.2f} | {r['psnr_whole']:.2f} | {r['ssim']:.4f} "
+            f"| {r['mae']:.4f} | {r['weight_bytes']:,} | {gflops} | {'*' if r.get('pareto') else ''} |"
+        )
+    lines.append("")
+    for s in report["scenes"]:
+        ref = s["reference"]
+        lines.append(f"**{s['scene']}**: reference {ref['rays']} rays per pixel; its noise (two seeds, view 0): "
+                     + "; ".join(f"{res}: " + ", ".join(f"{m} {db:.1f} dB" for m, db in d.items()) for res, d in ref["noise_psnr"].items()))  # fmt: skip
+        for p in s["packing"]:
+            lines.append(
+                f"- packing {p['resolution']} ({p.get('packing_views', '?')} views): naive {p['naive_inference_ms']:.1f} ms ({p['network_segments']} networks x "
+                f"{p['all_pixels']:,} pixels) vs packed {p['packed_inference_ms']:.1f} ms ({p['covered_pixels']:,.0f} covered): "
+                f"speed-up {p['packing_speedup']}x; all / covered pixels {p['pixel_ratio']}x, naive rows / covered {p['work_ratio']}x"
+            )
+            prof = p.get("network_profile")
+            if prof:
+                top = ", ".join(f"{op} {us / prof['run_us']:.0%}" for op, us in list(prof["op_us"].items())[:6])
+                lines.append(f"- network profile (segment {prof['segment']}, {prof['rows']:,} rows, one thread): {prof['run_us']:.0f} us per call, "
+                             f"{prof['gemm_share']:.0%} in the MLP's Gemms; {top}")  # fmt: skip
+        vb = s["vertex_baseline"]
+        if "note" in vb:
+            lines.append(f"- vertex baseline: {vb['note']}")
+        elif vb:
+            lines.append(f"- vertex baseline: {vb['vertices']:,} vertices (+{vb['back_vertices']:,} back sides) x 16 float32 = "
+                         f"{vb['weight_bytes']:,} bytes vs {s['weight_bytes']:,} bytes of network weights (fp32 ONNX initialisers)")  # fmt: skip
+    gemm = f"numpy {machine['gemm_numpy_gflops']:.1f}, onnxruntime {machine['gemm_onnxruntime_gflops']:.1f}" if "gemm_numpy_gflops" in machine else "numpy"
+    if machine.get("resumed"):
+        times = sorted(r["measured"] for r in machine["resumed"])
+        lines.append(f"\n{len(times)} of {len(report['scenes'])} scenes taken from checkpoints of an earlier run "
+                     f"(measured {times[0]} to {times[-1]}); their records keep that run's GEMM limit.")  # fmt: skip
+    lines.append(f"\nMachine: {machine['cpu']}, {machine['cores']} cores, {machine['gl_renderer']}; float32 GEMM "
+                 f"({machine['gemm_size']}^3; {gemm}): limit {machine['machine_gflops']:.1f} GFLOP/s.")  # fmt: skip
+    settings = report["settings"]
+    lines.append(f"Settings: {settings['views']} views, warm-up {settings['warmup']} frames, numpy BLAS threads while "
+                 f"rendering: {settings['blas_threads'] or 'as found'}.")  # fmt: skip
+    if machine.get("other_cpu_share") is not None:
+        lines.append(f"Load: {machine['load_average']:.2f} at the start; other processes used "
+                     f"{100 * machine['other_cpu_share']:.0f} % of the cores' time during the run.")  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
+def plot(report: dict, path: Path) -> None:
+    """FPS (log) against PSNR, one panel per scene and resolution, Pareto fronts connected."""
+    plt = _pyplot()
+    from matplotlib.ticker import FormatStrFormatter, NullFormatter  # lazy, as _pyplot says
+
+    groups = defaultdict(list)
+    for r in report["records"]:
+        groups[f"{r['scene']} {r['resolution']}"].append(r)
+    cols = min(3, len(groups))  # a grid, so a many-scene report stays readable
+    rows = -(-len(groups) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(8.5 * cols, 6.0 * rows), squeeze=False)
+    for ax in axes.flat[len(groups):]:
+        ax.set_visible(False)
+    colours = {"onnx": "tab:blue", "glsl": "tab:orange", "vertex": "tab:green"}
+    markers = {"diffuse": "o", "glossy": "s"}
+    for ax, (name, group) in zip(axes.flat, groups.items()):
+        for r in group:
+            ax.scatter(r["fps"], r["psnr"], c=colours.get(r["backend"], "grey"), marker=markers[r["material"]], s=36, zorder=3)
+        for material, style in (("diffuse", "-"), ("glossy", "--")):
+            same = [r for r in group if r["material"] == material]
+            front = [same[i] for i in pareto_front([(r["fps"], r["psnr"]) for r in same])]
+            ax.plot([r["fps"] for r in front], [r["psnr"] for r in front], style, color="crimson", lw=1.2, zorder=2)
+            ax.scatter([r["fps"] for r in front], [r["psnr"] for r in front], s=150, facecolors="none", edgecolors="crimson", zorder=4)
+        ax.set_xscale("log")
+        ax.margins(x=0.25, y=0.2)  # room for the labels
+        ax.xaxis.set_major_formatter(FormatStrFormatter("%g"))
+        fps = [r["fps"] for r in group if r["fps"] > 0]
+        if fps and max(fps) / min(fps) < 20:  # minor labels only where they fit (one or two decades)
+            ax.xaxis.set_minor_formatter(FormatStrFormatter("%g"))
+            ax.tick_params(axis="x", which="minor", labelsize=7)
+        else:
+            ax.xaxis.set_minor_formatter(NullFormatter())
+        ax.set_xlabel("FPS (log scale)")
+        ax.set_ylabel("PSNR over covered pixels (dB)")
+        ax.set_title(f"{name}: speed against error")
+        ax.grid(True, which="both", alpha=0.3)
+        handles = [plt.Line2D([], [], color=c, marker="o", ls="", label=b) for b, c in colours.items()]
+        handles += [plt.Line2D([], [], color="k", marker=m, ls="", label=k) for k, m in markers.items()]
+        handles.append(plt.Line2D([], [], color="crimson", marker="o", mfc="none", label="Pareto front, diffuse"))
+        handles.append(plt.Line2D([], [], color="crimson", ls="--", marker="o", mfc="none", label="Pareto front, glossy"))
+        ax.legend(handles=handles, fontsize=8, loc="best")
+    fig.tight_layout()  # before the labels: they are placed in final display coordinates
+    fig.canvas.draw()
+    for ax, group in zip(axes.flat, groups.values()):
+        _place_labels(fig, ax, [(r["fps"], r["psnr"], r["label"]) for r in group])
+    save_figure(fig, path, dpi=120)
+
+
+def _place_labels(fig, ax, points) -> None:
+    """Label each point at the nearby offset where its text covers the least of other labels and markers.
+
+    Labels pushed beyond the first ring of offsets get a thin leader line to their point.
+    """
+    from matplotlib.transforms import Bbox  # lazy, as _pyplot says
+
+    near = [(6, 4), (6, -11), (-6, 4), (-6, -11)]
+    far = [(dx, dy) for dy in (16, -23, 28, -35, 40, -47) for dx in (10, -10)]
+    renderer = fig.canvas.get_renderer()
+    inside = ax.get_window_extent(renderer)
+    placed = []
+    for x, y, _ in points:  # markers count as occupied space
+        px, py = ax.transData.transform((x, y))
+        placed.append(Bbox([[px - 6, py - 6], [px + 6, py + 6]]))
+
+    def cost(box) -> float:
+        covered = sum(b.width * b.height for b in (Bbox.intersection(box, other) for other in placed) if b is not None)
+        clipped = box.width * box.height - (lambda b: b.width * b.height if b is not None else 0.0)(Bbox.intersection(box, inside))
+        return covered + 10.0 * clipped  # text outside the axes is worse than touching a neighbour
+
+    for x, y, text in sorted(points, key=lambda p: (-p[1], p[0])):
+        best = None
+        for k, (dx, dy) in enumerate(near + far):
+            leader = dict(arrowstyle="-", lw=0.5, color="grey", shrinkA=0, shrinkB=4) if k >= len(near) else None
+            label = ax.annotate(text, (x, y), textcoords="offset points", xytext=(dx, dy), fontsize=7,
+                                ha="left" if dx > 0 else "right", arrowprops=leader)  # fmt: skip
+            box = label.get_window_extent(renderer).expanded(1.02, 1.15)
+            score = cost(box)
+            if best is None or score < best[0]:
+                if best is not None:
+                    best[1].remove()
+                best = (score, label, box)
+            else:
+                label.remove()
+            if score == 0.0:
+                break
+        placed.append(best[2])
+
+
+ERROR_MAP_MAX = 0.05  # |error| (tone-mapped, channel mean) at the top of the error maps' colour scale
+
+
+def error_figure(view, images: dict, path: Path, title: str) -> None:
+    """View 0's reference and each configuration's error map, one row per material (PNG).
+
+    ``images``: material -> [(label, tone-mapped image)].  Every error map shares one colour
+    scale (0 to :data:`ERROR_MAP_MAX`), so panels compare at a glance; each title gives the
+    view's PSNR over covered pixels.
+    """
+    plt = _pyplot()
+    covered = view.gbuffer.covered
+    rows = [m for m in images if images[m]]
+    cols = 1 + max((len(images[m]) for m in rows), default=0)
+    panel = max(2.6, covered.shape[1] / 70)  # inches: about one image pixel per figure pixel or more, at 100 dpi
+    fig, axes = plt.subplots(len(rows), cols, figsize=(panel * cols + 0.8, (panel + 0.3) * len(rows) + 0.3), squeeze=False,
+                             layout="constrained")
+    shown = None
+    for i, material in enumerate(rows):
+        reference = view.references[material]
+        axes[i, 0].imshow(np.clip(reference, 0, 1))
+        axes[i, 0].set_title(f"reference ({material})", fontsize=9)
+        for j, (label, image) in enumerate(images[material], start=1):
+            error = np.abs(image - reference).mean(axis=2)
+            error[~covered] = np.nan
+            shown = axes[i, j].imshow(error, cmap="magma", vmin=0.0, vmax=ERROR_MAP_MAX)
+            axes[i, j].set_facecolor("#d0d0d0")
+            psnr = image_metrics(image, reference, covered)["psnr"]
+            axes[i, j].set_title(f"{label.replace(f' {material}', '')}: {psnr:.1f} dB", fontsize=9)
+        for ax in axes[i]:
+            ax.set_xticks([])
+            ax.set_yticks([])
+        for ax in axes[i, len(images[material]) + 1:]:
+            ax.set_visible(False)
+    fig.suptitle(f"{title}: |error| of tone-mapped images (grey: not covered)", fontsize=10)
+    if shown is not None:
+        fig.colorbar(shown, ax=axes, shrink=0.8, label="|error|")
+    save_figure(fig, path, dpi=100)
+
+
+# Settings that change what a scene's measurement is (the cache only says where things live).
+_CHECKPOINT_SETTINGS = ("views", "sizes", "ref_rays", "warmup", "config_budget", "packing_views", "precisions",
+                        "backends", "gemm_size", "seed", "blas_threads")  # fmt: skip
+
+
+def scene_checkpoint(scene_path, settings) -> Path:
+    """Where one scene's finished measurement is kept, keyed by its files and the settings.
+
+    The key covers ``scene.json`` and every file it names (models, generated GLSL, weight
+    textures, geometry, environment map) plus ``geometry.npz``, so a rebuilt scene or other
+    settings never reuse an old measurement.
+    """
+    manifest = load_manifest(scene_path)
+    digest = hashlib.sha256()
+    files = [manifest.path, manifest.geometry.path, manifest.lighting.envmap, manifest.root / "geometry.npz"]
+    for segment in manifest.segments:
+        files += [segment.model, segment.glsl, segment.glsl_weights]
+    for f in dict.fromkeys(Path(f) for f in files if f is not None and Path(f).is_file()):
+        digest.update(f.name.encode())
+        digest.update(f.read_bytes())
+    options = {k: getattr(settings, k) for k in _CHECKPOINT_SETTINGS}
+    if settings.images is not None:  # (only then, so keys made before --images existed still match)
+        options["images"] = str(settings.images)
+    options["prt"] = _prt_version()  # a new release measures again
+    digest.update(json.dumps(options, sort_keys=True, default=list).encode())
+    return settings.cache / "results" / f"{manifest.name}-{digest.hexdigest()[:16]}.json"
+
+
+def _prt_version() -> str:
+    try:
+        return version("prt-runtime")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def save_figure(fig, path, dpi: int) -> None:
+    """PNG through a temporary file and a rename (an interrupted run leaves no half image)."""
+    plt = _pyplot()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=dpi)
+    plt.close(fig)
+    atomic_write_bytes(path, buffer.getvalue())

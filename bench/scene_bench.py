@@ -1,0 +1,440 @@
+"""Every configuration of one scene, measured against the reference (:class:`SceneBench`), and :func:`run`.
+
+For every scene, a camera trajectory of ``--views`` views orbits the manifest camera about its
+target (the paper's Table 1 protocol).  Every configuration (backend ``onnx`` at each ONNX
+precision, :mod:`prt.export.precision`; backend ``glsl``; the vertex-space baseline,
+:mod:`prt.bench.vertex_prt`; material diffuse and glossy, :data:`MATERIALS`; each ``--size``)
+renders all views after ``--warmup`` frames (or, under ``--config-budget``, as many views as
+the budget allows at the warm-up's frame time, at least 4, spread over the orbit; the record's
+``views`` says how many), and is compared (:mod:`prt.bench.metrics`) with a ray-traced
+reference of the same G-buffer (:mod:`prt.bench.reference`).  Each size also measures the
+naive-vs-packed baseline (:mod:`prt.bench.packing`); the report's format is in
+:mod:`prt.bench.report`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import json
+import os
+import tempfile
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import onnxruntime
+from threadpoolctl import threadpool_limits
+
+from prt.bench.machine import busy_seconds, cpu_name, machine_gemm, other_cpu_share
+from prt.bench.metrics import image_metrics, mark_pareto
+from prt.bench.packing import packing_baseline
+from prt.bench.reference import View, cached_transfer, load_scene_geometry, noise_psnr, reference_images
+from prt.bench.report import error_figure, scene_checkpoint
+from prt.bench.vertex_prt import VertexPRT, vertex_transfer
+from prt.export.precision import PRECISIONS, model_weight_bytes, variant_manifest
+from prt.runtime.camera import Camera, orbit_views
+from prt.runtime.files import atomic_write_json
+from prt.runtime.gl import create_context
+from prt.runtime.renderer import Renderer, Scene
+from prt.runtime.shading import Material, shade, tonemap
+from prt.train.transfer import make_tracer
+
+__all__ = ["MATERIALS", "GLOSSY", "Settings", "SceneBench", "budget_views", "spread", "run"]
+
+MATERIALS = ("diffuse", "glossy")
+# The glossy material of the paper's comparisons: albedo stays the scene's.
+GLOSSY = {"specular": (0.3, 0.3, 0.3), "exponent": 16.0}
+
+
+@dataclasses.dataclass
+class Settings:
+    """What to measure (the command line's options)."""
+
+    views: int = 30
+    sizes: tuple = (512,)
+    ref_rays: int = 1024
+    warmup: int = 3
+    config_budget: float | None = None  # seconds of frames per configuration (slow ones measure fewer views)
+    packing_views: int | None = None  # views of the naive-vs-packed baseline (None: all), spread over the orbit
+    precisions: tuple = PRECISIONS
+    backends: tuple = ("onnx", "glsl", "vertex")
+    cache: Path | None = None
+    gemm_size: int = 4096
+    seed: int = 0
+    blas_threads: int | None = None
+    fresh: bool = False  # re-measure scenes a checkpoint already holds
+    images: Path | None = None  # folder for the error-map figures (None: none)
+
+
+def _materials(manifest) -> dict:
+    """The diffuse and glossy materials, both with the scene's albedo."""
+    albedo = tuple(float(a) for a in manifest.material.albedo)
+    return {"diffuse": Material("diffuse", albedo=albedo), "glossy": Material("glossy", albedo=albedo, **GLOSSY)}
+
+
+def _segment_flops(manifest, segment_image) -> float:
+    """Manifest FLOPs of evaluating the networks at every covered pixel of a segment-id image."""
+    counts = np.bincount(segment_image[segment_image >= 0].ravel(), minlength=len(manifest.segments))
+    return float(sum(counts[s.id] * s.flops_per_fragment for s in manifest.segments if s.kind == "network"))
+
+
+def _summarise(stage_lists, metric_lists, gflops, frame_ms) -> dict:
+    """Medians of timings, means of metrics over views."""
+    frame = float(np.median(frame_ms))
+    stages = {k: round(float(np.median(v)), 3) for k, v in stage_lists.items() if k != "frame"}
+    out = {"fps": round(1000.0 / frame, 2), "frame_ms": round(frame, 3), "stages_ms": stages}
+    out.update({k: float(np.mean(v)) for k, v in metric_lists.items()})
+    out["achieved_gflops"] = round(float(np.median(gflops)), 3) if gflops else 0.0
+    return out
+
+
+def budget_views(views: list, budget_s: float | None, frame_s: float | None, least: int = 4) -> list:
+    """The views one configuration measures under a time budget (``--config-budget``).
+
+    All of them without a budget (or before any frame was timed); else as many as
+    ``budget_s / frame_s`` allow, at least ``least``, spread evenly over the orbit and always
+    starting at view 0 (whose transfer the precision variants are compared on).
+    """
+    if budget_s is None or frame_s is None or frame_s <= 0:
+        return list(views)
+    return spread(views, int(max(least, budget_s // frame_s)))
+
+
+def spread(views: list, n: int | None) -> list:
+    """``n`` of ``views`` evenly over the orbit, starting at view 0 (all when ``n`` is None or too many)."""
+    if n is None or n >= len(views):
+        return list(views)
+    picks = np.unique(np.round(np.linspace(0, len(views) - 1, n)).astype(int)) if n > 1 else np.array([0])
+    return [views[i] for i in picks]
+
+
+def _measure_renderer(renderer, views, material_name, material, settings, transfer_fp32=None) -> tuple[dict, np.ndarray]:
+    """Render every view with one material after warm-up; timings, metrics and view 0's transfer."""
+    kw = {"albedo": material.albedo}
+    if material.kind == "glossy":
+        kw.update(specular=material.specular, exponent=material.exponent)
+    renderer.set_material(material.kind, **kw)
+    warm_s = None
+    for i in range(settings.warmup):  # sessions, shader compilation, caches; a new view each time
+        renderer.set_camera_object(views[0].camera.orbit(0.01 * (i + 1)))
+        t0 = time.perf_counter()
+        renderer.render()
+        warm_s = time.perf_counter() - t0
+    measured = budget_views(views, settings.config_budget, warm_s)
+    stages, metrics, gflops, frames = defaultdict(list), defaultdict(list), [], []
+    transfer0 = None
+    for k, view in enumerate(measured):
+        renderer.set_camera_object(view.camera)
+        image = renderer.render()
+        for name, ms in renderer.timings.items():
+            stages[name].append(ms)
+        frames.append(renderer.timings["frame"])
+        network_ms = renderer.timings.get("inference", renderer.timings.get("network", 0.0))
+        if network_ms > 0:
+            gflops.append(view.flops / (network_ms * 1e-3) / 1e9)
+        for name, value in image_metrics(tonemap(image), view.references[material_name], view.gbuffer.covered).items():
+            metrics[name].append(value)
+        if k == 0:
+            transfer0 = renderer.render_transfer()[view.gbuffer.covered]  # cached: no network runs
+            image0 = tonemap(image)
+    summary = _summarise(stages, metrics, gflops, frames)
+    summary["network_ms"] = summary["stages_ms"].get("inference", summary["stages_ms"].get("network", 0.0))
+    summary["views"] = len(measured)
+    summary["_image0"] = image0  # for the error maps; not part of the record
+    if transfer_fp32 is not None:
+        summary["transfer_max_abs_diff"] = float(np.abs(transfer0 - transfer_fp32).max(initial=0.0))
+    return summary, transfer0
+
+
+def _measure_vertex(vertex, gbuffer_pass, views, material_name, material, lighting, settings) -> dict:
+    """The vertex baseline's frames: G-buffer pass + transfer raster + CPU shading, and its errors."""
+    def frame(camera):
+        t0 = time.perf_counter()
+        gbuffer_pass.render(camera)
+        packed = gbuffer_pass.read_packed()
+        t1 = time.perf_counter()
+        transfer, _ = vertex.render(camera)
+        t2 = time.perf_counter()
+        covered = np.flatnonzero(packed[:, 3] > 0.5)
+        rows, t = packed[covered], transfer.reshape(-1, 16)[covered]
+        if material.kind == "diffuse":  # the renderer's own float32 fast path
+            radiance = np.maximum(t @ (lighting.sh * np.asarray(material.albedo)).astype(np.float32), 0.0)
+        else:
+            radiance = shade(t, rows[:, 4:7], camera.eye[None, :] - rows[:, 0:3], lighting, material)
+        image = np.zeros((len(packed), 3), dtype=np.float32)
+        image[covered] = radiance
+        t3 = time.perf_counter()
+        timings = {"gbuffer": 1e3 * (t1 - t0), **vertex.timings, "shade": 1e3 * (t3 - t2)}
+        timings["frame"] = 1e3 * (t3 - t0)
+        return image.reshape(vertex.height, vertex.width, 3), timings
+
+    for i in range(settings.warmup):
+        frame(views[0].camera.orbit(0.01 * (i + 1)))
+    stages, metrics, frames = defaultdict(list), defaultdict(list), []
+    image0 = None
+    for view in views:
+        image, timings = frame(view.camera)
+        image0 = tonemap(image) if image0 is None else image0
+        for name, ms in timings.items():
+            stages[name].append(ms)
+        frames.append(timings["frame"])
+        for name, value in image_metrics(tonemap(image), view.references[material_name], view.gbuffer.covered).items():
+            metrics[name].append(value)
+    summary = _summarise(stages, metrics, [], frames)
+    summary["network_ms"] = 0.0
+    summary["_image0"] = image0
+    return summary
+
+
+class SceneBench:
+    """Every configuration of one scene (see the module docstring).
+
+    Parameters
+    ----------
+    scene_path : path-like
+    settings : Settings
+    ctx : moderngl.Context
+        Shared by every renderer of the run.
+    machine_gflops : float
+    log : callable
+    """
+
+    def __init__(self, scene_path, settings: Settings, ctx, machine_gflops: float, log):
+        self.settings, self.ctx, self.machine_gflops, self.log = settings, ctx, machine_gflops, log
+        self.scene = Scene.load(scene_path)
+        manifest = self.manifest = self.scene.manifest
+        self.geometry, geo_info = load_scene_geometry(manifest)
+        if geo_info["matches_build_source"] is False:
+            log(f"  warning: {manifest.root / 'build.json'}'s source no longer gives geometry.npz's mesh; using geometry.npz")
+        self.geometry_id = geo_info["checksum"] or f"sdf:{geo_info['source']}"
+        self.tracer = make_tracer(self.geometry)
+        self.cache = settings.cache / manifest.name  # this scene's precision variants
+        # Ray-traced transfer is keyed by its inputs (points, normals, rays, seed, geometry), so
+        # scenes of one mesh (k = 64, k = 128, right-sized) share their references and vertices.
+        self.transfer_cache = settings.cache / "transfer"
+        self.cameras = orbit_views(Camera.from_manifest(manifest.camera), settings.views)
+        self.materials = _materials(manifest)
+        self.variants = {p: variant_manifest(manifest, p, self.cache / "models") for p in settings.precisions}
+        self.weights = {p: model_weight_bytes(m) for p, m in self.variants.items()}
+        self.vertex_data, vertex_info = self._vertex_transfer()
+        self.entry = {
+            "scene": manifest.name, "path": str(manifest.path), "geometry": geo_info,
+            "networks": sum(s.kind == "network" for s in manifest.segments), "weight_bytes": self.weights["fp32"],
+            "reference": {"rays": settings.ref_rays, "seed": settings.seed, "cache": str(self.transfer_cache), "noise_psnr": {},
+                          "noise_note": "PSNR between two references with different seeds at view 0 (covered pixels); "
+                                        "each is ~3 dB closer to the converged image than this"},
+            "packing": [], "vertex_baseline": vertex_info, "error_images": [],
+        }  # fmt: skip
+        self.records: list[dict] = []
+        self.images: dict = defaultdict(list)  # (resolution, material) -> [(label, view 0 image, its PSNR)]
+
+    def run(self) -> tuple[dict, list]:
+        """Measure every size; returns the ``scenes[]`` entry and the ``records[]`` of this scene."""
+        for size in self.settings.sizes:
+            # This renderer's G-buffer defines the pixels; every other renderer draws the same ones.
+            with Renderer(self.scene, size, size, backend="onnx", ctx=self.ctx) as base:
+                views = self._references(base, size)
+                if self.entry["networks"] and "onnx" in self.settings.backends:
+                    cameras = spread(self.cameras, self.settings.packing_views)
+                    self.entry["packing"].append(packing_baseline(self.manifest, base.gbuffer, cameras, self.log))
+                self._network_records(size, views)
+                if self.vertex_data is not None:
+                    self._vertex_records(size, views, base.gbuffer, base.lighting)
+                if self.settings.images is not None:
+                    path = Path(self.settings.images) / f"{self.manifest.name}-{size}x{size}.png"
+                    error_figure(views[0], {m: self.images[(f"{size}x{size}", m)] for m in self.materials}, path,
+                                 f"{self.manifest.name} {size}x{size}, view 0")  # fmt: skip
+                    self.entry["error_images"].append(str(path))
+                    self.log(f"  error maps: {path}")
+        return self.entry, self.records
+
+    # ------------------------------------------------------------------ pieces
+
+    def _vertex_transfer(self):
+        """Per-vertex transfer of the vertex baseline and its ``vertex_baseline`` entry."""
+        if self.geometry.sdf is not None:
+            return None, {"note": "skipped: SDF scene (no vertices)"}
+        if "vertex" not in self.settings.backends:
+            return None, {"note": "skipped (--backends)"}
+        front, back, back_vertices = vertex_transfer(self.geometry, self.tracer, self.settings.ref_rays, self.transfer_cache, self.geometry_id)
+        n_vertices = len(self.geometry.mesh.vertices)
+        info = {"vertices": n_vertices, "back_vertices": back_vertices,
+                "weight_bytes": 16 * 4 * (n_vertices + back_vertices), "rays": self.settings.ref_rays}  # fmt: skip
+        return (front, back), info
+
+    def _references(self, renderer, size: int) -> list:
+        """The views at ``size``: G-buffers, reference images (cached transfer) and the reference's noise."""
+        settings, resolution = self.settings, f"{size}x{size}"
+        views, seconds = [], 0.0
+        for v, camera in enumerate(self.cameras):
+            renderer.set_camera_object(camera)
+            gbuffer = renderer.gbuffer_image()
+            points, normals = gbuffer.position[gbuffer.covered], gbuffer.normal[gbuffer.covered]
+            tag = f"view{v:03d}-{resolution}"
+            images = {}
+            # A second seed (other frame spins) at view 0 measures the reference's own noise.
+            for seed in (settings.seed, settings.seed + 1) if v == 0 else (settings.seed,):
+                transfer, spent = cached_transfer(
+                    self.transfer_cache, tag, self.geometry, self.tracer, points, normals, settings.ref_rays, seed, self.geometry_id
+                )
+                seconds += spent
+                images[seed] = reference_images(transfer, gbuffer, camera.eye, renderer.lighting, self.materials)
+            references = images[settings.seed]
+            if v == 0:
+                other = images[settings.seed + 1]
+                self.entry["reference"]["noise_psnr"][resolution] = noise_psnr(other, references, gbuffer.covered)
+            views.append(View(camera, gbuffer, references, _segment_flops(self.manifest, gbuffer.segment)))
+        self.log(
+            f"  reference {resolution}: {len(views)} views x {settings.ref_rays} rays ({seconds:.1f} s computed, "
+            f"rest cached); noise PSNR {self.entry['reference']['noise_psnr'][resolution]}"
+        )
+        return views
+
+    def _common(self, size: int, views: list) -> dict:
+        """The fields every record of this scene and size shares."""
+        covered = [int(v.gbuffer.covered.sum()) for v in views]
+        flops = sum(v.flops for v in views)
+        return {
+            "scene": self.manifest.name, "resolution": f"{size}x{size}", "width": size, "height": size,
+            "views": len(views), "covered_pixels": float(np.median(covered)),
+            "flops_per_fragment": round(flops / sum(covered), 1) if sum(covered) else 0.0,
+            "machine_gflops": round(self.machine_gflops, 2), "ref_rays": self.settings.ref_rays,
+        }  # fmt: skip
+
+    def _add(self, common: dict, backend: str, precision: str, material: str, summary: dict, weight_bytes: int) -> None:
+        noise = self.entry["reference"]["noise_psnr"][common["resolution"]][material]
+        image0 = summary.pop("_image0", None)
+        record = _record(common, backend, precision, material, summary, weight_bytes, noise, self.log)
+        self.records.append(record)
+        if image0 is not None:
+            self.images[(common["resolution"], material)].append((record["label"], image0))
+
+    def _network_records(self, size: int, views: list) -> None:
+        """The ONNX backend at every precision, then the GLSL backend, each with both materials."""
+        configs = [("onnx", p) for p in self.settings.precisions] if "onnx" in self.settings.backends else []
+        if "glsl" in self.settings.backends:
+            configs.append(("glsl", "fp32"))
+        common = self._common(size, views)
+        transfer_fp32 = None  # view 0's transfer on the fp32 ONNX path, what the others are compared with
+        for backend, precision in configs:
+            scene = Scene(self.variants[precision]) if backend == "onnx" else self.scene
+            with Renderer(scene, size, size, backend=backend, ctx=self.ctx) as renderer:
+                for name, material in self.materials.items():
+                    summary, transfer0 = _measure_renderer(renderer, views, name, material, self.settings, transfer_fp32)
+                    if (backend, precision) == ("onnx", "fp32"):
+                        transfer_fp32 = transfer0
+                        summary["transfer_max_abs_diff"] = 0.0
+                    self._add(common, backend, precision, name, summary, self.weights[precision])
+
+    def _vertex_records(self, size: int, views: list, gbuffer_pass, lighting) -> None:
+        """The vertex baseline with both materials, and how well its pixels match the G-buffer's."""
+        resolution = f"{size}x{size}"
+        info = self.entry["vertex_baseline"]
+        common = {**self._common(size, views), "flops_per_fragment": 0.0}
+        vertex = VertexPRT(self.ctx, self.geometry, *self.vertex_data, size, size)
+        try:
+            agreement = []
+            for view in views:
+                drawn = vertex.render(view.camera)[1]
+                covered = view.gbuffer.covered
+                agreement.append(np.logical_and(drawn, covered).sum() / max(covered.sum(), 1))
+            info.setdefault("coverage_agreement", {})[resolution] = round(float(np.min(agreement)), 5)
+            for name, material in self.materials.items():
+                summary = _measure_vertex(vertex, gbuffer_pass, views, name, material, lighting, self.settings)
+                summary.update(achieved_gflops=0.0, transfer_max_abs_diff=None)
+                self._add(common, "vertex", "fp32", name, summary, info["weight_bytes"])
+        finally:
+            vertex.release()
+
+
+def _record(common, backend, precision, material, summary, weight_bytes, noise_psnr, log) -> dict:
+    """One configuration's JSON record (rounded), printed as a progress line."""
+    record = {**common, "backend": backend, "precision": precision, "material": material, **summary}
+    for key in ("mae", "ssim"):
+        record[key] = round(record[key], 6)
+    for key in ("psnr", "psnr_whole"):
+        record[key] = round(record[key], 3)
+    record["weight_bytes"] = int(weight_bytes)
+    gflops = record.get("achieved_gflops", 0.0)
+    record["machine_percent"] = round(100.0 * gflops / record["machine_gflops"], 3) if record["machine_gflops"] else None
+    record["ref_noise_psnr"] = noise_psnr
+    record["label"] = f"{backend} {precision} {material}" if backend == "onnx" else f"{backend} {material}"
+    record.setdefault("transfer_max_abs_diff", None)
+    log(
+        f"  {record['scene']} {record['resolution']} {record['label']}: {record['fps']:.1f} FPS "
+        f"({record['frame_ms']:.1f} ms, network {record['network_ms']:.1f} ms), PSNR {record['psnr']:.2f} dB "
+        f"(whole {record['psnr_whole']:.2f}), SSIM {record['ssim']:.4f}, MAE {record['mae']:.4f}"
+    )
+    return record
+
+
+def run(scene_paths, settings: Settings, log=print) -> dict:
+    """Benchmark every scene; the report described in the module docstring.
+
+    Parameters
+    ----------
+    scene_paths : list of path-like
+    settings : Settings
+    log : callable
+        Receives one progress line at a time.
+
+    Returns
+    -------
+    dict
+    """
+    settings.cache = Path(settings.cache or Path(tempfile.gettempdir()) / "prt_bench_cache")
+    load_start = os.getloadavg()[0]
+    if load_start > 0.5:
+        log(f"note: load average {load_start:.2f} at the start: other work on this machine will slow the timings")
+    busy_start = busy_seconds()
+    t0 = time.perf_counter()
+    gemm = machine_gemm(settings.gemm_size)
+    machine_gflops = gemm["best"]
+    log(f"machine: float32 GEMM {settings.gemm_size}^3: numpy {gemm['numpy']:.1f}, onnxruntime {gemm['onnxruntime']:.1f} GFLOP/s "
+        f"({time.perf_counter() - t0:.1f} s); the limit is the higher")
+    ctx = create_context()
+    try:
+        machine = {
+            "cpu": cpu_name(), "cores": os.cpu_count(), "gl_renderer": ctx.info.get("GL_RENDERER"),
+            "onnxruntime": onnxruntime.__version__, "numpy": np.__version__,
+            "gemm_size": settings.gemm_size, "gemm_numpy_gflops": gemm["numpy"],
+            "gemm_onnxruntime_gflops": gemm["onnxruntime"], "machine_gflops": machine_gflops,
+        }  # fmt: skip
+        scenes, records, resumed = [], [], []
+        # numpy's BLAS threads also run the renderer's small shading products (None: as found).
+        limits = threadpool_limits(limits=settings.blas_threads, user_api="blas") if settings.blas_threads else None
+        try:
+            for path in scene_paths:
+                # Each finished scene is kept, so an interrupted run resumes at the scene it was on.
+                checkpoint = scene_checkpoint(path, settings)
+                if checkpoint.exists() and not settings.fresh:
+                    kept = json.loads(checkpoint.read_text())
+                    entry, recs = kept["scene"], kept["records"]
+                    entry.setdefault("error_images", [])
+                    resumed.append({"scene": entry["scene"], "measured": entry["measured"]})
+                    log(f"scene {path}: measured at {entry['measured']} (against a {recs[0]['machine_gflops'] if recs else '?'} "
+                        f"GFLOP/s limit), kept in {checkpoint}; --fresh measures it again")  # fmt: skip
+                else:
+                    log(f"scene {path}")
+                    entry, recs = SceneBench(path, settings, ctx, machine_gflops, log).run()
+                    entry["measured"] = datetime.datetime.now().isoformat(timespec="seconds")
+                    entry["checkpoint"] = str(checkpoint)
+                    atomic_write_json(checkpoint, {"scene": entry, "records": recs})
+                scenes.append(entry)
+                records.extend(recs)
+        finally:
+            if limits is not None:
+                limits.restore_original_limits()
+    finally:
+        ctx.release()
+    machine["resumed"] = resumed
+    machine["load_average"] = round(load_start, 2)
+    machine["other_cpu_share"] = other_cpu_share(busy_start, time.perf_counter() - t0)
+    fronts = mark_pareto(records)
+    config = {k: (str(v) if isinstance(v, Path) else list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(settings).items()}
+    return {
+        "tool": "prt-bench", "created": datetime.datetime.now().isoformat(timespec="seconds"),
+        "settings": config, "machine": machine, "scenes": scenes, "records": records, "pareto": fronts,
+    }  # fmt: skip
