@@ -8,6 +8,7 @@ that machine noise hits them alike.
 
 from __future__ import annotations
 
+import argparse
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,7 +20,7 @@ from prt.runtime.errors import PRTError
 from prt.runtime.files import atomic_write_json
 from prt.runtime.manifest import load_manifest
 
-__all__ = ["StudyError", "SegmentSamples", "network_segments", "session", "interleaved_ms", "write_report"]
+__all__ = ["StudyError", "SegmentSamples", "study_parser", "network_segments", "session", "interleaved_ms", "write_report"]
 
 
 class StudyError(Exception):
@@ -32,6 +33,16 @@ class SegmentSamples:
     train: np.ndarray  # (n, 6) float32 position + normal, the segment's training samples
     held: np.ndarray  # (m, 6) float32, its held-out samples
     held_transfer: np.ndarray  # (m, bands^2) ray-traced ground truth of ``held``
+
+
+def study_parser(description: str) -> argparse.ArgumentParser:
+    """The options every per-segment study takes: the scene, rows per call, repeats, the JSON report."""
+    p = argparse.ArgumentParser(description=description)
+    p.add_argument("scene", type=Path)
+    p.add_argument("--rows", type=int, default=4096, help="rows per call (the runtime's slice)")
+    p.add_argument("--repeats", type=int, default=30)
+    p.add_argument("--json", type=Path, default=None)
+    return p
 
 
 def network_segments(scene: Path):

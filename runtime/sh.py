@@ -729,8 +729,7 @@ def unshadowed_transfer(normals, bands: int = 4, dtype=np.float64) -> np.ndarray
     -------
     ndarray, shape (N, bands**2), float32
     """
-    lam = zonal_to_band_factors(clamped_cosine(bands)) / np.pi
-    scale = band_factors_to_coeff_scale(lam).astype(dtype)
+    scale = unshadowed_coeff_scale(bands).astype(dtype)
     return (basis(np.asarray(normals, dtype=dtype), bands) * scale).astype(np.float32, copy=False)
 
 

@@ -10,12 +10,13 @@ from __future__ import annotations
 import numpy as np
 
 from ..runtime import sh
+from ..runtime.camera import DEFAULT_CAMERA
 from .cache import atomic_write_bytes
 
 __all__ = ["sky_envmap", "splat", "write_preview"]
 
-EYE = np.array([0.0, 0.6, 3.2])
-TARGET = np.zeros(3)
+EYE = np.array(DEFAULT_CAMERA["eye"])
+TARGET = np.array(DEFAULT_CAMERA["target"])
 
 
 def sky_envmap(height: int = 64, width: int = 128) -> np.ndarray:

@@ -19,7 +19,6 @@ the transfer coefficients against the ray-traced ground truth, per segment and a
 
 from __future__ import annotations
 
-import argparse
 import logging
 import sys
 import tempfile
@@ -28,7 +27,7 @@ from pathlib import Path
 import numpy as np
 from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType, quantize_static
 
-from prt.bench.segment_study import StudyError, interleaved_ms, network_segments, session, write_report
+from prt.bench.segment_study import StudyError, study_parser, interleaved_ms, network_segments, session, write_report
 from prt.export.precision import build_variant
 
 
@@ -56,12 +55,8 @@ def static_int8(source: Path, calibration: np.ndarray, path: Path) -> Path:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("scene", type=Path)
-    p.add_argument("--rows", type=int, default=4096, help="rows per call (the runtime's slice)")
+    p = study_parser(__doc__.splitlines()[0])
     p.add_argument("--calibration", type=int, default=4096, help="training samples that calibrate the activation ranges")
-    p.add_argument("--repeats", type=int, default=30)
-    p.add_argument("--json", type=Path, default=None)
     args = p.parse_args(argv)
 
     try:

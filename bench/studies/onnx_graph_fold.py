@@ -24,7 +24,6 @@ exported files; it measures whether changing them would pay.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -32,7 +31,7 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
-from prt.bench.segment_study import StudyError, interleaved_ms, network_segments, session, write_report
+from prt.bench.segment_study import StudyError, study_parser, interleaved_ms, network_segments, session, write_report
 from prt.export.onnx_model import LEAKY_SLOPE, NORMAL_EPS, OPSET, POSITION_CLIP, read_arrays
 
 
@@ -115,11 +114,7 @@ def folded_model(arrays: dict[str, np.ndarray], architecture: dict) -> bytes:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("scene", type=Path)
-    p.add_argument("--rows", type=int, default=4096, help="rows per call (the runtime's slice)")
-    p.add_argument("--repeats", type=int, default=30)
-    p.add_argument("--json", type=Path, default=None)
+    p = study_parser(__doc__.splitlines()[0])
     args = p.parse_args(argv)
 
     try:
