@@ -4,24 +4,30 @@ usage::
 
     prt-bench scene.json [more scenes] [--json out.json] [--md out.md]
         [--plot out.png] [--views 30] [--size 512 [256 ...]] [--ref-rays 1024] [--warmup 3]
-        [--precisions fp32 fp16 fp16-mlp int8] [--backends onnx glsl vertex] [--cache DIR]
+        [--precisions fp32 fp16 fp16-mlp int8] [--backends onnx glsl vertex texture] [--texture-size N ...] [--cache DIR]
         [--gemm-size 4096] [--blas-threads N] [--config-budget SECONDS] [--packing-views N]
-        [--images DIR] [--fresh]
+        [--images DIR] [--fresh] [--cluster auto|ADDRESS]
 
 What is measured: :mod:`prt.bench.scene_bench`; the report's format: :mod:`prt.bench.report`.
-Also ``python -m prt.bench.cli``.
+Every scene is checked before anything is measured; a scene that fails (then or while it is
+measured) is reported on stderr, one line each, and left out; the reports are written for the
+rest, and the exit status is 2.  Also ``python -m prt.bench.cli``.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
 from prt.bench.report import markdown, plot
 from prt.bench.scene_bench import Settings, run
 from prt.export.precision import PRECISIONS
+from prt.runtime.errors import PRTError
 from prt.runtime.files import atomic_write_bytes, atomic_write_json
+from prt.train.cluster import open_executor
+from prt.train.executor import add_cluster_argument
 
 __all__ = ["parse_args", "main"]
 
@@ -45,9 +51,13 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "backend at k = 128 on llvmpipe) measures fewer views, at least 4, spread over the orbit; "
                         "its record's 'views' says how many (default: every view)")  # fmt: skip
     p.add_argument("--precisions", nargs="+", choices=PRECISIONS, default=list(PRECISIONS))
-    p.add_argument("--backends", nargs="+", choices=("onnx", "glsl", "vertex"), default=["onnx", "glsl", "vertex"])
+    p.add_argument("--backends", nargs="+", choices=("onnx", "glsl", "vertex", "texture"), default=["onnx", "glsl", "vertex"],
+                   help="texture: the texture-space baseline (transfer textures baked at --texture-size)")
+    p.add_argument("--texture-size", type=int, nargs="+", default=[1024], metavar="N",
+                   help="transfer texture sizes of the texture baseline, texels per side (default 1024)")
     p.add_argument("--cache", type=Path, default=None, help="reference / variant cache (default: next to --json)")
     p.add_argument("--gemm-size", type=int, default=4096, help="matrix size of the machine-limit GEMM (default 4096)")
+    add_cluster_argument(p)  # the reference's ray tracing
     p.add_argument("--blas-threads", type=int, default=None,
                    help="limit numpy's BLAS threads while rendering (default: leave as found)")  # fmt: skip
     p.add_argument("--images", type=Path, default=None, metavar="DIR",
@@ -59,6 +69,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.views < 1 or min(args.size) < 1 or args.ref_rays < 1 or args.warmup < 0:
         p.error("--views, --size and --ref-rays must be positive, --warmup >= 0")
+    for flag, value in (("--gemm-size", args.gemm_size), ("--blas-threads", args.blas_threads), ("--packing-views", args.packing_views)):
+        if value is not None and value < 1:
+            p.error(f"{flag} must be positive, got {value}")
+    if args.config_budget is not None and not 0 < args.config_budget < math.inf:
+        p.error(f"--config-budget must be a positive number of seconds, got {args.config_budget}")
     if "fp32" not in args.precisions:
         args.precisions = ["fp32", *args.precisions]  # the other precisions are compared with it
     return args
@@ -74,9 +89,19 @@ def main(argv=None) -> int:
         views=args.views, sizes=tuple(args.size), ref_rays=args.ref_rays, warmup=args.warmup, config_budget=args.config_budget,
         packing_views=args.packing_views,
         precisions=tuple(dict.fromkeys(args.precisions)), backends=tuple(args.backends), cache=cache,
+        texture_sizes=tuple(dict.fromkeys(args.texture_size)),
         gemm_size=args.gemm_size, blas_threads=args.blas_threads, fresh=args.fresh, images=args.images,
     )  # fmt: skip
-    report = run(args.scenes, settings)
+    try:
+        with open_executor(args.cluster) as executor:
+            report = run(args.scenes, settings, executor=executor)
+    except PRTError as exc:  # --cluster without Ray, or no cluster at the address
+        print(f"prt-bench: error: {exc}", file=sys.stderr)
+        return 2
+    for failure in report["failed"]:
+        print(f"prt-bench: error: {' '.join(failure['error'].split())} (scene skipped)", file=sys.stderr)
+    if not report["scenes"]:
+        return 2  # nothing measured: no report to write
     text = markdown(report)
     print(text)
     if args.json:
@@ -85,7 +110,7 @@ def main(argv=None) -> int:
         atomic_write_bytes(args.md, text.encode())
     if args.plot:
         plot(report, args.plot)
-    return 0
+    return 2 if report["failed"] else 0
 
 
 if __name__ == "__main__":

@@ -93,7 +93,7 @@ def load_scene_geometry(manifest):
     return geometry, {"type": "mesh", "source": str(path), "checksum": checksum, "matches_build_source": matches}
 
 
-def cached_transfer(cache: Path, tag: str, geometry, tracer, points, normals, rays: int, seed: int, geometry_id: str):
+def cached_transfer(cache: Path, tag: str, geometry, tracer, points, normals, rays: int, seed: int, geometry_id: str, executor=None):
     """Ray-traced transfer at ``points``, read from ``cache`` when computed before.
 
     Parameters
@@ -108,6 +108,8 @@ def cached_transfer(cache: Path, tag: str, geometry, tracer, points, normals, ra
     rays, seed : int
     geometry_id : str
         Identity of the geometry (checksum or SDF name), part of the key.
+    executor : prt.train.executor.Executor, optional
+        Where the chunks run (``prt-bench --cluster``); the result does not depend on it.
 
     Returns
     -------
@@ -123,7 +125,7 @@ def cached_transfer(cache: Path, tag: str, geometry, tracer, points, normals, ra
         with np.load(path) as data:
             return data["transfer"], 0.0
     t0 = time.perf_counter()
-    transfer = compute_transfer(geometry, points, normals, rays=rays, seed=seed, tracer=tracer)
+    transfer = compute_transfer(geometry, points, normals, rays=rays, seed=seed, tracer=tracer, executor=executor)
     seconds = time.perf_counter() - t0
     atomic_save_npz(path, transfer=transfer)
     return transfer, seconds

@@ -1,7 +1,9 @@
 """The benchmark's outputs: JSON report, Markdown table, plot, error-map figures, scene checkpoints.
 
 JSON report (``--json``)
-    ``tool``, ``created`` (ISO time), ``settings`` (the arguments), ``machine``: ``cpu``,
+    ``tool``, ``created`` (ISO time), ``settings`` (the arguments), ``failed`` (the scenes
+    left out: each ``scene`` and ``error``, the one-line reason; they failed the check made
+    before anything is measured, or while being measured), ``machine``: ``cpu``,
     ``cores``, ``gl_renderer``, ``onnxruntime``, ``numpy``, ``gemm_size``, ``gemm_numpy_gflops``
     and ``gemm_onnxruntime_gflops`` (float32 n x n GEMM through numpy's BLAS and through ONNX
     Runtime's MatMul on all cores, medians of 3), ``machine_gflops`` (the higher of the two: the
@@ -25,19 +27,23 @@ JSON report (``--json``)
     the largest network segment of the first view, one thread: ``segment``, ``rows``,
     ``run_us``, ``op_us`` per op type, ``gemm_share``: the share of the run in the MLP's
     Gemms; the rest is the encoding and element-wise ops); ``vertex_baseline`` (``vertices``, ``back_vertices``,
-    ``weight_bytes``, ``coverage_agreement`` or ``note`` when skipped), ``error_images``
+    ``weight_bytes``, ``coverage_agreement`` or ``note`` when skipped), ``texture_baseline``
+    (``sizes``: per ``--texture-size``, the bake's texel counts, ``bytes``, ``precompute_s``,
+    ``timings_s``, UV source and note, float16-vs-float32 error, ``cached``; or ``note``), ``error_images``
     (the ``--images`` figures of this scene, one per size: view 0's reference and each
     configuration's error map; empty without ``--images``), ``measured`` (ISO time
     the scene was measured) and ``checkpoint`` (where its measurement is kept: a later run with
     the same scene files and settings takes it from there instead of measuring again, unless
     ``--fresh``; its records then keep the ``machine_gflops`` of the run that measured them).
 
-    ``records``: one per configuration, with ``scene``, ``backend`` (onnx, glsl, vertex),
+    ``records``: one per configuration, with ``scene``, ``backend`` (onnx, glsl, vertex, texture;
+    texture records add ``texture_size`` and ``precompute_s``, and their ``network_ms`` is the fetch pass),
     ``precision`` (fp32, fp16, fp16-mlp, int8), ``material``, ``resolution`` (``"WxH"``),
     ``width``, ``height``, ``views``, ``fps`` (1000 / median frame ms), ``frame_ms``,
     ``stages_ms`` (median per stage), ``network_ms`` (inference / network stage; 0 for
     vertex), ``mae``, ``psnr``, ``ssim``, ``psnr_whole``, ``weight_bytes`` (ONNX initialiser
-    bytes of the models run; the fp32 models' for glsl; 16 float32 per vertex for vertex),
+    bytes of the models run; the fp32 models' for glsl; 16 float32 per vertex for vertex; the
+    float16 texture plus its per-corner UVs for texture),
     ``flops_per_fragment`` (manifest FLOPs, weighted by the covered pixels of each segment;
     the manifest counts a multiply-add as 2 and each sin, cos or tanh as about 20),
     ``covered_pixels`` (median), ``achieved_gflops`` (FLOPs of the covered pixels / network
@@ -75,7 +81,7 @@ __all__ = [
 ]  # fmt: skip
 
 # The report's keys (documented in the module docstring; the tests hold the output to them).
-REPORT_KEYS = ("tool", "created", "settings", "machine", "scenes", "records", "pareto")
+REPORT_KEYS = ("tool", "created", "settings", "machine", "scenes", "records", "pareto", "failed")
 MACHINE_KEYS = ("cpu", "cores", "gl_renderer", "onnxruntime", "numpy", "gemm_size", "gemm_numpy_gflops",
                 "gemm_onnxruntime_gflops", "machine_gflops", "resumed", "load_average", "other_cpu_share")
 SCENE_KEYS = ("scene", "path", "geometry", "networks", "weight_bytes", "reference", "packing", "vertex_baseline",
@@ -108,6 +114,28 @@ def _pyplot():
     return plt
 
 
+def _backend_cell(record: dict) -> str:
+    """The backend column: the texture baseline names its texture size."""
+    if "texture_size" in record:
+        return f"texture {record['texture_size']}^2"
+    return record["backend"]
+
+
+def _texture_lines(scene: dict) -> list[str]:
+    """The texture baseline's bake per size: texels, bytes, precompute time, UVs, float16 error."""
+    tb = scene.get("texture_baseline") or {}
+    if "note" in tb:
+        return [f"- texture baseline: {tb['note']}"]
+    return [
+        f"- texture baseline {size}x{size}: {t['atlases']} atlas(es), {t['texels_covered']:,} texels covered "
+        f"({t['texel_utilisation']:.0%}), {t['rays']} rays, {t['bytes']:,} bytes (float16 + corner UVs), precompute "
+        f"{t['precompute_s']:.1f} s (atlas {t['timings_s']['atlas_s']:.1f} s){' (cached)' if t['cached'] else ''}; "
+        f"float16 vs float32: max |error| {t['float16_max_abs_error']:.2g}, RMS {t['float16_rms_error_relative']:.2g} of the RMS transfer; "
+        f"UVs: {t['uv_note']}"
+        for size, t in tb.get("sizes", {}).items()
+    ]
+
+
 def markdown(report: dict) -> str:
     """The report as Markdown: the configurations' table, then packing, reference and machine lines."""
     machine = report["machine"]
@@ -121,7 +149,7 @@ def markdown(report: dict) -> str:
         gflops = f"{r['achieved_gflops']:.1f} ({r['machine_percent']:.1f} %)" if r["achieved_gflops"] else "-"
         fps = f"{r['fps']:.1f}" + (f" ({r['views']} views)" if r["views"] != settings_views else "")
         lines.append(
-            f"| {r['scene']} | {r['resolution']} | {r['backend']} | {r['precision']} | {r['material']} | {fps} "
+            f"| {r['scene']} | {r['resolution']} | {_backend_cell(r)} | {r['precision']} | {r['material']} | {fps} "
             f"| {r['frame_ms']:.1f} | {r['network_ms']:.1f} | {r['psnr']:.2f} | {r['psnr_whole']:.2f} | {r['ssim']:.4f} "
             f"| {r['mae']:.4f} | {r['weight_bytes']:,} | {gflops} | {'*' if r.get('pareto') else ''} |"
         )
@@ -141,6 +169,7 @@ def markdown(report: dict) -> str:
                 top = ", ".join(f"{op} {us / prof['run_us']:.0%}" for op, us in list(prof["op_us"].items())[:6])
                 lines.append(f"- network profile (segment {prof['segment']}, {prof['rows']:,} rows, one thread): {prof['run_us']:.0f} us per call, "
                              f"{prof['gemm_share']:.0%} in the MLP's Gemms; {top}")  # fmt: skip
+        lines += _texture_lines(s)
         vb = s["vertex_baseline"]
         if "note" in vb:
             lines.append(f"- vertex baseline: {vb['note']}")
@@ -160,6 +189,8 @@ def markdown(report: dict) -> str:
     if machine.get("other_cpu_share") is not None:
         lines.append(f"Load: {machine['load_average']:.2f} at the start; other processes used "
                      f"{100 * machine['other_cpu_share']:.0f} % of the cores' time during the run.")  # fmt: skip
+    for failure in report.get("failed", []):
+        lines.append(f"\n**Not measured**: {failure['scene']}: {' '.join(failure['error'].split())}")
     return "\n".join(lines) + "\n"
 
 
@@ -176,7 +207,7 @@ def plot(report: dict, path: Path) -> None:
     fig, axes = plt.subplots(rows, cols, figsize=(8.5 * cols, 6.0 * rows), squeeze=False)
     for ax in axes.flat[len(groups):]:
         ax.set_visible(False)
-    colours = {"onnx": "tab:blue", "glsl": "tab:orange", "vertex": "tab:green"}
+    colours = {"onnx": "tab:blue", "glsl": "tab:orange", "vertex": "tab:green", "texture": "tab:red"}
     markers = {"diffuse": "o", "glossy": "s"}
     for ax, (name, group) in zip(axes.flat, groups.items()):
         for r in group:
@@ -314,6 +345,8 @@ def scene_checkpoint(scene_path, settings) -> Path:
     options = {k: getattr(settings, k) for k in _CHECKPOINT_SETTINGS}
     if settings.images is not None:  # (only then, so keys made before --images existed still match)
         options["images"] = str(settings.images)
+    if "texture" in settings.backends:  # (likewise)
+        options["texture_sizes"] = list(settings.texture_sizes)
     options["prt"] = _prt_version()  # a new release measures again
     digest.update(json.dumps(options, sort_keys=True, default=list).encode())
     return settings.cache / "results" / f"{manifest.name}-{digest.hexdigest()[:16]}.json"

@@ -3,7 +3,8 @@
 For every scene, a camera trajectory of ``--views`` views orbits the manifest camera about its
 target (the paper's Table 1 protocol).  Every configuration (backend ``onnx`` at each ONNX
 precision, :mod:`prt.export.precision`; backend ``glsl``; the vertex-space baseline,
-:mod:`prt.bench.vertex_prt`; material diffuse and glossy, :data:`MATERIALS`; each ``--size``)
+:mod:`prt.bench.vertex_prt`; the texture-space baseline at each ``--texture-size``,
+:mod:`prt.bench.texture_prt`; material diffuse and glossy, :data:`MATERIALS`; each ``--size``)
 renders all views after ``--warmup`` frames (or, under ``--config-budget``, as many views as
 the budget allows at the warm-up's frame time, at least 4, spread over the orbit; the record's
 ``views`` says how many), and is compared (:mod:`prt.bench.metrics`) with a ray-traced
@@ -32,16 +33,21 @@ from prt.bench.metrics import image_metrics, mark_pareto
 from prt.bench.packing import packing_baseline
 from prt.bench.reference import View, cached_transfer, load_scene_geometry, noise_psnr, reference_images
 from prt.bench.report import error_figure, scene_checkpoint
+from prt.bench.texture_prt import texture_variants
 from prt.bench.vertex_prt import VertexPRT, vertex_transfer
 from prt.export.precision import PRECISIONS, model_weight_bytes, variant_manifest
+from prt.runtime.backends.onnx import OnnxTransfer
 from prt.runtime.camera import Camera, orbit_views
+from prt.runtime.checks import read_text
+from prt.runtime.errors import InputError, PRTError
 from prt.runtime.files import atomic_write_json
-from prt.runtime.gl import create_context
+from prt.runtime.gbuffer import load_mesh
+from prt.runtime.gl import bind_framebuffer, create_context
 from prt.runtime.renderer import Renderer, Scene
 from prt.runtime.shading import Material, shade, tonemap
 from prt.train.transfer import make_tracer
 
-__all__ = ["MATERIALS", "GLOSSY", "Settings", "SceneBench", "budget_views", "spread", "run"]
+__all__ = ["MATERIALS", "GLOSSY", "Settings", "SceneBench", "budget_views", "spread", "check_scene", "run"]
 
 MATERIALS = ("diffuse", "glossy")
 # The glossy material of the paper's comparisons: albedo stays the scene's.
@@ -60,6 +66,7 @@ class Settings:
     packing_views: int | None = None  # views of the naive-vs-packed baseline (None: all), spread over the orbit
     precisions: tuple = PRECISIONS
     backends: tuple = ("onnx", "glsl", "vertex")
+    texture_sizes: tuple = (1024,)  # transfer texture sizes of the texture baseline (backend "texture")
     cache: Path | None = None
     gemm_size: int = 4096
     seed: int = 0
@@ -201,8 +208,9 @@ class SceneBench:
     log : callable
     """
 
-    def __init__(self, scene_path, settings: Settings, ctx, machine_gflops: float, log):
+    def __init__(self, scene_path, settings: Settings, ctx, machine_gflops: float, log, executor=None):
         self.settings, self.ctx, self.machine_gflops, self.log = settings, ctx, machine_gflops, log
+        self.executor = executor  # where the reference's transfer chunks run (None: threads here)
         self.scene = Scene.load(scene_path)
         manifest = self.manifest = self.scene.manifest
         self.geometry, geo_info = load_scene_geometry(manifest)
@@ -219,13 +227,17 @@ class SceneBench:
         self.variants = {p: variant_manifest(manifest, p, self.cache / "models") for p in settings.precisions}
         self.weights = {p: model_weight_bytes(m) for p, m in self.variants.items()}
         self.vertex_data, vertex_info = self._vertex_transfer()
+        self.textures, texture_info = {}, {"note": "skipped (--backends)"}
+        if "texture" in settings.backends:
+            self.textures, texture_info = texture_variants(manifest, self.geometry, self.tracer, settings.texture_sizes,
+                                                           settings.ref_rays, settings.cache, ctx, log)  # fmt: skip
         self.entry = {
             "scene": manifest.name, "path": str(manifest.path), "geometry": geo_info,
             "networks": sum(s.kind == "network" for s in manifest.segments), "weight_bytes": self.weights["fp32"],
             "reference": {"rays": settings.ref_rays, "seed": settings.seed, "cache": str(self.transfer_cache), "noise_psnr": {},
                           "noise_note": "PSNR between two references with different seeds at view 0 (covered pixels); "
                                         "each is ~3 dB closer to the converged image than this"},
-            "packing": [], "vertex_baseline": vertex_info, "error_images": [],
+            "packing": [], "vertex_baseline": vertex_info, "texture_baseline": texture_info, "error_images": [],
         }  # fmt: skip
         self.records: list[dict] = []
         self.images: dict = defaultdict(list)  # (resolution, material) -> [(label, view 0 image, its PSNR)]
@@ -242,6 +254,7 @@ class SceneBench:
                 self._network_records(size, views)
                 if self.vertex_data is not None:
                     self._vertex_records(size, views, base.gbuffer, base.lighting)
+                self._texture_records(size, views)
                 if self.settings.images is not None:
                     path = Path(self.settings.images) / f"{self.manifest.name}-{size}x{size}.png"
                     error_figure(views[0], {m: self.images[(f"{size}x{size}", m)] for m in self.materials}, path,
@@ -277,7 +290,8 @@ class SceneBench:
             # A second seed (other frame spins) at view 0 measures the reference's own noise.
             for seed in (settings.seed, settings.seed + 1) if v == 0 else (settings.seed,):
                 transfer, spent = cached_transfer(
-                    self.transfer_cache, tag, self.geometry, self.tracer, points, normals, settings.ref_rays, seed, self.geometry_id
+                    self.transfer_cache, tag, self.geometry, self.tracer, points, normals, settings.ref_rays, seed, self.geometry_id,
+                    executor=self.executor,
                 )
                 seconds += spent
                 images[seed] = reference_images(transfer, gbuffer, camera.eye, renderer.lighting, self.materials)
@@ -328,6 +342,19 @@ class SceneBench:
                         summary["transfer_max_abs_diff"] = 0.0
                     self._add(common, backend, precision, name, summary, self.weights[precision])
 
+    def _texture_records(self, size: int, views: list) -> None:
+        """The texture baseline at each texture size with both materials (:mod:`prt.bench.texture_prt`)."""
+        common = {**self._common(size, views), "flops_per_fragment": 0.0}
+        for texture_size, variant in self.textures.items():
+            stats = self.entry["texture_baseline"]["sizes"][str(texture_size)]
+            bind_framebuffer(self.ctx, self.ctx.fbo)  # the default one if a baseline left a released one bound
+            with Renderer(Scene(variant), size, size, backend="texture", ctx=self.ctx) as renderer:
+                for name, material in self.materials.items():
+                    summary, _ = _measure_renderer(renderer, views, name, material, self.settings)
+                    summary.update(achieved_gflops=0.0, texture_size=texture_size, precompute_s=stats["precompute_s"],
+                                   network_ms=summary["stages_ms"].get("texture", 0.0))  # the transfer stage: the fetch pass
+                    self._add(common, "texture", "fp16", name, summary, stats["bytes"])
+
     def _vertex_records(self, size: int, views: list, gbuffer_pass, lighting) -> None:
         """The vertex baseline with both materials, and how well its pixels match the G-buffer's."""
         resolution = f"{size}x{size}"
@@ -361,6 +388,8 @@ def _record(common, backend, precision, material, summary, weight_bytes, noise_p
     record["machine_percent"] = round(100.0 * gflops / record["machine_gflops"], 3) if record["machine_gflops"] else None
     record["ref_noise_psnr"] = noise_psnr
     record["label"] = f"{backend} {precision} {material}" if backend == "onnx" else f"{backend} {material}"
+    if "texture_size" in record:
+        record["label"] = f"{backend} {record['texture_size']} {material}"
     record.setdefault("transfer_max_abs_diff", None)
     log(
         f"  {record['scene']} {record['resolution']} {record['label']}: {record['fps']:.1f} FPS "
@@ -370,8 +399,55 @@ def _record(common, backend, precision, material, summary, weight_bytes, noise_p
     return record
 
 
-def run(scene_paths, settings: Settings, log=print) -> dict:
+# Points per network segment on which check_scene runs each network once.
+_PROBE_POINTS = 64
+
+
+def check_scene(path, settings: Settings) -> Scene:
+    """Everything about a scene that can fail, checked before anything is measured.
+
+    The manifest (:func:`prt.runtime.manifest.load_manifest`: schema, confined paths), the mesh,
+    every network model (no external data, float32 [N, 6] -> [N, 16], finite transfer on points
+    inside its segment's box), and the GLSL the ``glsl`` backend compiles.
+
+    Raises
+    ------
+    PRTError
+        One line naming the file and the fault.
+    """
+    scene = Scene.load(path)
+    manifest = scene.manifest
+    if manifest.geometry.type == "mesh":
+        load_mesh(manifest.geometry.path)
+    if "glsl" in settings.backends:
+        for seg in scene.network_segments:
+            if seg.glsl is None:
+                raise InputError(f"{manifest.path}: segments[{seg.id}] has no generated GLSL (needed by --backends glsl)")
+            read_text(seg.glsl, "GLSL")
+    if not scene.network_segments:
+        return scene
+    engine = OnnxTransfer(manifest, threads=1)
+    try:
+        rng = np.random.default_rng(0)
+        for seg in scene.network_segments:
+            lo, hi = seg.bounds
+            normals = rng.normal(size=(_PROBE_POINTS, 3))
+            normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+            inputs = np.concatenate([rng.uniform(lo, hi, size=(_PROBE_POINTS, 3)), normals], axis=1).astype(np.float32)
+            _, transfer = engine.compute(inputs, np.full(_PROBE_POINTS, seg.id))
+            if not np.isfinite(transfer).all():
+                raise InputError(f"{seg.model}: the network gives NaN or Inf transfer inside its segment's box")
+    finally:
+        engine.close()
+    return scene
+
+
+def run(scene_paths, settings: Settings, log=print, executor=None) -> dict:
     """Benchmark every scene; the report described in the module docstring.
+
+    Every scene is checked first (:func:`check_scene`); one that fails then, or while it is
+    measured, is left out of the measurements and listed in the report's ``failed``
+    (``{"scene": path, "error": one line}``); the others are measured as usual.
 
     Parameters
     ----------
@@ -385,6 +461,18 @@ def run(scene_paths, settings: Settings, log=print) -> dict:
     dict
     """
     settings.cache = Path(settings.cache or Path(tempfile.gettempdir()) / "prt_bench_cache")
+    failed: list[dict] = []
+    valid = []
+    for path in scene_paths:
+        try:
+            check_scene(path, settings)
+            valid.append(path)
+        except PRTError as exc:
+            failed.append({"scene": str(path), "error": str(exc)})
+            log(f"scene {path}: skipped: {exc}")
+    if not valid:
+        return {"tool": "prt-bench", "created": datetime.datetime.now().isoformat(timespec="seconds"), "scenes": [],
+                "records": [], "failed": failed}  # fmt: skip
     load_start = os.getloadavg()[0]
     if load_start > 0.5:
         log(f"note: load average {load_start:.2f} at the start: other work on this machine will slow the timings")
@@ -406,7 +494,7 @@ def run(scene_paths, settings: Settings, log=print) -> dict:
         # numpy's BLAS threads also run the renderer's small shading products (None: as found).
         limits = threadpool_limits(limits=settings.blas_threads, user_api="blas") if settings.blas_threads else None
         try:
-            for path in scene_paths:
+            for path in valid:
                 # Each finished scene is kept, so an interrupted run resumes at the scene it was on.
                 checkpoint = scene_checkpoint(path, settings)
                 if checkpoint.exists() and not settings.fresh:
@@ -418,7 +506,12 @@ def run(scene_paths, settings: Settings, log=print) -> dict:
                         f"GFLOP/s limit), kept in {checkpoint}; --fresh measures it again")  # fmt: skip
                 else:
                     log(f"scene {path}")
-                    entry, recs = SceneBench(path, settings, ctx, machine_gflops, log).run()
+                    try:
+                        entry, recs = SceneBench(path, settings, ctx, machine_gflops, log, executor).run()
+                    except PRTError as exc:  # e.g. a frame with NaN: this scene is reported, the others measured
+                        failed.append({"scene": str(path), "error": str(exc)})
+                        log(f"scene {path}: failed: {exc}")
+                        continue
                     entry["measured"] = datetime.datetime.now().isoformat(timespec="seconds")
                     entry["checkpoint"] = str(checkpoint)
                     atomic_write_json(checkpoint, {"scene": entry, "records": recs})
@@ -437,4 +530,5 @@ def run(scene_paths, settings: Settings, log=print) -> dict:
     return {
         "tool": "prt-bench", "created": datetime.datetime.now().isoformat(timespec="seconds"),
         "settings": config, "machine": machine, "scenes": scenes, "records": records, "pareto": fronts,
+        "failed": failed,
     }  # fmt: skip

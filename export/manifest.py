@@ -18,13 +18,13 @@ from __future__ import annotations
 import json
 import math
 import os
-import uuid
 from pathlib import Path, PurePath
 from typing import Any
 
 import numpy as np
 
 from prt.runtime.errors import SpecError
+from prt.runtime.files import atomic_write_bytes
 from prt.runtime.manifest import MANIFEST_NAME, Manifest, format_field_path, validate_manifest_dict
 
 __all__ = ["write_manifest", "relative_to_scene"]
@@ -108,6 +108,8 @@ def write_manifest(path: str | Path, data: Manifest | dict, *, check_files: bool
     SpecError
         If the manifest is invalid (nothing is written then); the one-line message names the
         file and the field.
+    OutputError
+        If the file cannot be written (a full disk); no temporary file is left.
     """
     path = Path(path)
     if path.is_dir():
@@ -121,19 +123,7 @@ def write_manifest(path: str | Path, data: Manifest | dict, *, check_files: bool
     validate_manifest_dict(plain, source, root=path.parent if check_files else None)
     text = _format(_ordered(plain)) + "\n"
 
-    # Same folder so os.replace is atomic: readers see the old file or the new one, never half.
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
-    try:
-        with open(tmp, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except OSError as exc:
-        raise SpecError(f"{source}: cannot write manifest ({exc.strerror or exc})") from None
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    atomic_write_bytes(path, text.encode("utf-8"))  # readers see the old file or the new one, never half
     return path
 
 

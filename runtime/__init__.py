@@ -17,11 +17,25 @@ and moderngl only; it never imports torch (a test enforces this).
                                  evaluation harness
 - :mod:`prt.runtime.viewer`, :mod:`prt.runtime.cli`  the viewer window and ``prt-runtime``
 - :mod:`prt.runtime.errors`      the exception types
+- :mod:`prt.runtime.checks`      the checks of user values (finite in float32, counts, UTF-8 text)
+- :mod:`prt.runtime.onnxfile`    ONNX model files checked before ONNX Runtime loads them (no external data)
 """
 
-from .errors import EnvmapError, GeometryError, GLContextError, InputError, PRTError, SpecError
+from .errors import (
+    ArgumentTypeError,
+    EnvmapError,
+    FrameError,
+    GeometryError,
+    GLContextError,
+    InputError,
+    OutputError,
+    PRTError,
+    RendererStateError,
+    SpecError,
+)
 
-__all__ = ["Scene", "Renderer", "PRTError", "InputError", "GeometryError", "EnvmapError", "SpecError", "GLContextError"]
+__all__ = ["Scene", "Renderer", "PRTError", "InputError", "ArgumentTypeError", "GeometryError", "EnvmapError", "SpecError",
+           "GLContextError", "FrameError", "RendererStateError", "OutputError"]  # fmt: skip
 
 
 def __getattr__(name: str):

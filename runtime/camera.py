@@ -18,6 +18,9 @@ from typing import Any
 
 import numpy as np
 
+from .checks import FLOAT32_MAX, check_finite, finite_array
+from .errors import InputError
+
 __all__ = ["Camera", "DEFAULT_CAMERA", "orbit_views"]
 
 # The camera of a scene whose manifest leaves fields out (scene space is [-1, 1]^3, +Y up).
@@ -33,11 +36,13 @@ _PARALLEL_TOL = 1e-9
 
 
 def _vec3(value: Any, what: str) -> np.ndarray:
-    """``value`` as a finite float64 (3,) array, or ValueError naming it."""
-    arr = np.asarray(value, dtype=np.float64)
-    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
-        raise ValueError(f"Camera: {what} must be 3 finite numbers, got {value!r}")
-    return arr
+    """``value`` as a float64 (3,) array finite in float32 (the precision of the shaders' matrices),
+    or an InputError naming it (ArgumentTypeError for what is not numbers)."""
+    return finite_array(value, f"Camera: {what}", (3,))
+
+
+def _number(value: Any, what: str) -> float:
+    return float(finite_array(value, f"Camera: {what}", ()))
 
 
 def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
@@ -64,8 +69,9 @@ class Camera:
 
     Raises
     ------
-    ValueError
-        If the parameters do not define a view.
+    InputError
+        (a ValueError) if the parameters do not define a view in float32; ArgumentTypeError
+        if they are not numbers.
     """
 
     eye: np.ndarray
@@ -81,20 +87,23 @@ class Camera:
         view = target - eye
         distance = float(np.linalg.norm(view))
         if distance < _PARALLEL_TOL:
-            raise ValueError(f"Camera: eye and target coincide at {eye.tolist()}")
+            raise InputError(f"Camera: eye and target coincide at {eye.tolist()}")
+        if not distance <= FLOAT32_MAX:
+            raise InputError(f"Camera: eye and target are too far apart ({distance:.4g}) for float32")
         if np.linalg.norm(np.cross(view, up)) <= _PARALLEL_TOL * distance * max(np.linalg.norm(up), 1.0):
-            raise ValueError(f"Camera: up {up.tolist()} is zero or parallel to the view direction")
-        fov_y, near, far = float(self.fov_y), float(self.near), float(self.far)
+            raise InputError(f"Camera: up {up.tolist()} is zero or parallel to the view direction")
+        fov_y, near, far = _number(self.fov_y, "fov_y"), _number(self.near, "near"), _number(self.far, "far")
         if not 0.0 < fov_y < 180.0:
-            raise ValueError(f"Camera: fov_y must be in (0, 180) degrees, got {self.fov_y!r}")
+            raise InputError(f"Camera: fov_y must be in (0, 180) degrees, got {self.fov_y!r}")
         if not (0.0 < near < far and math.isfinite(far)):
-            raise ValueError(f"Camera: need 0 < near < far, got near={self.near!r}, far={self.far!r}")
+            raise InputError(f"Camera: need 0 < near < far, got near={self.near!r}, far={self.far!r}")
         for name, value in (("eye", eye), ("target", target), ("up", up)):
             value.flags.writeable = False
             object.__setattr__(self, name, value)
         object.__setattr__(self, "fov_y", fov_y)
         object.__setattr__(self, "near", near)
         object.__setattr__(self, "far", far)
+        check_finite(self.view_projection(1.0), "Camera: view-projection matrix (eye too far from the origin?)")
 
     # ----------------------------------------------------------------- construction
 
@@ -135,7 +144,7 @@ class Camera:
         axis = self.up if axis is None else _vec3(axis, "axis")
         length = float(np.linalg.norm(axis))
         if length == 0.0:
-            raise ValueError("Camera.orbit: axis must be non-zero")
+            raise InputError("Camera.orbit: axis must be non-zero")
         rot = _rotation(axis / length, float(angle))
         eye = self.target + rot @ (self.eye - self.target)
         return Camera(eye, self.target, rot @ self.up, self.fov_y, self.near, self.far)
@@ -179,7 +188,7 @@ class Camera:
         """
         aspect = float(aspect)
         if not (aspect > 0.0 and math.isfinite(aspect)):
-            raise ValueError(f"Camera.projection: aspect must be positive, got {aspect!r}")
+            raise InputError(f"Camera.projection: aspect must be positive, got {aspect!r}")
         f = 1.0 / math.tan(math.radians(self.fov_y) / 2.0)
         n, fa = self.near, self.far
         m = np.zeros((4, 4))
@@ -209,7 +218,7 @@ class Camera:
         """
         width, height = int(width), int(height)
         if width < 1 or height < 1:
-            raise ValueError(f"Camera.ray_directions: size must be positive, got {width}x{height}")
+            raise InputError(f"Camera.ray_directions: size must be positive, got {width}x{height}")
         half_y = math.tan(math.radians(self.fov_y) / 2.0)
         half_x = half_y * width / height
         x = ((np.arange(width) + 0.5) / width * 2.0 - 1.0) * half_x

@@ -17,9 +17,10 @@ import os
 import sys
 from pathlib import Path
 
-from .backends import BACKENDS
+from .backends import ALL_BACKENDS, BACKENDS
 from .envmaps import BUNDLED_ENVMAPS
-from .errors import PRTError
+from .checks import finite_array, positive_int
+from .errors import InputError, PRTError
 from .orbit import render_orbit
 from .renderer import Scene
 from .viewer import ViewerOptions, run_window
@@ -34,7 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     p.add_argument("scene", nargs="?", default=None, help="scene.json or its folder (default: the bundled demo scene)")
-    p.add_argument("--backend", choices=BACKENDS, default=BACKENDS[0], help="where the networks run")
+    p.add_argument("--backend", choices=ALL_BACKENDS, default=BACKENDS[0], help="where the networks run (texture: a scene's transfer texture)")
     p.add_argument("--size", default="512", help="image size: W or WxH")
     p.add_argument("--headless", action="store_true", help="no window even if a display is available")
     p.add_argument("--frames", type=int, default=30, help="headless: frames along the orbit")
@@ -52,16 +53,22 @@ def _size(text: str) -> tuple[int, int]:
     try:
         parts = [int(v) for v in text.lower().split("x")]
     except ValueError:
-        raise PRTError(f"--size: expected W or WxH, got {text!r}") from None
+        raise InputError(f"--size: expected W or WxH, got {text!r}") from None
     w, h = (parts[0], parts[0]) if len(parts) == 1 else parts[:2]
     if w < 1 or h < 1 or len(parts) > 2:
-        raise PRTError(f"--size: expected positive W or WxH, got {text!r}")
+        raise InputError(f"--size: expected positive W or WxH, got {text!r}")
     return w, h
 
 
 def options_from_args(args: argparse.Namespace) -> ViewerOptions:
-    """The viewer's options from parsed flags (PRTError for a bad ``--size``)."""
+    """The viewer's options from parsed flags (InputError, naming the flag, for a bad value)."""
     width, height = _size(args.size)
+    positive_int(args.frames, "--frames")
+    if args.threads is not None:
+        positive_int(args.threads, "--threads")
+    finite_array(args.exposure, "--exposure", (), minimum=0.0)
+    if not float(finite_array(args.exponent, "--exponent", ())) > 0:
+        raise InputError(f"--exponent must be > 0, got {args.exponent}")
     return ViewerOptions(
         width=width, height=height, backend=args.backend, envmap=args.envmap, material=args.material,
         exponent=args.exponent, exposure=args.exposure,

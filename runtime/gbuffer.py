@@ -9,7 +9,9 @@ Render targets (RGBA32F, ``width x height``, plus a depth texture):
   covered 1.0 on geometry and 0.0 on background;
 - attachment 1 (:attr:`GBufferPass.normal_texture`): ``normal.xyz, segment`` with a unit
   normal facing the camera (``dot(n, eye - p) >= 0``) and the segment id as a float;
-- background is ``(0, 0, 0, 0)`` and ``(0, 0, 0, -1)``; depth is GL's window depth in
+- attachment 2 (:attr:`GBufferPass.uv_texture`), only for scenes with a transfer texture:
+  ``u, v, atlas, covered``, the UV of the visible side (open faces have one chart per side);
+- background is ``(0, 0, 0, 0)`` and ``(0, 0, 0, -1)`` (and ``(0, 0, 0, 0)``); depth is GL's window depth in
   ``[0, 1]`` (1 on background), written by both paths from the hit's clip-space depth.
 
 Faces: two-sided faces (open surfaces) show the side facing the camera, their normal
@@ -27,16 +29,19 @@ Read-backs are (H, W, ...) arrays with row 0 at the top of the image.
 
 from __future__ import annotations
 
+import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import moderngl
 import numpy as np
 
-from ..shaders import assemble
+from ..shaders import Source, assemble
 from .camera import Camera
-from .errors import GeometryError, SpecError
-from .gl import bind_framebuffer
+from .checks import read_text
+from .errors import GeometryError, InputError, SpecError
+from .gl import bind_framebuffer, compile_program
 from .manifest import Manifest
 from .normals import corner_normals
 
@@ -190,7 +195,7 @@ def load_mesh(path: str | Path) -> dict[str, np.ndarray]:
     try:
         with np.load(path, allow_pickle=False) as data:
             arrays = {key: data[key] for key in data.files}
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:  # a truncated or foreign file
         raise GeometryError(f"{path}: cannot read mesh ({' '.join(str(exc).split())})") from None
     for key in ("vertices", "faces"):
         if key not in arrays:
@@ -215,6 +220,8 @@ def load_mesh(path: str | Path) -> dict[str, np.ndarray]:
         raise GeometryError(f"{path}: object_ids must be ({n_faces},) non-negative integers")
     if two_sided.shape != (n_faces,):
         raise GeometryError(f"{path}: two_sided must have shape ({n_faces},), got {two_sided.shape}")
+    if two_sided.dtype != np.bool_:
+        raise GeometryError(f"{path}: two_sided must be booleans, got {two_sided.dtype}")
     return {
         "vertices": vertices.astype(np.float32),
         "faces": faces,
@@ -235,10 +242,25 @@ def _mesh_vertices(mesh: dict[str, np.ndarray]) -> np.ndarray:
     return records.reshape(-1)
 
 
-def _strip_version(glsl: str) -> str:
-    """``glsl`` without a leading ``#version`` line (an included file must not repeat it)."""
+def _uv_vertices(manifest: Manifest, n_faces: int) -> np.ndarray:
+    """(3F, 5) float32 per corner: front UV, back UV, atlas (the scene's transfer texture)."""
+    from .transfer_texture import load_transfer_texture
+
+    arrays = load_transfer_texture(manifest.transfer_texture, n_faces, transfer=False)
+    records = np.empty((n_faces, 3, 5), dtype=np.float32)
+    records[..., 0:2] = arrays["corner_uv"][:, 0]
+    records[..., 2:4] = arrays["corner_uv"][:, 1]
+    records[..., 4] = arrays["atlas"][:, None]
+    return records.reshape(-1, 5)
+
+
+def _strip_version(glsl: str, name: str = "<sdf>") -> Source:
+    """``glsl`` (the file ``name``) without a leading ``#version`` line (an included file must
+    not repeat it), remembering the file's own line numbers."""
     stripped = glsl.lstrip()
-    return stripped.partition("\n")[2] if stripped.startswith("#version") else glsl
+    if not stripped.startswith("#version"):
+        return Source.from_file(glsl, name)
+    return Source.from_file(stripped.partition("\n")[2], name, glsl[: len(glsl) - len(stripped)].count("\n") + 2)
 
 
 # --------------------------------------------------------------------------- the pass
@@ -271,6 +293,8 @@ class GBufferPass:
         The RGBA32F targets (see the module docstring), for later passes to sample.
     depth_texture : moderngl.Texture
         The depth target.
+    uv_texture : moderngl.Texture or None
+        The UV target of a scene with a transfer texture (see the module docstring), else None.
     kind : str
         ``"mesh"`` or ``"sdf"``.
 
@@ -316,6 +340,9 @@ class GBufferPass:
         self._vao = self._program = None
         self._fbo = self._normal_fbo = None
         self.position_texture = self.normal_texture = self.depth_texture = None
+        # Texture-space transfer needs the UV of each pixel; other scenes draw exactly as before.
+        self._with_uv = self.kind == "mesh" and getattr(manifest, "transfer_texture", None) is not None
+        self.uv_texture = self._uv_vbo = None
         try:
             self._build_targets()
             if self.kind == "mesh":
@@ -335,7 +362,9 @@ class GBufferPass:
         self.position_texture = self._target_texture(size)
         self.normal_texture = self._target_texture(size)
         self.depth_texture = self.ctx.depth_texture(size)
-        self._fbo = self.ctx.framebuffer([self.position_texture, self.normal_texture], self.depth_texture)
+        self.uv_texture = self._target_texture(size) if self._with_uv else None
+        colour = [self.position_texture, self.normal_texture] + ([self.uv_texture] if self._with_uv else [])
+        self._fbo = self.ctx.framebuffer(colour, self.depth_texture)
         # Lets the normal target alone be cleared to its own background value (segment -1).
         self._normal_fbo = self.ctx.framebuffer([self.normal_texture])
 
@@ -349,14 +378,17 @@ class GBufferPass:
         mesh = load_mesh(manifest.geometry.path)
         tables = segment_tables(manifest, mesh["object_ids"])
         _check_uniform_budget(self.ctx, tables, str(manifest.path))
-        fragment = assemble("segment_lookup.glsl", "gbuffer_mesh.frag", defines=_lookup_defines(tables))
-        vertex = assemble("gbuffer_mesh.vert")
-        self._program = self.ctx.program(vertex_shader=vertex, fragment_shader=fragment)
+        uv_define = {"PRT_GBUFFER_UV": 1} if self._with_uv else {}
+        fragment = assemble("segment_lookup.glsl", "gbuffer_mesh.frag", defines={**_lookup_defines(tables), **uv_define})
+        vertex = assemble("gbuffer_mesh.vert", defines=uv_define)
+        self._program = compile_program(self.ctx, fragment, "G-buffer pass", vertex=vertex)
         _set_tables(self._program, tables)
         self._vbo = self.ctx.buffer(_mesh_vertices(mesh).tobytes())
-        self._vao = self.ctx.vertex_array(
-            self._program, [(self._vbo, "3f 3f 3f 2i", "in_position", "in_normal", "in_face_normal", "in_info")]
-        )
+        buffers = [(self._vbo, "3f 3f 3f 2i", "in_position", "in_normal", "in_face_normal", "in_info")]
+        if self._with_uv:
+            self._uv_vbo = self.ctx.buffer(_uv_vertices(manifest, len(mesh["faces"])).tobytes())
+            buffers.append((self._uv_vbo, "4f 1f", "in_uv", "in_atlas"))
+        self._vao = self.ctx.vertex_array(self._program, buffers)
         self._vertices = 3 * len(mesh["faces"])
 
     def _build_sdf(self, manifest: Manifest, max_steps: int, hit_eps: float) -> None:
@@ -365,17 +397,17 @@ class GBufferPass:
             raise ValueError(f"GBufferPass: {message}")
         path = Path(manifest.geometry.path)
         try:
-            scene_glsl = path.read_text(encoding="utf-8")
-        except (OSError, UnicodeDecodeError) as exc:
-            raise GeometryError(f"{path}: cannot read SDF GLSL ({' '.join(str(exc).split())})") from None
+            scene_glsl = read_text(path, "SDF GLSL")
+        except InputError as exc:
+            raise GeometryError(str(exc)) from None
         tables = segment_tables(manifest, np.zeros(1, dtype=np.int32))
         _check_uniform_budget(self.ctx, tables, str(manifest.path))
         defines = {"PRT_MAX_STEPS": max_steps, "PRT_HIT_EPS": hit_eps, "PRT_SCENE_BOX": SCENE_BOX, **_lookup_defines(tables)}
         fragment = assemble(
-            "segment_lookup.glsl", "gbuffer_sdf.frag", defines=defines, fills={"scene_sdf": _strip_version(scene_glsl)}
+            "segment_lookup.glsl", "gbuffer_sdf.frag", defines=defines, fills={"scene_sdf": _strip_version(scene_glsl, str(path))}
         )
         vertex = assemble("fullscreen.vert")
-        self._program = self.ctx.program(vertex_shader=vertex, fragment_shader=fragment)
+        self._program = compile_program(self.ctx, fragment, "G-buffer pass", vertex=vertex)
         _set_tables(self._program, tables)
         self._vbo = None
         self._vao = self.ctx.vertex_array(self._program, [])
@@ -497,8 +529,8 @@ class GBufferPass:
             return
         self._released = True
         resources = [
-            self._vao, self._program, self._vbo,
-            self._normal_fbo, self._fbo, self.position_texture, self.normal_texture, self.depth_texture,
+            self._vao, self._program, self._vbo, self._uv_vbo,
+            self._normal_fbo, self._fbo, self.position_texture, self.normal_texture, self.depth_texture, self.uv_texture,
         ]  # fmt: skip
         for resource in resources:
             if resource is not None:

@@ -7,6 +7,7 @@ Mesa's llvmpipe through EGL is enough: no display and no GPU are needed.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Mapping
 
 import moderngl
@@ -86,11 +87,40 @@ def compile_program(ctx: moderngl.Context, fragment: str, name: str, vertex: str
 
     A failure becomes one :class:`ShaderCompileError` line naming ``name`` and the driver's message.
     """
+    vertex = vertex or _FULLSCREEN_VERTEX
     try:
-        return ctx.program(vertex_shader=vertex or _FULLSCREEN_VERTEX, fragment_shader=fragment)
+        return ctx.program(vertex_shader=vertex, fragment_shader=fragment)
     except moderngl.Error as exc:
-        lines = [ln.strip() for ln in str(exc).splitlines() if "error" in ln.lower()]
-        raise ShaderCompileError(f"{name}: GLSL compile failed: {(lines or [str(exc).strip()])[0][:300]}") from None
+        raise ShaderCompileError(_compile_message(str(exc), name, {"vertex_shader": vertex, "fragment_shader": fragment})) from None
+
+
+# "0:12(5): error: ..." (Mesa), "0(12) : error ..." (NVIDIA), "ERROR: 0:12: ..." (AMD, ANGLE)
+_LOG_LINE = re.compile(r"^\s*(?:ERROR:\s*)?\d+[:(](\d+)\)?(?:\(\d+\))?\s*:\s*(.*)$")
+
+
+def _compile_message(log: str, name: str, stages: dict) -> str:
+    """One line for a compiler log: the first error, at the file and line it came from.
+
+    A stage assembled by :func:`prt.shaders.assemble` knows the ``(file, line)`` of each of its
+    lines, so the error names the file a person has (a scene's ``segments/seg003.glsl``, a
+    bundled shader) and its own line, not the line of the concatenated program.
+    """
+    stage, first = None, None
+    for raw in log.splitlines():
+        line = raw.strip()
+        if line in stages:
+            stage = line
+        elif "error" in line.lower() and first is None:
+            first = (stage, line)
+    if first is None:
+        return f"{name}: GLSL compile failed: {' '.join(log.split())[:300]}"
+    stage, line = first
+    match = _LOG_LINE.match(line)
+    where = getattr(stages.get(stage), "where", None)
+    origin = where(int(match.group(1))) if match and where else None
+    if origin is None:
+        return f"{name}: GLSL compile failed: {line[:300]}"
+    return f"{origin[0]}:{origin[1]}: GLSL compile failed ({name}): {match.group(2)[:300]}"
 
 
 def draw_fullscreen(ctx: moderngl.Context, fbo, vao, textures) -> None:

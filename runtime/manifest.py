@@ -36,8 +36,10 @@ import numpy as np
 from jsonschema import Draft202012Validator
 from jsonschema.exceptions import ValidationError, best_match
 
-from .camera import DEFAULT_CAMERA
-from .errors import SpecError
+from .camera import DEFAULT_CAMERA, Camera
+from .checks import unusable_json_number
+from .errors import ArgumentTypeError, InputError, SpecError
+from .transfer_texture import TransferTextureInfo
 
 __all__ = [
     "SCENE_SCHEMA",
@@ -52,6 +54,7 @@ __all__ = [
     "MaterialInfo",
     "CameraInfo",
     "MemoryInfo",
+    "TransferTextureInfo",
     "Manifest",
     "load_manifest",
     "validate_manifest_dict",
@@ -378,6 +381,8 @@ class Manifest:
     camera : CameraInfo
     memory : MemoryInfo or None
         If recorded.
+    transfer_texture : TransferTextureInfo or None
+        If the scene has one (optional field; older manifests have none).
     raw : dict or None
         The parsed JSON, unchanged (None for a manifest not read from a file).
     """
@@ -394,6 +399,7 @@ class Manifest:
     material: MaterialInfo
     camera: CameraInfo
     memory: MemoryInfo | None
+    transfer_texture: TransferTextureInfo | None = None
     raw: dict | None = field(default=None, repr=False)
 
     @property
@@ -449,6 +455,7 @@ class Manifest:
             material=MaterialInfo.from_dict(data["material"]),
             camera=CameraInfo.from_dict(data.get("camera", {})),
             memory=MemoryInfo.from_dict(data["memory"]) if "memory" in data else None,
+            transfer_texture=TransferTextureInfo.from_manifest(data, files),
             raw=data,
         )
 
@@ -480,6 +487,8 @@ class Manifest:
         }
         if self.memory is not None:
             out["memory"] = self.memory.to_dict()
+        if self.transfer_texture is not None:
+            out["transfer_texture"] = self.transfer_texture.to_dict(root)
         return out
 
 
@@ -548,6 +557,9 @@ def validate_manifest_dict(
     error = best_match(_VALIDATOR.iter_errors(data))
     if error is not None:
         raise _fail(source, error.absolute_path, _schema_message(error))
+    number = unusable_json_number(data)  # e.g. 1e39 where float32 is used, an integer beyond int64
+    if number is not None:
+        raise _fail(source, *number)
     _check_semantics(data, source)
     if root is not None:
         _resolve_paths(data, Path(root), source)
@@ -596,11 +608,22 @@ def _check_semantics(data: dict, source: str) -> None:
 
     camera = {**DEFAULT_CAMERA, **data.get("camera", {})}
     view = np.subtract(camera["target"], camera["eye"], dtype=np.float64)
-    up = np.asarray(camera["up"], dtype=np.float64)
     if np.linalg.norm(view) < 1e-9:
         raise _fail(source, ["camera"], "eye and target coincide")
-    if np.linalg.norm(np.cross(view, up)) < 1e-9 * np.linalg.norm(view):
+    if np.linalg.norm(np.cross(view, camera["up"])) < 1e-9 * np.linalg.norm(view):
         raise _fail(source, ["camera", "up"], "is zero or parallel to the view direction")
+    # The renderer's own checks, so that a valid manifest is a scene the renderer accepts.
+    try:
+        Camera(camera["eye"], camera["target"], camera["up"], camera["fov"])
+    except InputError as exc:
+        raise _fail(source, ["camera"], str(exc)) from None
+    if "sh" in lighting and bands**2 == len(lighting["sh"]):
+        from .shading import Lighting  # shading pulls in the shader sources; only needed here
+
+        try:
+            Lighting.from_sh(lighting["sh"], rotation=lighting.get("rotation"))
+        except InputError as exc:
+            raise _fail(source, ["lighting", "sh"], str(exc)) from None
 
 
 def _check_tree(seg: dict, n_segments: int, source: str) -> None:
@@ -654,11 +677,13 @@ def _path_fields(data: dict) -> list[tuple[list[str | int], str]]:
     envmap = data["lighting"].get("envmap")
     if envmap is not None:
         fields.append((["lighting", "envmap"], envmap))
-    return fields
+    return fields + TransferTextureInfo.path_fields(data)
 
 
 def _resolve_inside(root: Path, rel: str, parts: list[str | int], source: str) -> Path:
     """Absolute, resolved path of ``rel`` below ``root``; SpecError unless an existing file inside."""
+    if any(ord(c) < 32 for c in rel):  # a NUL byte ends the path inside the OS; line breaks hide in messages
+        raise _fail(source, parts, f"path {rel!r} holds a control character (NUL, line break)")
     windows = PureWindowsPath(rel)
     if PurePosixPath(rel).is_absolute() or windows.is_absolute() or windows.drive:
         message = f"path {rel!r} is absolute; paths must be relative to the scene folder"
@@ -667,11 +692,15 @@ def _resolve_inside(root: Path, rel: str, parts: list[str | int], source: str) -
         real_root = root.resolve()
         # resolve() follows symlinks, so a link pointing outside is caught like a '..' escape.
         target = (root / rel).resolve()
-    except (OSError, RuntimeError) as exc:  # symlink loops: RuntimeError before Python 3.13
+    except (OSError, RuntimeError, ValueError) as exc:  # symlink loops: RuntimeError before 3.13; ValueError: unencodable
         raise _fail(source, parts, f"cannot resolve path {rel!r} ({_one_line(exc)})") from None
     if not target.is_relative_to(real_root):
         raise _fail(source, parts, f"path {rel!r} escapes the scene folder")
-    if not target.is_file():
+    try:
+        is_file = target.is_file()
+    except (OSError, ValueError):
+        is_file = False
+    if not is_file:
         what = "is not a file" if target.exists() else "does not exist"
         raise _fail(source, parts, f"file {rel!r} {what} (scene folder {root})")
     return target
@@ -715,6 +744,8 @@ def _read_json(path: Path, source: str) -> Any:
         raise SpecError(f"{source}: not UTF-8 text (byte {exc.start})") from None
     except OSError as exc:
         raise SpecError(f"{source}: cannot read manifest ({_one_line(exc.strerror or exc)})") from None
+    except ValueError as exc:  # a NUL byte in the path
+        raise SpecError(f"{source}: cannot read manifest ({_one_line(exc)})") from None
     try:
         return json.loads(
             text, parse_constant=_reject_constant, object_pairs_hook=_object_without_duplicates
@@ -724,6 +755,10 @@ def _read_json(path: Path, source: str) -> Any:
         raise SpecError(f"{source}: invalid JSON at {where}: {exc.msg}") from None
     except _JSONValueError as exc:
         raise SpecError(f"{source}: invalid manifest JSON: {exc}") from None
+    except RecursionError:
+        raise SpecError(f"{source}: invalid manifest JSON: nested too deeply") from None
+    except ValueError as exc:  # an integer of thousands of digits
+        raise SpecError(f"{source}: invalid manifest JSON: {_one_line(exc)}") from None
 
 
 def load_manifest(path: str | Path) -> Manifest:
@@ -746,8 +781,13 @@ def load_manifest(path: str | Path) -> Manifest:
         semantic rule, or references a path that is absolute, escapes the folder (also via a
         symlink) or does not exist.  The message is one line naming the file and the field.
     """
+    if not isinstance(path, (str, os.PathLike)):
+        raise ArgumentTypeError(f"scene path must be a str or a path, got {type(path).__name__}")
     path = Path(path)
-    if path.is_dir():
-        path = path / MANIFEST_NAME
+    try:
+        if path.is_dir():
+            path = path / MANIFEST_NAME
+    except (OSError, ValueError):
+        pass  # reading it says what is wrong
     source = str(path)
     return Manifest.from_dict(_read_json(path, source), path, source)

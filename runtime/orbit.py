@@ -12,7 +12,8 @@ import imageio.v3 as iio
 import numpy as np
 
 from .camera import orbit_views
-from .errors import PRTError
+from .checks import finite_array, positive_int
+from .errors import OutputError
 from .files import atomic_write_bytes
 from .shading import to_srgb8
 
@@ -54,7 +55,8 @@ def render_orbit(r, frames: int, out, *, exposure: float = 1.0, warmup: int = 2)
     frames : int
         Views, evenly spaced (:func:`prt.runtime.camera.orbit_views`).
     out : str or os.PathLike
-        Folder for the frames (created).
+        Folder for the frames, created when the first frame is ready (never for a failed first
+        frame); if the orbit fails later, the frames written and a folder it created are removed.
     exposure : float
         Exposure before tone mapping.
     warmup : int
@@ -64,24 +66,49 @@ def render_orbit(r, frames: int, out, *, exposure: float = 1.0, warmup: int = 2)
     -------
     OrbitSummary
     """
-    if frames < 1:
-        raise PRTError(f"--frames must be positive, got {frames}")
+    frames = positive_int(frames, "--frames")
+    exposure = float(finite_array(exposure, "--exposure", (), minimum=0.0))
     out = Path(out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise PRTError(f"{out}: cannot create the output folder ({exc.strerror})") from None
     start = r.camera
-    for i in range(warmup):  # sessions, shader compilation, caches; a new view each time
-        r.set_camera_object(start.orbit(-0.01 * (i + 1)))
-        r.render()
-    stages: dict[str, list[float]] = {}
-    for i, camera in enumerate(orbit_views(start, frames)):
-        r.set_camera_object(camera)
-        image = r.render()
-        for k, v in r.timings.items():
-            stages.setdefault(k, []).append(v)
-        atomic_write_bytes(out / f"frame_{i:03d}.png", iio.imwrite("<bytes>", to_srgb8(image, exposure), extension=".png"))
-    r.set_camera_object(start)
+    written: list[Path] = []
+    created: list[Path] = []  # folders made here, deepest last
+    try:
+        for i in range(warmup):  # sessions, shader compilation, caches; a new view each time
+            r.set_camera_object(start.orbit(-0.01 * (i + 1)))
+            r.render()
+        stages: dict[str, list[float]] = {}
+        for i, camera in enumerate(orbit_views(start, frames)):
+            r.set_camera_object(camera)
+            image = r.render()
+            for k, v in r.timings.items():
+                stages.setdefault(k, []).append(v)
+            png = iio.imwrite("<bytes>", to_srgb8(image, exposure), extension=".png")
+            if not written:
+                created = _make_folder(out)
+            atomic_write_bytes(out / f"frame_{i:03d}.png", png)
+            written.append(out / f"frame_{i:03d}.png")
+    except BaseException:
+        for path in written:
+            path.unlink(missing_ok=True)
+        for folder in reversed(created):
+            try:
+                folder.rmdir()
+            except OSError:
+                break
+        raise
+    finally:
+        r.set_camera_object(start)
     med = {k: float(np.median(v)) for k, v in stages.items()}
     return OrbitSummary(r.scene.name, frames, r.width, r.height, r.backend, med, out)
+
+
+def _make_folder(out: Path) -> list[Path]:
+    """Create ``out`` and its missing parents; the folders created, outermost first."""
+    missing = [p for p in [out, *out.parents] if not p.exists()][::-1]
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except (OSError, ValueError) as exc:
+        raise OutputError(f"{out}: cannot create the output folder ({getattr(exc, 'strerror', None) or exc})") from None
+    if not out.is_dir():
+        raise OutputError(f"{out}: not a folder")
+    return missing

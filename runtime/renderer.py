@@ -18,12 +18,18 @@ A frame runs three stages, each timed (milliseconds in :attr:`Renderer.timings`)
 Transfer depends only on the geometry and the camera: when only the light, the material or
 the backend's shading inputs change, :meth:`Renderer.render` re-shades the cached transfer and
 runs no network (``stats["network_runs"]`` does not move).
+
+A frame is never returned with holes: a transfer that is NaN or Inf after inference (either
+backend), or an image that is, raises :class:`~prt.runtime.errors.FrameError` (one line).
 """
 
 from __future__ import annotations
 
 import functools
+import os
+import threading
 import time
+import weakref
 from importlib import resources
 from pathlib import Path
 
@@ -31,12 +37,13 @@ import moderngl
 import numpy as np
 
 from ..shaders import assemble
-from .backends import BACKENDS, CpuTransfer, TransferBackend, create_backend
+from .backends import ALL_BACKENDS, BACKENDS, CpuTransfer, TransferBackend, create_backend
 from .camera import DEFAULT_CAMERA, Camera
 from .envmap import load_envmap_sh
 from .envmaps import BUNDLED_ENVMAPS, DEFAULT_ENVMAP, bundled_envmap_path
-from .errors import InputError
-from .gbuffer import GBufferPass
+from .checks import count_nonfinite, positive_int
+from .errors import ArgumentTypeError, FrameError, InputError, RendererStateError
+from .gbuffer import PACKED_SEGMENT, GBufferPass
 from .gl import ShaderCompileError, bind_framebuffer, compile_program, create_context, draw_fullscreen
 from .manifest import Manifest, load_manifest
 from .shading import GLSL_DEFINES, GLSL_FILES, Lighting, Material, shade, shader_uniforms, to_srgb8
@@ -87,38 +94,76 @@ class Renderer:
     ----------
     scene : Scene
     width, height : image size in pixels
-    backend : a name in :data:`prt.runtime.backends.BACKENDS` (``"onnx"``, ``"glsl"``)
+    backend : a name in :data:`prt.runtime.backends.ALL_BACKENDS` (``"onnx"``, ``"glsl"``; ``"texture"``
+        for a scene with a transfer texture)
     providers : ONNX Runtime execution providers (default: CUDA where present, else CPU)
     threads : CPU threads for the ONNX backend (default: all cores)
     ctx : an existing moderngl context (e.g. a window's); default: a headless EGL context
+
+    Every argument is checked: a wrong type raises :class:`~prt.runtime.errors.ArgumentTypeError`,
+    a wrong value (a size the GL driver cannot allocate, ``threads < 1``) an
+    :class:`~prt.runtime.errors.InputError`, each one line.
+
+    Threading contract
+    ------------------
+    A Renderer, like the OpenGL context it draws with, belongs to the thread that created it:
+    a call from any other thread raises :class:`~prt.runtime.errors.RendererStateError` (it
+    would otherwise render another thread's camera, or draw with a context that is not
+    current there).  To render from several threads, give each thread its own Renderer.
+
+    Lifetime
+    --------
+    :meth:`close` (or leaving a ``with`` block) releases the GL objects, the ONNX sessions and
+    an own context at once; a Renderer that is never closed releases them when it is garbage
+    collected.  Any call after :meth:`close` raises :class:`RendererStateError`.
     """
 
     def __init__(self, scene: Scene, width: int = 512, height: int = 512, backend: str = BACKENDS[0], *,
                  providers=None, threads: int | None = None, ctx: moderngl.Context | None = None):
-        if backend not in BACKENDS:
-            raise InputError(f"backend must be one of {BACKENDS}, got {backend!r}")
-        if width < 1 or height < 1:
-            raise InputError(f"image size must be positive, got {width}x{height}")
-        self.scene = scene
-        self.width, self.height = int(width), int(height)
-        self._own_ctx = ctx is None
-        self.ctx = ctx if ctx is not None else create_context()
-        self._bound_fbo = self.ctx.fbo  # bound again on close: a released framebuffer must not stay bound
+        self._owner = threading.get_ident()
+        self._closed = True  # until the resources exist
+        if not isinstance(scene, Scene):
+            raise ArgumentTypeError(f"Renderer: scene must be a Scene (Scene.load(path)), got {type(scene).__name__}")
+        width, height = positive_int(width, "Renderer: width"), positive_int(height, "Renderer: height")
+        _check_backend(backend)
+        if threads is not None:
+            threads = positive_int(threads, "Renderer: threads (CPU threads of the ONNX backend)")
+        providers = _check_providers(providers)
+        if ctx is not None and not isinstance(ctx, moderngl.Context):
+            raise ArgumentTypeError(f"Renderer: ctx must be a moderngl.Context, got {type(ctx).__name__}")
         m = scene.manifest
         if m.sh_bands != 4:
             raise InputError(f"{m.path}: the renderer's shaders handle 4 SH bands, the scene has {m.sh_bands}")
-        self.gbuffer = GBufferPass(self.ctx, m, self.width, self.height)
-        self._backend_options = {"providers": providers, "threads": threads}
-        self._backends: dict[str, TransferBackend] = {}  # created on first use, kept while switching
-        size = (self.width, self.height)
-        self._t_textures = [self._float_texture(size) for _ in range(4)]
-        self._t_fbo = self.ctx.framebuffer(self._t_textures)
-        self._out_texture = self._float_texture(size)
-        self._out_fbo = self.ctx.framebuffer([self._out_texture])
-        self._image = np.empty((self.height, self.width, 4), dtype=np.float32)
-        shade_source = assemble(*GLSL_FILES, "shade_pass.frag", defines=GLSL_DEFINES)
-        self._shade_program = compile_program(self.ctx, shade_source, "shade_pass.frag")
-        self._vao = self.ctx.vertex_array(self._shade_program, [])
+        self.scene = scene
+        self.width, self.height = width, height
+        self._own_ctx = ctx is None
+        self.ctx = ctx if ctx is not None else create_context()
+        # What GC releases if close() is never called; it must not refer to self.
+        self._resources = _Resources(self.ctx, self._own_ctx, self.ctx.fbo)
+        self._finalizer = weakref.finalize(self, self._resources.release, False)
+        self._finalizer.atexit = False  # at exit the GL driver may be gone already
+        self._bound_fbo = self.ctx.fbo  # bound again on close: a released framebuffer must not stay bound
+        try:
+            _check_size(self.ctx, width, height)
+            self._backend_options = {"providers": providers, "threads": threads}
+            self._backends = self._resources.backends  # created on first use, kept while switching
+            self.gbuffer = self._resources.keep(GBufferPass(self.ctx, m, self.width, self.height))
+            size = (self.width, self.height)
+            self._t_textures = [self._resources.keep(self._float_texture(size)) for _ in range(4)]
+            self._t_fbo = self._resources.keep(self.ctx.framebuffer(self._t_textures))
+            self._out_texture = self._resources.keep(self._float_texture(size))
+            self._out_fbo = self._resources.keep(self.ctx.framebuffer([self._out_texture]))
+            _check_allocation(self.ctx, width, height)
+            self._image = np.empty((self.height, self.width, 4), dtype=np.float32)
+            shade_source = assemble(*GLSL_FILES, "shade_pass.frag", defines=GLSL_DEFINES)
+            self._shade_program = self._resources.keep(compile_program(self.ctx, shade_source, "shade_pass.frag"))
+            self._vao = self._resources.keep(self.ctx.vertex_array(self._shade_program, []))
+        except MemoryError:
+            self._finalizer()
+            raise InputError(f"image size {width}x{height}: not enough memory for the frame buffers") from None
+        except BaseException:
+            self._finalizer()
+            raise
         # A transfer on the CPU: covered pixels, their transfer, and the image being assembled
         self._covered = np.zeros(0, dtype=np.int64)
         self._transfer_cov = np.zeros((0, 16), dtype=np.float32)
@@ -142,25 +187,40 @@ class Renderer:
         self.stats = {"frames": 0, "network_runs": 0, "relight_frames": 0}
         self._transfer_valid = False
         self._transfer_on_cpu = True
+        self._closed = False
+
+    def _check_usable(self) -> None:
+        """RendererStateError after close() or from a thread other than the creator (see the class docstring)."""
+        if self._closed:
+            raise RendererStateError("Renderer: used after close(); create a new Renderer")
+        if threading.get_ident() != self._owner:
+            raise RendererStateError(
+                f"Renderer: called from thread {threading.current_thread().name!r}, but a Renderer belongs to the thread "
+                "that created it; create one Renderer per thread"
+            )
 
     # ------------------------------------------------------------------ settings
 
     def set_camera(self, eye=DEFAULT_CAMERA["eye"], target=DEFAULT_CAMERA["target"], up=DEFAULT_CAMERA["up"],
                    fov: float = DEFAULT_CAMERA["fov"]) -> None:
         """Place the camera (scene units; ``fov`` is the vertical field of view in degrees)."""
-        try:
-            self.camera = Camera(eye=eye, target=target, up=up, fov_y=fov)
-        except ValueError as exc:
-            raise InputError(f"camera: {exc}") from None
+        self._check_usable()
+        self.camera = Camera(eye=eye, target=target, up=up, fov_y=fov)  # InputError / ArgumentTypeError
         self._transfer_valid = False
 
     def set_camera_object(self, camera: Camera) -> None:
+        self._check_usable()
+        if not isinstance(camera, Camera):
+            raise ArgumentTypeError(f"Renderer.set_camera_object: expected a Camera, got {type(camera).__name__}")
         self.camera = camera
         self._transfer_valid = False
 
     def set_envmap(self, envmap, rotation=None) -> None:
         """Light with an equirectangular ``.hdr``/``.exr`` file, or a bundled map by name
         (:data:`prt.runtime.envmaps.BUNDLED_ENVMAPS`); ``rotation`` is a 3x3 matrix."""
+        self._check_usable()
+        if not isinstance(envmap, (str, os.PathLike)):
+            raise ArgumentTypeError(f"Renderer.set_envmap: expected a bundled name or a path, got {type(envmap).__name__}")
         path = bundled_envmap_path(envmap) if isinstance(envmap, str) and envmap in BUNDLED_ENVMAPS else envmap
         key = str(Path(path).resolve()) if Path(path).exists() else str(path)
         if key not in self._envmap_sh:  # turning the light must not re-read and re-project the file
@@ -168,19 +228,27 @@ class Renderer:
         self.lighting = Lighting.from_sh(self._envmap_sh[key], rotation=rotation)
 
     def set_lighting_sh(self, coeffs, rotation=None) -> None:
-        """Light with SH coefficients (16, 3)."""
-        self.lighting = Lighting.from_sh(coeffs, rotation=rotation)
+        """Light with SH coefficients (16, 3), finite in float32."""
+        self._check_usable()
+        lighting = Lighting.from_sh(coeffs, rotation=rotation)
+        if lighting.bands != self.scene.manifest.sh_bands:
+            n = self.scene.manifest.sh_bands
+            raise InputError(f"Renderer.set_lighting_sh: the scene has {n} SH bands ({n * n} rows), got {lighting.bands} bands ({lighting.sh.shape[0]} rows)")
+        self.lighting = lighting
 
     def set_material(self, kind: str = "diffuse", **params) -> None:
         """``"diffuse"`` (albedo) or ``"glossy"`` (albedo, specular, exponent)."""
+        self._check_usable()
         try:
             self.material = Material(kind=kind, **params)
-        except TypeError as exc:
-            raise InputError(f"material: {exc}") from None
+        except ArgumentTypeError:
+            raise
+        except TypeError as exc:  # an unknown parameter name
+            raise ArgumentTypeError(f"material: {exc}") from None
 
     def set_backend(self, backend: str) -> None:
-        if backend not in BACKENDS:
-            raise InputError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        self._check_usable()
+        _check_backend(backend)
         if backend != self.backend:
             self.backend = backend
             self._transfer_valid = False
@@ -188,7 +256,16 @@ class Renderer:
     # ------------------------------------------------------------------ frames
 
     def render(self) -> np.ndarray:
-        """One frame: (H, W, 3) float32 linear radiance, row 0 at the top, background 0."""
+        """One frame: (H, W, 3) float32 linear radiance, row 0 at the top, background 0.
+
+        Raises
+        ------
+        FrameError
+            If the transfer (after inference, either backend) or the image holds NaN or Inf.
+        RendererStateError
+            After :meth:`close`, or from a thread other than the creator.
+        """
+        self._check_usable()
         timings: dict[str, float] = {}
         t_frame = time.perf_counter()
         if not self._transfer_valid:
@@ -207,7 +284,18 @@ class Renderer:
             self.ctx.finish()
             t1 = time.perf_counter()
             self._out_fbo.read_into(self._image, components=4, dtype="f4")
+            broken = int(np.count_nonzero(self._image[..., 3] > 1.5))  # shade_pass.frag's flag
+            if broken:
+                message = self._broken_transfer_message(broken)
+                self._transfer_valid = False
+                raise FrameError(message)
             image = np.ascontiguousarray(self._image[::-1, :, :3])
+        bad = count_nonfinite(image)
+        if bad:
+            raise FrameError(
+                f"{self.scene.path}: the frame has {bad} NaN or Inf values after shading (lighting or material too "
+                "large for float32?); no image returned"
+            )
         t2 = time.perf_counter()
         timings["shade"] = 1e3 * (t1 - t0)
         timings["readout"] = 1e3 * (t2 - t1)
@@ -222,6 +310,7 @@ class Renderer:
 
     def render_transfer(self) -> np.ndarray:
         """The transfer image of the current view: (H, W, 16) float32, row 0 at the top."""
+        self._check_usable()
         if not self._transfer_valid:
             self._compute_transfer({})
             self.stats["network_runs"] += 1
@@ -233,10 +322,15 @@ class Renderer:
         for tex in self._t_textures:
             a = np.frombuffer(tex.read(), dtype=np.float32).reshape(self.height, self.width, 4)
             parts.append(a[::-1])
-        return np.concatenate(parts, axis=2)
+        transfer = np.concatenate(parts, axis=2)
+        bad = int(np.count_nonzero(~np.isfinite(transfer).all(axis=2)))
+        if bad:
+            raise FrameError(self._broken_transfer_message(bad))
+        return transfer
 
     def gbuffer_image(self):
         """The G-buffer of the current view (see :class:`prt.runtime.gbuffer.GBuffer`)."""
+        self._check_usable()
         self.gbuffer.render(self.camera)
         return self.gbuffer.read()
 
@@ -256,6 +350,10 @@ class Renderer:
         self._transfer_valid = True
 
     def _take_cpu_transfer(self, result: CpuTransfer) -> None:
+        bad = ~np.isfinite(result.transfer).all(axis=1)
+        if bad.any():
+            segments = np.unique(result.packed[result.covered[bad], PACKED_SEGMENT].astype(np.int64))
+            raise FrameError(self._broken_segments_message(int(bad.sum()), segments))
         self._cpu_image[self._covered] = 0.0  # the previous view's pixels
         self._covered, self._transfer_cov = result.covered, result.transfer
         self._packed, self._geometry_cov = result.packed, None
@@ -264,7 +362,8 @@ class Renderer:
         """Radiance of the covered pixels (M, 3) from the cached transfer (numpy twin of the shader)."""
         # BLAS worker threads spinning after these small products steal the cores from ONNX
         # Runtime's threads in the next frame; one thread is as fast for them.
-        with _blas_controller().limit(limits=1, user_api="blas"):
+        # Overflow is not warned about here: render() refuses a frame that is not finite.
+        with _blas_controller().limit(limits=1, user_api="blas"), np.errstate(over="ignore", invalid="ignore"):
             return self._shade_cpu_products()
 
     def _shade_cpu_products(self) -> np.ndarray:
@@ -296,6 +395,21 @@ class Renderer:
             self._backends[self.backend] = create_backend(self.backend, self.ctx, self.scene.manifest, **self._backend_options)
         return self._backends[self.backend]
 
+    def _broken_transfer_message(self, pixels: int) -> str:
+        """The FrameError text for a GPU transfer flagged non-finite: which segments (read back only now)."""
+        packed = self.gbuffer.read_packed()
+        parts = [np.frombuffer(t.read(), dtype=np.float32).reshape(self.height, self.width, 4)[::-1] for t in self._t_textures]
+        rows = np.flatnonzero(~np.isfinite(np.concatenate(parts, axis=2).reshape(-1, 16)).all(axis=1))
+        segments = np.unique(packed[rows, PACKED_SEGMENT].astype(np.int64)) if len(rows) else np.zeros(0, np.int64)
+        return self._broken_segments_message(pixels, segments[segments >= 0])
+
+    def _broken_segments_message(self, pixels: int, segments: np.ndarray) -> str:
+        files = [str(self.scene.manifest.segments[s].model or self.scene.manifest.segments[s].glsl or f"segment {s}")
+                 for s in segments.tolist() if 0 <= s < len(self.scene.manifest.segments)]  # fmt: skip
+        where = f" from {', '.join(files)}" if files else ""
+        return (f"{self.scene.path}: the transfer is NaN or Inf at {pixels} pixels{where} (backend {self.backend}); "
+                "the network is broken, no image returned")  # fmt: skip
+
     @property
     def network_calls(self) -> int:
         """How often a network stage ran (both backends)."""
@@ -309,22 +423,96 @@ class Renderer:
         return tex
 
     def close(self) -> None:
-        """Release GPU resources and ONNX sessions (also on ``with`` exit)."""
-        for backend in self._backends.values():
-            backend.release()
-        self._backends.clear()
-        self.gbuffer.release()
-        bind_framebuffer(self.ctx, self._bound_fbo)
-        for obj in [*self._t_textures, self._t_fbo, self._out_texture, self._out_fbo, self._vao, self._shade_program]:
-            obj.release()
-        if self._own_ctx:
-            self.ctx.release()
+        """Release GPU resources and ONNX sessions (also on ``with`` exit); closing twice is harmless."""
+        if self._closed:
+            return
+        if threading.get_ident() != self._owner:
+            self._check_usable()  # the GL context is current in the creator's thread only
+        self._closed = True
+        self._finalizer.detach()
+        self._resources.release(True)
 
     def __enter__(self) -> "Renderer":
         return self
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class _Resources:
+    """What a Renderer holds in GL and ONNX Runtime, released once: by ``close()`` or, for a
+    Renderer never closed, by ``weakref.finalize`` when it is collected (so it refers to no Renderer)."""
+
+    def __init__(self, ctx: moderngl.Context, own_ctx: bool, bound_fbo) -> None:
+        self.ctx, self.own_ctx, self.bound_fbo = ctx, own_ctx, bound_fbo
+        self.owner = threading.get_ident()
+        self.objects: list = []
+        self.backends: dict[str, TransferBackend] = {}
+        self.released = False
+
+    def keep(self, obj):
+        self.objects.append(obj)
+        return obj
+
+    def release(self, rebind: bool) -> None:
+        if self.released:
+            return
+        if threading.get_ident() != self.owner:
+            # Collected in another thread (one of ONNX Runtime's, say), where the context is not
+            # current: GL calls would go nowhere.  The objects die with the context at exit.
+            return
+        self.released = True
+        for backend in self.backends.values():
+            backend.release()
+        self.backends.clear()
+        # close() rebinds the framebuffer bound at creation; collection (at any moment, maybe during
+        # another renderer's frame on a shared context) rebinds only if one of ours is bound.
+        ours = {id(o) for o in self.objects}
+        if rebind or (self.ctx.fbo is not None and id(self.ctx.fbo) in ours):
+            bind_framebuffer(self.ctx, self.bound_fbo)
+        for obj in reversed(self.objects):
+            obj.release()
+        self.objects.clear()
+        if self.own_ctx:
+            self.ctx.release()
+
+
+def _check_backend(backend) -> None:
+    if not isinstance(backend, str):
+        raise ArgumentTypeError(f"backend must be one of {ALL_BACKENDS}, got {type(backend).__name__} {backend!r}")
+    if backend not in ALL_BACKENDS:
+        raise InputError(f"backend must be one of {ALL_BACKENDS}, got {backend!r}")
+
+
+def _check_providers(providers):
+    """None, or a list of ONNX Runtime execution provider names this installation has."""
+    if providers is None:
+        return None
+    if isinstance(providers, str) or not all(isinstance(p, str) for p in providers):
+        raise ArgumentTypeError(f"providers must be a list of provider names, got {providers!r}")
+    import onnxruntime as ort
+
+    available = ort.get_available_providers()
+    unknown = [p for p in providers if p not in available]
+    if unknown or not providers:
+        raise InputError(f"providers: {unknown or providers} not available (this onnxruntime has {available})")
+    return list(providers)
+
+
+def _check_size(ctx: moderngl.Context, width: int, height: int) -> None:
+    """InputError for an image size beyond what the GL driver can allocate (its texture, renderbuffer and viewport limits)."""
+    limits = [ctx.info.get("GL_MAX_TEXTURE_SIZE"), ctx.info.get("GL_MAX_RENDERBUFFER_SIZE")]
+    viewport = ctx.info.get("GL_MAX_VIEWPORT_DIMS")
+    limit = min(int(v) for v in limits + list(viewport or ()) if v)
+    if width > limit or height > limit:
+        raise InputError(f"image size {width}x{height}: this OpenGL driver allows at most {limit}x{limit}")
+
+
+def _check_allocation(ctx: moderngl.Context, width: int, height: int) -> None:
+    """InputError if the driver failed to allocate the frame buffers (GL_OUT_OF_MEMORY and the like)."""
+    error = ctx.error
+    if error != "GL_NO_ERROR":
+        raise InputError(f"image size {width}x{height}: the OpenGL driver cannot allocate the frame buffers ({error})")
 
 
 @functools.lru_cache(maxsize=1)

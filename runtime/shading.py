@@ -58,8 +58,9 @@ import numpy as np
 
 from ..shaders import assemble
 from . import sh
+from .checks import check_finite, finite_array
 from .envmap import load_envmap_sh
-from .errors import InputError
+from .errors import ArgumentTypeError, InputError
 
 __all__ = [
     "MATERIAL_KINDS",
@@ -119,15 +120,16 @@ def compute_light_matrix(coeffs) -> np.ndarray:
 
 def _check_sh(coeffs) -> np.ndarray:
     """``coeffs`` as float64 (n, 3) with n a positive square and finite values, else InputError."""
+    if isinstance(coeffs, (str, bytes)) or coeffs is None:
+        raise ArgumentTypeError(f"Lighting.sh must be a numeric (n, 3) array, got {type(coeffs).__name__}")
     try:
         arr = np.array(coeffs, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise InputError(f"Lighting.sh must be a numeric (n, 3) array, got {type(coeffs).__name__}") from None
+    except (TypeError, ValueError, OverflowError):
+        raise ArgumentTypeError(f"Lighting.sh must be a numeric (n, 3) array, got {type(coeffs).__name__}") from None
     n = arr.shape[0] if arr.ndim == 2 else 0
     if arr.ndim != 2 or arr.shape[1] != 3 or n < 1 or math.isqrt(n) ** 2 != n:
         raise InputError(f"Lighting.sh must have shape (bands**2, 3), got {arr.shape}")
-    if not np.isfinite(arr).all():
-        raise InputError("Lighting.sh contains NaN or Inf values")
+    check_finite(arr, "Lighting.sh")  # in float32, the precision of the shading
     return arr
 
 
@@ -158,6 +160,7 @@ class Lighting:
     def __post_init__(self) -> None:
         coeffs = _check_sh(self.sh)
         matrix = compute_light_matrix(coeffs)
+        check_finite(matrix, "Lighting.sh: its light matrix")  # sums of products can overflow float32
         coeffs.setflags(write=False)
         matrix.setflags(write=False)
         # Frozen dataclass: the validated copies replace the fields through object.__setattr__.
@@ -194,7 +197,7 @@ class Lighting:
             try:
                 coeffs = sh.rotate(coeffs, rotation)
             except (TypeError, ValueError) as exc:
-                raise InputError(f"Lighting rotation: {exc}") from None
+                raise InputError(f"Lighting rotation: {' '.join(str(exc).split())[:200]}") from None
         return cls(coeffs)
 
     @classmethod
@@ -228,12 +231,11 @@ class Lighting:
 
 def _check_rgb(name: str, value) -> tuple[float, float, float]:
     """``value`` (scalar or 3 values, finite, >= 0) as a tuple of 3 floats, else InputError."""
+    arr = finite_array(value, f"Material.{name}", minimum=0.0)  # finite in float32, the shading's precision
     try:
-        arr = np.broadcast_to(np.asarray(value, dtype=np.float64), (3,))
-    except (TypeError, ValueError):
-        raise InputError(f"Material.{name} must be a number or 3 numbers, got {value!r}") from None
-    if not (np.isfinite(arr).all() and (arr >= 0).all()):
-        raise InputError(f"Material.{name} must be finite and >= 0, got {value!r}")
+        arr = np.broadcast_to(arr, (3,))
+    except ValueError:
+        raise InputError(f"Material.{name} must be a number or 3 numbers, got shape {arr.shape}") from None
     return tuple(float(x) for x in arr)
 
 
@@ -267,15 +269,12 @@ class Material:
     exponent: float = 8.0
 
     def __post_init__(self) -> None:
-        if self.kind not in MATERIAL_KINDS:
+        if not isinstance(self.kind, str) or self.kind not in MATERIAL_KINDS:
             raise InputError(f"Material.kind must be one of {MATERIAL_KINDS}, got {self.kind!r}")
         object.__setattr__(self, "albedo", _check_rgb("albedo", self.albedo))
         object.__setattr__(self, "specular", _check_rgb("specular", self.specular))
-        try:
-            exponent = float(self.exponent)
-        except (TypeError, ValueError):
-            raise InputError(f"Material.exponent must be a number, got {self.exponent!r}") from None
-        if not (math.isfinite(exponent) and exponent > 0):
+        exponent = float(finite_array(self.exponent, "Material.exponent", ()))
+        if not exponent > 0:
             raise InputError(f"Material.exponent must be finite and > 0, got {self.exponent!r}")
         object.__setattr__(self, "exponent", exponent)
 

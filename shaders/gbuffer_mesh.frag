@@ -15,6 +15,11 @@ flat in ivec2 v_info;
 
 layout(location = 0) out vec4 o_position;
 layout(location = 1) out vec4 o_normal;
+#ifdef PRT_GBUFFER_UV
+in vec4 v_uv;
+flat in float v_atlas;
+layout(location = 2) out vec4 o_uv;  // u, v, atlas, covered: of the side facing the camera
+#endif
 
 void main() {
     bool two_sided = v_info.y != 0;
@@ -40,4 +45,8 @@ void main() {
     n = normalize(n);
     o_position = vec4(v_position, 1.0);
     o_normal = vec4(n, float(prt_segment(v_info.x, v_position)));
+#ifdef PRT_GBUFFER_UV
+    bool back = two_sided && dot(v_face_normal, to_eye) < 0.0;  // as the normal's flip above
+    o_uv = vec4(back ? v_uv.zw : v_uv.xy, v_atlas, 1.0);
+#endif
 }

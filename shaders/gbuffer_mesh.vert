@@ -14,11 +14,21 @@ out vec3 v_position;
 out vec3 v_normal;
 flat out vec3 v_face_normal;
 flat out ivec2 v_info;
+#ifdef PRT_GBUFFER_UV
+in vec4 in_uv;      // UV of this corner in the transfer texture: front side .xy, back side .zw
+in float in_atlas;  // the face's atlas (texture set)
+out vec4 v_uv;
+flat out float v_atlas;
+#endif
 
 void main() {
     v_position = in_position;
     v_normal = in_normal;
     v_face_normal = in_face_normal;
     v_info = in_info;
+#ifdef PRT_GBUFFER_UV
+    v_uv = in_uv;
+    v_atlas = in_atlas;
+#endif
     gl_Position = u_view_projection * vec4(in_position, 1.0);
 }

@@ -24,5 +24,9 @@ void main() {
     t[1] = texelFetch(u_t1, px, 0);
     t[2] = texelFetch(u_t2, px, 0);
     t[3] = texelFetch(u_t3, px, 0);
-    f_color = vec4(prt_shade(t, n, u_eye - p.xyz), 1.0);
+    // Alpha 2 marks a transfer that is NaN or Inf (a broken network): shading would clamp it to
+    // black, so the renderer reads the flag and refuses the frame.
+    bool broken = false;
+    for (int k = 0; k < 4; ++k) broken = broken || any(isnan(t[k])) || any(isinf(t[k]));
+    f_color = vec4(prt_shade(t, n, u_eye - p.xyz), broken ? 2.0 : 1.0);
 }

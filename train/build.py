@@ -14,7 +14,9 @@ import copy
 import dataclasses
 import hashlib
 import json
+import math
 import time
+from contextlib import closing
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -23,18 +25,21 @@ import torch
 from tqdm import tqdm
 
 from ..export.scene import TrainedSegment, export_scene
-from ..runtime.camera import DEFAULT_CAMERA
+from ..runtime.camera import DEFAULT_CAMERA, Camera
 from ..runtime.envmap import load_envmap_sh
 from ..runtime.envmaps import BUNDLED_ENVMAPS, bundled_envmap_path
 from ..runtime.errors import SpecError
 from ..runtime.files import atomic_save_npz, atomic_write_json
+from ..runtime.manifest import validate_manifest_field
 from ..runtime.sh import unshadowed_transfer
 from .fit import DEFAULT_LADDER, FitResult, FitSettings, fit_segment, right_size, right_size_matching, shaded_error
 from .geometry import load_geometry
+from .executor import LocalExecutor
 from .network import Architecture
-from .precompute import PrecomputeSettings, load_precompute, run_precompute
+from .outdir import check_output_folder, mark_output_folder
+from .precompute import SPEC_LIMITS, DamagedPrecompute, PrecomputeSettings, SpecLimits, check_settings, load_precompute, run_precompute
 
-__all__ = ["BuildSpec", "load_spec", "spec_from_dict", "run_build", "ENV_LIGHTS"]
+__all__ = ["BuildSpec", "SpecLimits", "SPEC_LIMITS", "load_spec", "spec_from_dict", "run_build", "ENV_LIGHTS"]
 
 ENV_LIGHTS = tuple(BUNDLED_ENVMAPS)  # the shaded-error lightings, in the bundled order
 TRAIN_FORMAT = 1
@@ -103,16 +108,24 @@ class BuildSpec:
         return None if self.match is None else _architecture(self.match, self.bands, "match")
 
 
+def _shown(key: str) -> str:
+    """A field name as an error message shows it: quoted if it would break the line or vanish."""
+    return key if key.isprintable() and key.strip() == key and key else repr(key)
+
+
 def _architecture(d: dict, bands: int, where: str) -> Architecture:
     allowed = {"hidden", "layers", "pos_freqs", "normal_freqs"}
     if not isinstance(d, dict):
         raise SpecError(f"{where}: expected an object with {sorted(allowed)}")
     extra = set(d) - allowed
     if extra:
-        raise SpecError(f"{where}.{sorted(extra)[0]}: unknown field (known: {', '.join(sorted(allowed))})")
+        raise SpecError(f"{where}.{_shown(sorted(extra)[0])}: unknown field (known: {', '.join(sorted(allowed))})")
     for key, value in d.items():
         if not isinstance(value, int) or isinstance(value, bool) or value < (0 if key.endswith("freqs") else 1):
             raise SpecError(f"{where}.{key}: expected a {'non-negative' if key.endswith('freqs') else 'positive'} integer, got {value!r}")
+        most = getattr(SPEC_LIMITS, "freqs" if key.endswith("freqs") else key)
+        if value > most:
+            raise SpecError(f"{where}.{key}: at most {most}, got {value}")
     base = Architecture()
     return Architecture(
         hidden=d.get("hidden", base.hidden),
@@ -135,11 +148,20 @@ def load_spec(path) -> BuildSpec:
     """Read a build spec (JSON).  Errors name the file and the field."""
     path = Path(path)
     try:
-        data = json.loads(path.read_text())
+        text = path.read_bytes().decode("utf-8")
+        data = json.loads(text)
     except FileNotFoundError:
         raise SpecError(f"{path}: no such file") from None
+    except OSError as exc:
+        raise SpecError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    except UnicodeDecodeError as exc:
+        raise SpecError(f"{path}: not UTF-8 text (byte {exc.start}); a build spec is JSON in UTF-8") from None
     except json.JSONDecodeError as exc:
         raise SpecError(f"{path}: not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})") from None
+    except RecursionError:
+        raise SpecError(f"{path}: not valid JSON (nested too deeply)") from None
+    except ValueError as exc:  # an integer of more than 4300 digits
+        raise SpecError(f"{path}: not usable JSON ({' '.join(str(exc).split())[:120]})") from None
     if not isinstance(data, dict):
         raise SpecError(f"{path}: expected a JSON object at the top level")
     try:
@@ -153,11 +175,17 @@ def load_spec(path) -> BuildSpec:
 
 
 def spec_from_dict(data: dict) -> BuildSpec:
-    """A checked spec from flat fields (as :meth:`BuildSpec.to_dict` gives them).  Errors name the field."""
+    """A checked spec from flat fields (as :meth:`BuildSpec.to_dict` gives them).  Errors name the field.
+
+    Everything is checked here, before any work: types, ranges, finiteness, limits
+    (:data:`SPEC_LIMITS`, :func:`prt.train.precompute.sample_limit`), the ladder, material and camera.
+    """
+    if not isinstance(data, dict):
+        raise SpecError(f"expected an object of fields, got {type(data).__name__}")
     known = set(_TYPES)
     for key, value in data.items():
         if key not in known:
-            raise SpecError(f"{key}: unknown field (known: {', '.join(sorted(known))})")
+            raise SpecError(f"{_shown(key)}: unknown field (known: {', '.join(sorted(known))})")
         kind = _TYPES[key]
         ok = {
             "str": isinstance(value, str),
@@ -173,14 +201,23 @@ def spec_from_dict(data: dict) -> BuildSpec:
             raise SpecError(f"{key}: expected {kind}, got {type(value).__name__} {value!r}")
     if "geometry" not in data:
         raise SpecError("geometry: missing (a mesh file or a built-in SDF scene name)")
+    if not data["geometry"].strip() or "\0" in data["geometry"]:
+        raise SpecError(f"geometry: expected a mesh file or a built-in SDF scene name, got {data['geometry']!r}")
     precompute = PrecomputeSettings(**{k: v for k, v in data.items() if k in PRECOMPUTE_FIELDS})
     spec = BuildSpec(**{k: v for k, v in data.items() if k not in PRECOMPUTE_FIELDS}, precompute=precompute)
     flat = spec.to_dict()
-    for key in ("samples", "rays", "bands", "segments", "epochs", "batch", "patience"):
-        if flat[key] < 1:
-            raise SpecError(f"{key}: must be positive, got {flat[key]}")
+    check_settings(spec.precompute)
+    for key in ("epochs", "batch", "patience"):
+        if not 1 <= flat[key] <= getattr(SPEC_LIMITS, key):
+            raise SpecError(f"{key}: expected 1 .. {getattr(SPEC_LIMITS, key)}, got {flat[key]}")
+    for key, positive in (("lr", True), ("target", False)):
+        value = flat[key]
+        if not math.isfinite(value) or value < 0 or (positive and value == 0):
+            raise SpecError(f"{key}: expected a finite {'positive' if positive else 'non-negative'} number, got {value!r}")
     if spec.glsl_layout not in ("auto", "const", "texture"):
         raise SpecError(f"glsl_layout: expected 'auto', 'const' or 'texture', got {spec.glsl_layout!r}")
+    if spec.ladder is not None and not spec.ladder:
+        raise SpecError("ladder: empty (list at least one size, or leave it out for the default ladder)")
     spec.architectures()  # validates ladder / fixed
     if spec.match is not None:
         if spec.fixed is not None:
@@ -188,7 +225,42 @@ def spec_from_dict(data: dict) -> BuildSpec:
         spec.reference_architecture()  # validates match
     if not 0.0 <= spec.match_tolerance <= 1.0:
         raise SpecError(f"match_tolerance: expected a share in [0, 1], got {spec.match_tolerance}")
+    _check_material_and_camera(spec.material, spec.camera)
     return spec
+
+
+def _check_material_and_camera(material: dict, camera: dict) -> None:
+    """What export would refuse, refused now: the manifest schema, float32 range, a camera that sees."""
+    for key, value in (("material", material), ("camera", camera)):
+        try:
+            validate_manifest_field(key, value, "spec")
+        except SpecError as exc:
+            raise SpecError(str(exc).removeprefix("spec: ")) from None
+        for where, number in _numbers(value, key):
+            if not abs(number) <= _FLOAT32_MAX:  # NaN fails too
+                raise SpecError(f"{where}: expected a finite number (in float32), got {number!r}")
+    view = {**DEFAULT_CAMERA, **camera}
+    try:
+        Camera(eye=view["eye"], target=view["target"], up=view["up"], fov_y=view["fov"])
+    except ValueError as exc:
+        raise SpecError(f"camera: {str(exc).removeprefix('Camera: ')}") from None
+
+
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+def _numbers(value, where: str):
+    """(field path, number) of every number inside a JSON value."""
+    if isinstance(value, bool):
+        return
+    if isinstance(value, (int, float)):
+        yield where, value
+    elif isinstance(value, dict):
+        for k, v in value.items():
+            yield from _numbers(v, f"{where}.{k}")
+    elif isinstance(value, list):
+        for i, v in enumerate(value):
+            yield from _numbers(v, f"{where}[{i}]")
 
 
 def _env_lights(bands: int) -> dict[str, np.ndarray]:
@@ -199,50 +271,90 @@ def _hash(*parts) -> str:
     return hashlib.sha1(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress: bool = True, log=print) -> dict:
-    """Run (or resume) a build; returns the report written to ``build.json``."""
+def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress: bool = True, log=print, force: bool = False,
+              executor=None) -> dict:  # fmt: skip
+    """Run (or resume) a build; returns the report written to ``build.json``.
+
+    ``executor`` runs the transfer chunks and the segment fits (:mod:`prt.train.executor`;
+    default: ``threads`` threads here).  A cluster gives the same bytes and the same caches.
+
+    ``out_dir`` must be new, empty or a scene build of ours unless ``force``
+    (:func:`prt.train.outdir.check_output_folder`); it is created once the geometry has loaded.
+    """
     t_start = time.perf_counter()
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
+        raise SpecError(f"threads: expected a positive integer, got {threads!r}")
+    check_output_folder(out, "scene", force=force)
     if threads:
         torch.set_num_threads(threads)
+    executor = executor if executor is not None else LocalExecutor(threads)
     geometry = load_geometry(spec.geometry)
     name = spec.name or Path(spec.geometry).stem
     log(geometry.summary())
+    mark_output_folder(out, "scene")
 
     # -- stage 1: precompute
     t0 = time.perf_counter()
-    pre_summary = run_precompute(geometry, out / "precompute", spec.precompute, threads=threads, progress=progress, log=log)
-    data = load_precompute(out / "precompute")
+    pre_summary = run_precompute(geometry, out / "precompute", spec.precompute, threads=threads, progress=progress, log=log, force=force,
+                                     executor=executor)
+    try:
+        data = load_precompute(out / "precompute")
+    except DamagedPrecompute as exc:  # a cache miss: recompute (finished transfer chunks are reused)
+        log(f"precompute: {exc}; recomputing")
+        (out / "precompute" / "precompute.json").unlink(missing_ok=True)
+        pre_summary = run_precompute(geometry, out / "precompute", spec.precompute, threads=threads, progress=progress, log=log, force=force,
+                                     executor=executor)
+        data = load_precompute(out / "precompute")
     precompute_s = time.perf_counter() - t0
     samples, valid, members = data["samples"], data["validation"], data["members"]
     seg_json = data["segments"]
     lights = _env_lights(spec.bands)
 
-    # -- stage 2: train, one segment at a time, each cached
+    # -- stage 2: train; segments are independent tasks (threads here or a cluster), each cached
     t0 = time.perf_counter()
     fit_settings = spec.fit_settings()
     archs = spec.architectures()
-    segments = []
+    records, todo = {}, []
     for seg in seg_json["segments"]:
         s = seg["id"]
         key = _hash(pre_summary["key"], s, asdict(fit_settings), [a.as_dict() for a in archs], spec.target, spec.analytic, TRAIN_FORMAT,
                     *([spec.match, spec.match_tolerance] if spec.match is not None else []))  # fmt: skip
         record_path = out / "train" / f"seg{s:03d}.json"
         weights_path = out / "train" / f"seg{s:03d}.npz"
-        if record_path.is_file():
-            record = json.loads(record_path.read_text())
-            if record.get("key") == key and (record["kind"] == "analytic" or weights_path.is_file()):
+        record = _read_record(record_path)
+        if record is not None:
+            if record.get("key") == key and (record["kind"] == "analytic" or _loadable(weights_path)):
                 log(f"segment {s}: cached ({record['kind']}{', ' + record['arch_label'] if record['kind'] == 'network' else ''})")
-                segments.append(record)
+                records[s] = record
                 continue
-        fits = _FitCache(out / "precompute" / "fits", pre_summary["key"], s, fit_settings)
-        record = _train_segment(spec, s, seg, samples, valid, members[s], archs, fit_settings, lights, progress, log, fits)
-        record["key"] = key
-        if record["kind"] == "network":
-            atomic_save_npz(weights_path, **record.pop("arrays"))
-        atomic_write_json(record_path, record)
-        segments.append(record)
+        todo.append((seg, key))
+    fits_folder = out / "precompute" / "fits"
+    job = _SegmentJob(spec, samples, valid, members, archs, fit_settings, lights, progress and executor.local, log if executor.local else None)
+    items = []
+    for seg, key in todo:  # a cluster gets the fits cached before with its task; its new fits come back
+        fits = _FitCache(fits_folder, pre_summary["key"], seg["id"], fit_settings)
+        items.append((seg, key, fits if executor.local else fits.memo([*archs, *filter(None, [spec.reference_architecture()])])))
+    bar = tqdm(total=len(todo), desc="train", unit="segment") if progress and todo and not executor.local else None
+    try:  # torch's thread count changes a fit's bytes: a task uses this process's, wherever it runs
+        with closing(executor.map(_segment_task, job, items, task_threads=torch.get_num_threads(), exclusive=True)) as finished:
+            for (seg, _, _), (record, new_fits, lines) in finished:
+                s = seg["id"]
+                for line in lines:
+                    log(line)
+                fits = _FitCache(fits_folder, pre_summary["key"], s, fit_settings)
+                for result in new_fits:
+                    fits.put(result)
+                if record["kind"] == "network":
+                    atomic_save_npz(out / "train" / f"seg{s:03d}.npz", **record.pop("arrays"))
+                atomic_write_json(out / "train" / f"seg{s:03d}.json", record)
+                records[s] = record
+                if bar is not None:
+                    bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
+    segments = [records[seg["id"]] for seg in seg_json["segments"]]
     train_s = time.perf_counter() - t0
 
     # -- stage 3: export
@@ -288,6 +400,30 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
     return report
 
 
+def _read_record(path: Path) -> dict | None:
+    """A segment's cached training record; None (train again) when missing, foreign or corrupt."""
+    try:
+        record = json.loads(path.read_bytes())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(record, dict) or record.get("kind") not in ("analytic", "network"):
+        return None
+    return record
+
+
+def _loadable(path: Path) -> bool:
+    """True if ``path`` is an ``.npz`` whose arrays read back (not truncated, not foreign)."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            for key in data.files:
+                data[key]
+        return True
+    except MemoryError:
+        raise
+    except Exception:  # zipfile, zlib and numpy each raise their own kind on damaged bytes
+        return False
+
+
 def _validation_split(s, valid, own_idx, seed):
     """Held-out samples of segment ``s``; if the validation set has too few, hold out 10 % of its own."""
     vsel = np.flatnonzero(valid["segment"] == s)
@@ -329,12 +465,18 @@ class _FitCache:
         if not (meta_path.is_file() and weights_path.is_file()):
             return None
         try:
-            meta = json.loads(meta_path.read_text())
-            with np.load(weights_path) as data:
+            meta = json.loads(meta_path.read_bytes())
+            with np.load(weights_path, allow_pickle=False) as data:
                 arrays = {k: data[k] for k in data.files}
-        except (OSError, ValueError):
+            return FitResult(_StoredModel(arrays), arch, meta["val_mae"], meta["shaded"], meta["epochs"], meta["seconds"], meta["history"])
+        except MemoryError:
+            raise
+        except Exception:  # json, zipfile, zlib and a foreign record's missing keys each raise their own kind
             return None  # a damaged entry is refitted
-        return FitResult(_StoredModel(arrays), arch, meta["val_mae"], meta["shaded"], meta["epochs"], meta["seconds"], meta["history"])
+
+    def memo(self, archs) -> "_FitMemo":
+        """The entries of ``archs`` fitted before, to travel with a task that runs elsewhere."""
+        return _FitMemo({_hash(arch.as_dict()): fit for arch in archs if (fit := self.get(arch)) is not None})
 
     def put(self, result) -> None:
         meta_path, weights_path = self._paths(result.arch)
@@ -342,6 +484,47 @@ class _FitCache:
         atomic_save_npz(weights_path, **result.model.arrays())  # weights first: the json marks the entry complete
         atomic_write_json(meta_path, {"arch": result.arch.as_dict(), "val_mae": result.val_mae, "shaded": result.shaded,
                                       "epochs": result.epochs, "seconds": result.seconds, "history": result.history})  # fmt: skip
+
+
+class _FitMemo:
+    """A :class:`_FitCache` in memory, for a task on another machine: the new fits go back to the driver."""
+
+    def __init__(self, known: dict):
+        self.known, self.new = known, []
+
+    def get(self, arch):
+        return self.known.get(_hash(arch.as_dict()))
+
+    def put(self, result) -> None:
+        stored = dataclasses.replace(result, model=_StoredModel(result.model.arrays()))
+        self.known[_hash(result.arch.as_dict())] = stored
+        self.new.append(stored)
+
+
+@dataclass
+class _SegmentJob:
+    """What the fits of one build share (sent once to a cluster).  ``log`` None: lines come back."""
+
+    spec: BuildSpec
+    samples: dict
+    valid: dict
+    members: list
+    archs: list
+    fit_settings: FitSettings
+    lights: dict
+    progress: bool
+    log: object = None
+
+
+def _segment_task(job: _SegmentJob, item) -> tuple[dict, list, list[str]]:
+    """Fit one segment ``(seg, key, fits)``: a task.  Returns (record, new fits for the cache, log lines)."""
+    seg, key, fits = item
+    lines = []
+    s = seg["id"]
+    record = _train_segment(job.spec, s, seg, job.samples, job.valid, job.members[s], job.archs, job.fit_settings,
+                            job.lights, job.progress, job.log or lines.append, fits)  # fmt: skip
+    record["key"] = key
+    return record, getattr(fits, "new", []), lines
 
 
 def _train_segment(spec, s, seg, samples, valid, member_idx, archs, fit_settings, lights, progress, log, fits=None) -> dict:

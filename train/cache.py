@@ -31,8 +31,15 @@ class ChunkStore:
     def has(self, k: int) -> bool:
         return self.path(k).is_file()
 
-    def load(self, k: int) -> np.ndarray:
-        return np.load(self.path(k), allow_pickle=False)
+    def load(self, k: int, shape: tuple | None = None) -> np.ndarray | None:
+        """Chunk ``k``; None (recompute it) if the file is damaged, foreign or not of ``shape``."""
+        try:
+            value = np.load(self.path(k), allow_pickle=False)
+        except (OSError, ValueError, EOFError):
+            return None
+        if shape is not None and (value.shape != tuple(shape) or value.dtype.kind != "f"):
+            return None
+        return value
 
     def save(self, k: int, value: np.ndarray) -> None:
         atomic_save_npy(self.path(k), value)

@@ -60,6 +60,8 @@ class Geometry:
         The file path or the SDF scene name.
     sdf : object or None
         The :mod:`prt.train.sdf` object of an SDF scene, else None.
+    dropped_nonfinite : int
+        Faces of the file dropped because a vertex had a NaN or infinite coordinate.
     """
 
     mesh: trimesh.Trimesh
@@ -69,6 +71,7 @@ class Geometry:
     to_source: np.ndarray
     source: str
     sdf: object | None = None
+    dropped_nonfinite: int = 0
 
     @property
     def kind(self) -> str:
@@ -108,9 +111,10 @@ class Geometry:
         n_open = int(np.count_nonzero(self.two_sided))
         closed = "watertight" if n_open == 0 else f"open ({n_open} of {n_faces} triangles two-sided)"
         low, high = (", ".join(f"{x:.4g}" for x in corner) for corner in self.source_bounds())
+        dropped = f", {self.dropped_nonfinite} triangles with NaN/Inf vertices dropped" if self.dropped_nonfinite else ""
         return (
             f"{self.source} [{self.kind}]: {n_faces} triangles, {len(self.mesh.vertices)} vertices, "
-            f"{self.n_objects} objects, {closed}, bounds [{low}]..[{high}] (source units)"
+            f"{self.n_objects} objects, {closed}, bounds [{low}]..[{high}] (source units){dropped}"
         )
 
 
@@ -143,6 +147,8 @@ def load_geometry(source, *, normalise: bool = True, sdf_resolution: int = 128) 
     extension or a directory separator is reported as a missing file, not looked up as a scene.
     """
     name = os.fspath(source)
+    if not isinstance(name, str) or not name.strip() or "\0" in name:
+        raise GeometryError(f"{name!r}: not a file name or SDF scene name")
     if os.path.isdir(name):
         raise GeometryError(f"{name}: is a directory, not a mesh file")
     if os.path.exists(name):
@@ -351,7 +357,13 @@ def _build_geometry(
     vertices = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     object_ids = np.asarray(object_ids, dtype=np.int64).reshape(-1)
-    vertices, faces, object_ids = _clean(vertices, faces, object_ids, source)
+    vertices, faces, object_ids, dropped_nonfinite = _clean(vertices, faces, object_ids, source)
+    prescale = 1.0
+    if normalise:
+        # A power-of-two rescale is exact and keeps areas and volumes of coordinates near 1e300
+        # (or 1e-300) from overflowing (underflowing) in float64; it is folded into to_source.
+        prescale = _power_of_two_scale(vertices[np.unique(faces)])
+        vertices = vertices / prescale
     # Judge closedness before dropping slivers: their removal leaves zero-area holes only.
     faces, two_sided = _orient(vertices, faces)
     keep = _nondegenerate(vertices, faces)
@@ -368,8 +380,8 @@ def _build_geometry(
         centre = (low + high) / 2
         half_extent = float((high - low).max()) / 2
         vertices = (vertices - centre) / half_extent
-        to_source[:3, :3] *= half_extent
-        to_source[:3, 3] = centre
+        to_source[:3, :3] *= half_extent * prescale
+        to_source[:3, 3] = centre * prescale
 
     mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=False, validate=False)
     return Geometry(
@@ -379,7 +391,14 @@ def _build_geometry(
         two_sided=two_sided,
         to_source=to_source,
         source=source,
+        dropped_nonfinite=dropped_nonfinite,
     )
+
+
+def _power_of_two_scale(vertices: np.ndarray) -> float:
+    """The power of two that brings the largest coordinate of ``vertices`` into [0.5, 1)."""
+    biggest = float(np.abs(vertices).max()) if len(vertices) else 0.0
+    return float(2.0 ** np.frexp(biggest)[1]) if biggest > 0 else 1.0
 
 
 def _clean(
@@ -406,6 +425,8 @@ def _clean(
     faces : (F', 3) int64
         The surviving faces, in their original order.
     object_ids : (F',) int64
+    dropped_nonfinite : int
+        Faces dropped for a NaN or infinite vertex coordinate.
     """
     if len(faces) == 0:
         raise GeometryError(f"{source}: no triangles")
@@ -415,6 +436,7 @@ def _clean(
     keep = finite[faces].all(axis=1)
     if not keep.any():
         raise GeometryError(f"{source}: every triangle has a NaN or infinite vertex coordinate")
+    dropped_nonfinite = int(len(keep) - np.count_nonzero(keep))
     faces, object_ids = faces[keep], object_ids[keep]
     # No face uses them any more; zeroing keeps NaN out of the position comparison.
     vertices = np.where(finite[:, None], vertices, 0.0)
@@ -427,7 +449,7 @@ def _clean(
     collapsed = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 2] == faces[:, 0])
     if collapsed.all():
         raise GeometryError(f"{source}: every triangle is degenerate (repeated vertices)")
-    return merged, faces[~collapsed], object_ids[~collapsed]
+    return merged, faces[~collapsed], object_ids[~collapsed], dropped_nonfinite
 
 
 def _nondegenerate(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

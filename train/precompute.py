@@ -16,18 +16,22 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
+import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
+from ..runtime.errors import PRTError, SpecError
 from .cache import atomic_save_npz, atomic_write_json
+from .outdir import check_output_folder, mark_output_folder
 from .sampling import TRAIN_STREAM, VALIDATION_STREAM, sample_surface
 from .segments import segment_samples
 from .transfer import DEFAULT_CHUNK, compute_transfer, make_tracer
 
-__all__ = ["PrecomputeSettings", "run_precompute", "load_precompute"]
+__all__ = ["PrecomputeSettings", "SpecLimits", "SPEC_LIMITS", "check_settings", "sample_limit", "run_precompute", "load_precompute"]
 
 FORMAT_VERSION = 2  # 2: samples carry the G-buffer's interpolated normals (1: face normals)
 
@@ -52,6 +56,79 @@ class PrecomputeSettings:
         return self.validation or max(1000, self.samples // 20)
 
 
+@dataclass(frozen=True)
+class SpecLimits:
+    """The largest values a build spec may ask for (the sample count's comes from memory: :func:`sample_limit`)."""
+
+    bands: int = 8  # the manifest's sh_bands maximum
+    rays: int = 1 << 16
+    segments: int = 4096
+    epochs: int = 1_000_000
+    batch: int = 1 << 24
+    patience: int = 1_000_000
+    hidden: int = 4096
+    layers: int = 64
+    freqs: int = 24  # 2^23 pi x: float32 position encodings are noise beyond
+    seed: int = (1 << 63) - 1  # torch.manual_seed's range
+    memory_share: float = 0.5  # samples + validation may take this share of physical memory
+
+
+SPEC_LIMITS = SpecLimits()
+
+
+def _physical_memory() -> int:
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return 8 << 30  # unknown: assume 8 GiB
+
+
+def sample_bytes(bands: int) -> int:
+    """Bytes one sample takes in ``samples.npz`` and in memory: points, normals (float32 x 3 each),
+    face index, object id, segment (int64 each) and ``bands**2`` float32 transfer coefficients."""
+    return 2 * 12 + 3 * 8 + 4 * bands * bands
+
+
+def sample_limit(bands: int, memory: int | None = None) -> int:
+    """Most samples (training + validation) a build may ask for: ``memory_share`` of physical memory
+    divided by :func:`sample_bytes` (about 77 million at 4 bands on 16 GiB)."""
+    memory = _physical_memory() if memory is None else memory
+    return int(SPEC_LIMITS.memory_share * memory) // sample_bytes(bands)
+
+def check_settings(settings: PrecomputeSettings, *, flags: bool = False) -> None:
+    """Refuse settings that cannot work, before any work; errors name the field (``--flag`` if ``flags``).
+
+    Counts are positive (``validation`` may be 0: automatic) and within :data:`SPEC_LIMITS`;
+    samples + validation within :func:`sample_limit`; tolerances finite and non-negative.
+    """
+
+    def name(field: str) -> str:
+        return "--" + field.replace("_", "-") if flags else field
+
+    def is_int(value) -> bool:
+        return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+    for key in ("samples", "validation", "rays", "bands", "segments", "seed"):
+        value = getattr(settings, key)
+        if not is_int(value):
+            raise SpecError(f"{name(key)}: expected an integer, got {value!r}")
+        least = 0 if key in ("validation", "seed") else 1
+        most = getattr(SPEC_LIMITS, key, None)
+        if value < least or (most is not None and value > most):
+            shown = f"{least} .. {most}" if most is not None else f"an integer >= {least}"
+            raise SpecError(f"{name(key)}: expected {shown}, got {value}")
+    total, most = settings.samples + settings.validation_count(), sample_limit(settings.bands)
+    if total > most:
+        raise SpecError(
+            f"{name('samples')}: {settings.samples:,} samples (+ {settings.validation_count():,} validation) need "
+            f"{total * sample_bytes(settings.bands) // 2**30:,} GiB; at most {most:,} fit in half of this machine's memory"
+        )
+    for key in ("merge_tolerance", "delta"):
+        value = getattr(settings, key)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+            raise SpecError(f"{name(key)}: expected a finite non-negative number, got {value!r}")
+
+
 def _geometry_key(geometry) -> str:
     h = hashlib.sha1()
     h.update(np.ascontiguousarray(geometry.mesh.vertices, dtype=np.float64).tobytes())
@@ -71,22 +148,30 @@ def run_precompute(
     progress: bool = True,
     log=print,
     preview_envmap: np.ndarray | None = None,
+    force: bool = False,
+    executor=None,
 ) -> dict:
     """Run (or resume) the precompute stage for ``geometry`` into ``out_dir``.
 
     ``preview_envmap`` (H, W, 3) lights ``preview.png`` (default: a procedural sky).
+    ``executor`` runs the transfer chunks (:mod:`prt.train.executor`; default: ``threads``
+    threads here, or a Ray cluster: the results and the cache are the same either way).
+    ``out_dir`` must be empty, new or a precompute folder of ours unless ``force``
+    (:func:`prt.train.outdir.check_output_folder`).
 
     Returns the summary that is also written to ``precompute.json``.
     """
     settings = settings or PrecomputeSettings()
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    check_settings(settings)
+    check_output_folder(out, "precompute", force=force)
+    mark_output_folder(out, "precompute")
     key = hashlib.sha1(
         json.dumps([_geometry_key(geometry), asdict(settings), FORMAT_VERSION]).encode()
     ).hexdigest()[:16]
     summary_path = out / "precompute.json"
-    if summary_path.is_file():
-        previous = json.loads(summary_path.read_text())
+    previous = _read_summary(summary_path)
+    if previous is not None:
         if previous.get("key") == key and all((out / f).is_file() for f in previous["files"]):
             log(f"precompute: up to date in {out} (key {key})")
             return previous
@@ -110,6 +195,7 @@ def run_precompute(
         cache_dir=out / "cache",
         progress=progress,
         tracer=tracer,
+        executor=executor,
     )
     log(f"precompute: {len(train):,} samples x {settings.rays} rays ({geometry.kind})")
     train_t = compute_transfer(geometry, train.points, train.normals, **common)
@@ -180,19 +266,56 @@ def run_precompute(
     return summary
 
 
+def _read_summary(path: Path) -> dict | None:
+    """A previous ``precompute.json``; None (a cache miss) when missing, foreign or corrupt."""
+    try:
+        summary = json.loads(path.read_bytes())
+    except (OSError, ValueError):
+        return None
+    files = summary.get("files") if isinstance(summary, dict) else None
+    if not (isinstance(files, list) and all(isinstance(f, str) and "/" not in f and f not in ("", ".", "..") for f in files)):
+        return None
+    return summary
+
+
+class DamagedPrecompute(PRTError):
+    """A finished precompute's file cannot be read back (truncated, foreign); rerunning recomputes it."""
+
+
 def load_precompute(out_dir) -> dict:
-    """The arrays of a finished precompute: ``{"samples": {...}, "validation": {...}, ...}``."""
+    """The arrays of a finished precompute: ``{"samples": {...}, "validation": {...}, ...}``.
+
+    Raises :class:`DamagedPrecompute` (one line naming the file) if one is truncated or foreign.
+    """
     out = Path(out_dir)
-    with np.load(out / "samples.npz") as f:
-        samples = dict(f)
-    with np.load(out / "validation.npz") as f:
-        validation = dict(f)
-    with np.load(out / "segment_members.npz") as f:
-        members = [f[f"members_{s}"] for s in range(len(f.files))]
+    name = "precompute.json"
+    try:
+        name = "samples.npz"
+        with np.load(out / name, allow_pickle=False) as f:
+            samples = {k: f[k] for k in _SAMPLE_KEYS}
+        name = "validation.npz"
+        with np.load(out / name, allow_pickle=False) as f:
+            validation = {k: f[k] for k in _SAMPLE_KEYS}
+        name = "segment_members.npz"
+        with np.load(out / name, allow_pickle=False) as f:
+            members = [f[f"members_{s}"] for s in range(len(f.files))]
+        name = "segments.json"
+        segments = json.loads((out / name).read_bytes())
+        name = "precompute.json"
+        summary = json.loads((out / name).read_bytes())
+        if not (isinstance(segments, dict) and isinstance(segments.get("segments"), list)):
+            raise ValueError("segments.json has no segment list")
+    except MemoryError:
+        raise
+    except Exception as exc:  # zipfile, zlib, numpy and json each raise their own kind on damaged bytes
+        raise DamagedPrecompute(f"{out / name}: damaged or not ours ({type(exc).__name__}: {' '.join(str(exc).split())[:200]})") from None
     return {
         "samples": samples,
         "validation": validation,
         "members": members,
-        "segments": json.loads((out / "segments.json").read_text()),
-        "summary": json.loads((out / "precompute.json").read_text()),
+        "segments": segments,
+        "summary": summary,
     }
+
+
+_SAMPLE_KEYS = ("points", "normals", "object_ids", "face_index", "transfer", "segment")

@@ -1,6 +1,7 @@
 """prt-precompute: ground-truth transfer for a scene (the first stage of training).
 
 usage: prt-precompute INPUT -o OUTDIR [--samples N] [--rays R] [--segments S] [--seed K] [--envmap HDR]
+                      [--cluster auto|ADDRESS] [--force]
 
 INPUT is a mesh file (OBJ, PLY, STL, GLB/glTF, ...) or a built-in SDF scene name
 (``prt-precompute --list-sdf``).  Rerunning the same command resumes an interrupted run.
@@ -14,9 +15,12 @@ import sys
 from pathlib import Path
 
 from ..runtime.envmap import read_envmap
-from ..runtime.errors import PRTError
+from ..runtime.errors import InputError, PRTError
+from .cluster import open_executor
+from .executor import add_cluster_argument
 from .geometry import load_geometry
-from .precompute import PrecomputeSettings, run_precompute
+from .outdir import check_output_folder
+from .precompute import PrecomputeSettings, check_settings, run_precompute
 from .sdf import sdf_names
 
 __all__ = ["main", "build_parser", "settings_from_args", "check_writable"]
@@ -47,6 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("input", nargs="?", help="mesh file or built-in SDF scene name")
     p.add_argument("-o", "--out", type=Path, help="output folder (created; resumable)")
+    p.add_argument("--force", action="store_true", help="write into OUTDIR even if it is a non-empty folder that is not a prt build")
     for name, flag, text in SETTINGS_OPTIONS:
         default = getattr(d, name)
         if flag.startswith("--no-"):
@@ -55,6 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
             p.add_argument(flag, type=type(default), default=default, help=text)
     p.add_argument("--envmap", type=Path, default=None, help="equirectangular .hdr/.exr lighting the preview (default: a procedural sky)")
     p.add_argument("--threads", type=int, default=os.cpu_count(), help="worker threads")
+    add_cluster_argument(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--list-sdf", action="store_true", help="list the built-in SDF scenes and exit")
     return p
@@ -78,23 +84,28 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if not args.input or args.out is None:
             parser.error("INPUT and -o OUTDIR are required")
-        for name in ("samples", "rays", "bands", "segments", "threads"):
-            if getattr(args, name) is None or getattr(args, name) < 1:
-                raise PRTError(f"--{name} must be a positive integer")
-        check_writable(args.out)
+        if args.threads is None or args.threads < 1:
+            raise InputError(f"--threads: expected a positive integer, got {args.threads}")
+        settings = settings_from_args(args)
+        check_settings(settings, flags=True)
+        check_output_folder(args.out, "precompute", force=args.force)
 
         envmap = None
         if args.envmap is not None:  # read first: a bad file must fail before hours of work
             envmap = read_envmap(args.envmap)
         geometry = load_geometry(args.input)
         print(geometry.summary())
-        settings = settings_from_args(args)
-        summary = run_precompute(
-            geometry, args.out, settings, threads=args.threads, progress=not args.no_progress, preview_envmap=envmap
-        )
+        with open_executor(args.cluster, args.threads) as executor:
+            summary = run_precompute(
+                geometry, args.out, settings, threads=args.threads, progress=not args.no_progress, preview_envmap=envmap,
+                force=args.force, executor=executor,
+            )
     except PRTError as exc:
         print(f"prt-precompute: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # the system's, not the input's: a full disk, a lost mount
+        print(f"prt-precompute: error: {exc.filename or args.out}: {exc.strerror or exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print(
             f"prt-precompute: interrupted; finished chunks are kept in {args.out}/cache, "
@@ -106,15 +117,9 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def check_writable(out: Path) -> None:
-    """Create ``out`` if needed; PRTError unless a file can be written in it."""
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        probe = out / ".write-test"
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as exc:
-        raise PRTError(f"{out}: output folder is not writable ({exc.strerror or exc})") from None
+def check_writable(out: Path, kind: str = "precompute", force: bool = False) -> None:
+    """OutputError unless ``out`` can be written and is ours, empty or new (creates nothing)."""
+    check_output_folder(out, kind, force=force)
 
 
 def _print_summary(summary: dict, out: Path) -> None:

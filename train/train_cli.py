@@ -1,11 +1,12 @@
 """prt-train: build a deployable scene: precompute -> train -> export (ONNX, GLSL, scene.json).
 
 usage: prt-train INPUT -o OUTDIR [--samples N] [--rays R] [--segments S] [--epochs E] [--seed K]
-                 [--hidden K --layers L] [--target MAE | --match 64x4]
+                 [--hidden K --layers L] [--target MAE | --match 64x4] [--cluster auto|ADDRESS] [--force]
 
 INPUT is a mesh file, a built-in SDF scene name (``prt-precompute --list-sdf``) or a build spec
 (``.json``; the flat fields of :meth:`prt.train.build.BuildSpec.to_dict`, flags override them).
-Every stage is cached in OUTDIR: rerun the same command after an interruption to resume.
+Every stage is cached in OUTDIR: rerun the same command after an interruption to resume.  OUTDIR must be
+new, empty or one of our build folders (marked by ``.prt-build``); ``--force`` writes into any other.
 """
 
 from __future__ import annotations
@@ -15,9 +16,11 @@ import os
 import sys
 from pathlib import Path
 
-from ..runtime.errors import PRTError, SpecError
+from ..runtime.errors import InputError, PRTError, SpecError
 from .build import BuildSpec, load_spec, run_build, spec_from_dict
-from .precompute_cli import check_writable
+from .cluster import open_executor
+from .executor import add_cluster_argument
+from .outdir import check_output_folder
 
 __all__ = ["main", "build_parser"]
 
@@ -33,6 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("input", help="mesh file, built-in SDF scene name, or build spec (.json)")
     p.add_argument("-o", "--out", type=Path, required=True, help="output folder (created; stages cached and resumable)")
+    p.add_argument("--force", action="store_true", help="write into OUTDIR even if it is a non-empty folder that is not a prt build")
     p.add_argument("--name", default=None, help="scene name in the manifest (default: the input's stem)")
     p.add_argument("--samples", type=int, default=None, help=f"training surface samples [{d.precompute.samples:,}]")
     p.add_argument("--validation", type=int, default=None, help="held-out samples [5%% of --samples, at least 1000]")
@@ -52,6 +56,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-analytic", action="store_true", help="give every segment a network, even unshadowed ones")
     p.add_argument("--glsl-layout", choices=("auto", "const", "texture"), default=None, help="weights as baked mat4 constants or in a texture [auto]")
     p.add_argument("--threads", type=int, default=os.cpu_count(), help="CPU threads for ray tracing and training")
+    add_cluster_argument(p)
+    p.add_argument("--transfer-texture", type=int, default=None, metavar="SIZE",
+                   help="also bake a SIZE x SIZE transfer texture (texture-space PRT, the runtime's texture backend) into the scene")
+    p.add_argument("--texture-layout", choices=("shared", "per_object"), default="shared",
+                   help="with --transfer-texture: one atlas for the scene, or one per object (texture sets)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     return p
 
@@ -99,15 +108,36 @@ def _spec_from_args(args):
     return spec
 
 
+def _bake_texture(args, spec) -> None:
+    """``--transfer-texture``: bake the scene's transfer texture at the build's rays (resumable)."""
+    from .transfer_texture import add_transfer_texture
+
+    if args.transfer_texture < 8:
+        raise InputError(f"--transfer-texture: expected a size >= 8, got {args.transfer_texture}")
+    try:
+        add_transfer_texture(args.out, args.transfer_texture, layout=args.texture_layout, rays=spec.precompute.rays,
+                             seed=spec.precompute.seed, progress=not args.no_progress)  # fmt: skip
+    except ValueError as exc:  # an SDF scene
+        raise InputError(f"--transfer-texture: {exc}") from None
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
+        if args.threads is not None and args.threads < 1:
+            raise InputError(f"--threads: expected a positive integer, got {args.threads}")
         spec = _spec_from_args(args)
-        check_writable(args.out)
-        report = run_build(spec, args.out, threads=args.threads, progress=not args.no_progress)
+        check_output_folder(args.out, "scene", force=args.force)
+        with open_executor(args.cluster, args.threads) as executor:
+            report = run_build(spec, args.out, threads=args.threads, progress=not args.no_progress, force=args.force, executor=executor)
+        if args.transfer_texture is not None:
+            _bake_texture(args, spec)
     except PRTError as exc:
         print(f"prt-train: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # the system's, not the input's: a full disk, a lost mount
+        print(f"prt-train: error: {exc.filename or args.out}: {exc.strerror or exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print(f"prt-train: interrupted; finished work is kept in {args.out}, rerun the same command to resume", file=sys.stderr)
         return 130

@@ -15,24 +15,24 @@ sample's frame is spun about its normal by a random angle so the shared set does
 pattern over the surface.
 
 Visibility: Embree (embreex) for meshes, batched sphere tracing for SDF scenes.  Work is split
-into deterministic chunks spread over a thread pool (Embree and numpy release the GIL) and,
-when a cache folder is given, each finished chunk is written atomically so an interrupted run
-resumes where it stopped with bit-identical results.
+into deterministic chunks spread over a thread pool (Embree and numpy release the GIL) or the
+tasks of a Ray cluster (:mod:`prt.train.executor`) and, when a cache folder is given, each
+finished chunk is written atomically so an interrupted run resumes where it stopped with
+bit-identical results.
 """
 
 from __future__ import annotations
 
 import hashlib
 import os
-import threading
-from concurrent.futures import ThreadPoolExecutor
+from contextlib import closing
 from pathlib import Path
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from ..runtime import sh
 from .cache import ChunkStore
+from .executor import LocalExecutor
 
 __all__ = [
     "cosine_directions",
@@ -42,6 +42,8 @@ __all__ = [
     "make_tracer",
     "TransferIntegrator",
     "compute_transfer",
+    "TransferJob",
+    "transfer_chunk",
     "DEFAULT_CHUNK",
 ]
 
@@ -114,19 +116,44 @@ class EmbreeTracer:
     offset = MESH_RAY_OFFSET
 
     def __init__(self, mesh):
-        from embreex import rtcore_scene
-        from embreex.mesh_construction import TriangleMesh
-
         triangles = np.ascontiguousarray(
             np.asarray(mesh.vertices, dtype=np.float32)[np.asarray(mesh.faces)]
         )
+        self._build(triangles, "embree:" + hashlib.sha1(triangles.tobytes()).hexdigest())
+
+    def _build(self, triangles: np.ndarray, identity: str) -> None:
+        from embreex import rtcore_scene
+        from embreex.mesh_construction import TriangleMesh
+
+        self._triangles = triangles  # (F, 3, 3) float32: what a pickle carries
         self._scene = rtcore_scene.EmbreeScene()
         TriangleMesh(self._scene, triangles)
-        self.identity = "embree:" + hashlib.sha1(triangles.tobytes()).hexdigest()
+        self.identity = identity
+
+    def __reduce__(self):
+        # An Embree scene cannot be pickled: send the triangles, rebuild once per process.
+        return _embree_tracer, (self._triangles, self.identity)
 
     def occluded(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         """origins, dirs : (K, 3) float32 -> (K,) bool, True where the ray hits anything."""
         return self._scene.run(origins, dirs, query="OCCLUDED") != -1
+
+
+# Tracers unpickled in this process (a cluster worker), by geometry identity: a worker builds
+# a scene's Embree BVH once, not once per task.  A few entries: one build sees one geometry.
+_TRACERS: dict[str, EmbreeTracer] = {}
+_TRACERS_KEPT = 4
+
+
+def _embree_tracer(triangles: np.ndarray, identity: str) -> EmbreeTracer:
+    tracer = _TRACERS.get(identity)
+    if tracer is None:
+        tracer = EmbreeTracer.__new__(EmbreeTracer)
+        tracer._build(np.ascontiguousarray(triangles), identity)
+        while len(_TRACERS) >= _TRACERS_KEPT:
+            _TRACERS.pop(next(iter(_TRACERS)))
+        _TRACERS[identity] = tracer
+    return tracer
 
 
 class SDFTracer:
@@ -218,6 +245,7 @@ def compute_transfer(
     cache_dir: str | os.PathLike | None = None,
     progress: bool = False,
     tracer=None,
+    executor=None,
 ) -> np.ndarray:
     """Ground-truth transfer at arbitrary surface points.
 
@@ -234,6 +262,7 @@ def compute_transfer(
     cache_dir : folder for finished chunks; a rerun with the same arguments resumes there
     progress : show a progress bar (rays per second, ETA)
     tracer : an existing tracer for ``geometry`` (saves rebuilding the Embree scene)
+    executor : where chunks run (:mod:`prt.train.executor`; default: ``threads`` threads here)
 
     Returns
     -------
@@ -246,7 +275,6 @@ def compute_transfer(
     if not (np.isfinite(points).all() and np.isfinite(normals).all()):
         raise ValueError("points or normals contain NaN or Inf")
     tracer = tracer if tracer is not None else make_tracer(geometry)
-    integrator = TransferIntegrator(tracer, rays=rays, bands=bands, seed=seed)
     n_chunks = (len(points) + chunk_size - 1) // chunk_size
     store = None
     if cache_dir is not None:
@@ -255,8 +283,10 @@ def compute_transfer(
     result = np.empty((len(points), bands * bands), dtype=np.float32)
     todo = []
     for k in range(n_chunks):
-        if store is not None and store.has(k):
-            result[k * chunk_size : (k + 1) * chunk_size] = store.load(k)
+        shape = (_chunk_len(k, chunk_size, len(points)), bands * bands)
+        cached = store.load(k, shape) if store is not None and store.has(k) else None  # damaged: recomputed
+        if cached is not None:
+            result[k * chunk_size : (k + 1) * chunk_size] = cached
         else:
             todo.append(k)
 
@@ -273,36 +303,44 @@ def compute_transfer(
             mininterval=0.5,
             smoothing=0.1,
         )
-    stop = threading.Event()
-
-    def work(k: int) -> tuple[int, np.ndarray]:
-        if stop.is_set():
-            return k, None
-        sl = slice(k * chunk_size, (k + 1) * chunk_size)
-        value = integrator.chunk(points[sl], normals[sl], k)
-        if store is not None:
-            store.save(k, value)
-        return k, value
-
-    workers = threads or os.cpu_count() or 1
-    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="transfer")
-    # Our threads already fill the cores; BLAS threads spinning beside Embree cost ~25 %.
-    blas_limit = threadpool_limits(limits=1, user_api="blas")
+    job = TransferJob(tracer, rays, bands, seed)
+    chunks = [(k, points[k * chunk_size : (k + 1) * chunk_size], normals[k * chunk_size : (k + 1) * chunk_size]) for k in todo]
+    executor = executor if executor is not None else LocalExecutor(threads)
     try:
-        for k, value in pool.map(work, todo):
-            result[k * chunk_size : (k + 1) * chunk_size] = value
-            if bar is not None:
-                bar.update(len(value) * rays)
-    except BaseException:
-        stop.set()  # finished chunks are on disk; let running ones end, start no more
-        pool.shutdown(wait=True, cancel_futures=True)
-        raise
+        with closing(executor.map(transfer_chunk, job, chunks, task_threads=1)) as finished:
+            for done, ((k, _, _), value) in enumerate(finished, start=n_chunks - len(todo) + 1):
+                if store is not None:  # the driver alone writes the cache
+                    store.save(k, value)
+                result[k * chunk_size : (k + 1) * chunk_size] = value
+                if bar is not None:
+                    bar.set_postfix_str(f"chunk {done}/{n_chunks}", refresh=False)
+                    bar.update(len(value) * rays)
     finally:
-        pool.shutdown(wait=True)
-        blas_limit.restore_original_limits()
         if bar is not None:
             bar.close()
     return result
+
+
+class TransferJob:
+    """What every chunk of one :func:`compute_transfer` call shares (picklable: sent once to a cluster)."""
+
+    def __init__(self, tracer, rays: int, bands: int, seed: int):
+        self.tracer, self.rays, self.bands, self.seed = tracer, int(rays), int(bands), int(seed)
+        self._integrator = None
+
+    def integrator(self) -> TransferIntegrator:
+        if self._integrator is None:
+            self._integrator = TransferIntegrator(self.tracer, rays=self.rays, bands=self.bands, seed=self.seed)
+        return self._integrator
+
+    def __getstate__(self):
+        return {**self.__dict__, "_integrator": None}  # rebuilt where it lands (about 1 ms)
+
+
+def transfer_chunk(job: TransferJob, chunk) -> np.ndarray:
+    """One chunk ``(k, points (S, 3), normals (S, 3))`` -> transfer (S, bands**2) float32: a task."""
+    k, points, normals = chunk
+    return job.integrator().chunk(points, normals, k)
 
 
 def _chunk_len(k: int, chunk_size: int, total: int) -> int:

@@ -14,8 +14,9 @@ import time
 import moderngl
 import numpy as np
 
-from ...shaders import assemble
+from ...shaders import Source, assemble
 from .. import sh
+from ..checks import count_nonfinite, read_text
 from ..errors import InputError
 from ..gl import compile_program, draw_fullscreen
 from .base import TransferBackend
@@ -41,15 +42,12 @@ class GlslBackend(TransferBackend):
                 continue
             if seg.glsl is None:
                 raise InputError(f"{manifest.path}: segments[{seg.id}] has no generated GLSL (needed by the glsl backend)")
-            try:
-                networks.append(f"// ---- {seg.glsl.name}\n" + seg.glsl.read_text())
-            except OSError as exc:
-                raise InputError(f"{seg.glsl}: cannot read ({exc.strerror})") from None
+            networks += [Source.from_file(f"// ---- {seg.glsl.name}", "transfer pass"), Source.from_file(read_text(seg.glsl, "GLSL"), str(seg.glsl))]
             cases.append(f"            case {seg.id}: seg{seg.id}_transfer(p.xyz, ns.xyz, t); break;")
             if seg.glsl_weights is not None:
-                self._weights.append((f"seg{seg.id}_transfer_weights", np.load(seg.glsl_weights)))
+                self._weights.append((f"seg{seg.id}_transfer_weights", _load_weights(seg.glsl_weights)))
         source = assemble(
-            "sh_basis.glsl", "transfer_pass.frag", fills={"networks": "\n".join(networks), "dispatch": "\n".join(cases)}
+            "sh_basis.glsl", "transfer_pass.frag", fills={"networks": Source.join(networks), "dispatch": "\n".join(cases)}
         )
         t0 = time.perf_counter()
         self.program = compile_program(ctx, source, f"{manifest.path.parent / 'segments'}/*.glsl (transfer pass)")
@@ -80,3 +78,18 @@ class GlslBackend(TransferBackend):
             tex.release()
         self.vao.release()
         self.program.release()
+
+
+def _load_weights(path) -> np.ndarray:
+    """A segment's weight texture: (H, W, 4) finite float32 from a ``.npy`` (no pickles)."""
+    try:
+        data = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        raise InputError(f"{path}: cannot read GLSL weights ({' '.join(str(exc).split())[:200]})") from None
+    if not isinstance(data, np.ndarray) or data.ndim != 3 or data.shape[2] != 4 or data.dtype.kind != "f" or 0 in data.shape:
+        what = f"{getattr(data, 'shape', '?')} {getattr(data, 'dtype', type(data).__name__)}"
+        raise InputError(f"{path}: GLSL weights must be an (H, W, 4) float array, got {what}")
+    weights = data.astype(np.float32)
+    if count_nonfinite(weights):
+        raise InputError(f"{path}: GLSL weights hold {count_nonfinite(weights)} NaN or Inf values (in float32)")
+    return weights

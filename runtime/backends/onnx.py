@@ -24,8 +24,10 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from .. import sh
+from ..checks import positive_int
 from ..errors import InputError
 from ..gbuffer import PACKED_COLUMNS, PACKED_SEGMENT
+from ..onnxfile import read_model
 from .base import CpuTransfer, TransferBackend
 
 __all__ = ["OnnxBackend", "OnnxTransfer", "default_providers"]
@@ -56,9 +58,11 @@ class OnnxTransfer:
         self.bands = manifest.sh_bands
         self.n = self.bands * self.bands
         self.providers = list(providers) if providers else default_providers()
-        self.threads = threads or os.cpu_count() or 1
+        self.threads = positive_int(threads, "threads") if threads is not None else (os.cpu_count() or 1)
         self.slice_rows = int(slice_rows)
         self.sessions: dict[int, object] = {}
+        self.input_names: dict[int, str] = {}
+        self.models: dict[int, object] = {}  # segment id -> model path, for messages
         self.analytic: set[int] = set()
         opts = ort.SessionOptions()
         opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
@@ -71,13 +75,15 @@ class OnnxTransfer:
             if seg.kind == "analytic":
                 self.analytic.add(seg.id)
                 continue
+            model = read_model(seg.model)  # refuses external data (files outside the scene folder)
             try:
-                sess = ort.InferenceSession(str(seg.model), opts, providers=self.providers)
+                sess = ort.InferenceSession(model, opts, providers=self.providers)
             except Exception as exc:  # onnxruntime raises its own Fail/InvalidGraph types
                 msg = " ".join(str(exc).split())[:200]
                 raise InputError(f"{seg.model}: cannot load ONNX model ({msg})") from None
-            _check_signature(sess, seg.model, self.n)
+            self.input_names[seg.id] = _check_signature(sess, seg.model, self.n)
             self.sessions[seg.id] = sess
+            self.models[seg.id] = seg.model
         self._pool = ThreadPoolExecutor(max_workers=self.threads, thread_name_prefix="ort") if self.threads > 1 else None
         self.calls = 0  # network invocations so far (tests check relighting makes none)
         self.timings: dict[str, float] = {}
@@ -140,7 +146,15 @@ class OnnxTransfer:
 
         def run(job):
             s, _, x, a = job
-            return self.sessions[s].run(None, {"x": x[a : a + self.slice_rows]})[0]
+            rows = x[a : a + self.slice_rows]
+            try:
+                y = self.sessions[s].run(None, {self.input_names[s]: rows})[0]
+            except Exception as exc:  # onnxruntime's own error types
+                raise InputError(f"{self.models[s]}: inference failed ({' '.join(str(exc).split())[:200]})") from None
+            if not isinstance(y, np.ndarray) or y.shape != (len(rows), self.n) or y.dtype != np.float32:
+                what = f"{getattr(y, 'shape', '?')} {getattr(y, 'dtype', type(y).__name__)}"
+                raise InputError(f"{self.models[s]}: the model gave {what} for {len(rows)} rows, expected ({len(rows)}, {self.n}) float32")
+            return y
 
         if self._pool is None:
             return [run(j) for j in jobs]
@@ -174,11 +188,18 @@ class OnnxBackend(TransferBackend):
         self.engine.close()
 
 
-def _check_signature(sess, path, n_out: int) -> None:
+def _check_signature(sess, path, n_out: int) -> str:
+    """The name of the model's one input, after checking it is float32 [N, 6] and its one output float32 [N, n_out]."""
     inputs, outputs = sess.get_inputs(), sess.get_outputs()
-    if len(inputs) != 1 or inputs[0].shape[-1] != 6:
-        shapes = [i.shape for i in inputs]
-        raise InputError(f"{path}: model input must be float32 [N, 6] (position, normal), got {shapes}")
-    if len(outputs) != 1 or outputs[0].shape[-1] != n_out:
-        shapes = [o.shape for o in outputs]
-        raise InputError(f"{path}: model output must be float32 [N, {n_out}], got {shapes}")
+
+    def fits(args, width):
+        a = args[0]
+        return len(args) == 1 and a.type == "tensor(float)" and len(a.shape) == 2 and a.shape[1] == width
+
+    if not fits(inputs, 6):
+        got = [(i.name, i.type, i.shape) for i in inputs]
+        raise InputError(f"{path}: model input must be one float32 tensor [N, 6] (position, normal), got {got}")
+    if not fits(outputs, n_out):
+        got = [(o.name, o.type, o.shape) for o in outputs]
+        raise InputError(f"{path}: model output must be one float32 tensor [N, {n_out}], got {got}")
+    return inputs[0].name
