@@ -83,3 +83,17 @@ def test_says_which_scenes_came_from_checkpoints(paper_table, report):
     assert "spot-k64 from an earlier run's checkpoints" in _line(paper_table.summary(edited), "Targets")
     edited["machine"]["resumed"] = []
     assert _line(paper_table.summary(edited), "Targets").endswith("measured in this run):")
+
+
+def test_texture_columns_appear_when_the_run_measured_texture_prt(paper_table, report):
+    assert "texture" not in paper_table.summary(report).splitlines()[0]  # the recorded run has none
+    edited = copy.deepcopy(report)
+    for mesh, psnr in (("bunny", 49.2), ("spot", 50.0)):
+        for material, delta in (("diffuse", 0.0), ("glossy", 0.5)):
+            record = dict(_record(edited, f"{mesh}-k64", "vertex", material=material))
+            record.update(backend="texture", precision="fp16", texture_size=512, psnr=psnr + delta, weight_bytes=3 * 2**20)
+            edited["records"].append(record)
+    table = paper_table.summary(edited).splitlines()
+    assert table[0].split(" | ")[5] == "texture 512^2"
+    assert _line("\n".join(table), "| bunny").split(" | ")[5] == "49.2 / 49.7 (3.0 MiB)"
+    assert _line("\n".join(table), "| teapot").split(" | ")[5] == "-"

@@ -1,7 +1,7 @@
 """The paper-style table, reproduced by one command.
 
 usage: python bench/studies/paper_table.py [--samples 1000000] [--views 30] [--size 512] [--ref-rays 1024]
-                                   [--backends onnx glsl vertex] [--work /tmp/prt-paper]
+                                   [--backends onnx glsl vertex texture] [--texture-size 512 1024] [--work /tmp/prt-paper]
                                    [--meshes bunny ...] [--sizes k64 k128 right-sized] [--build-only]
                                    [--warmup 3] [--config-budget SECONDS] [--packing-views N]
                                    [--precisions fp32 fp16 int8] [--fresh]
@@ -52,11 +52,17 @@ TARGET_DIFFUSE = {"daffodil": 40.0}  # dB at k = 64; the others 45
 TARGET_GLOSSY = 38.0
 
 
-def _pick(records, scene, backend="onnx", precision="fp32", material="diffuse"):
+def _pick(records, scene, backend="onnx", precision="fp32", material="diffuse", texture_size=None):
     for r in records:
-        if (r["scene"], r["backend"], r["precision"], r["material"]) == (scene, backend, precision, material):
+        if (r["scene"], r["backend"], r["precision"], r["material"]) == (scene, backend, precision, material) and (
+            texture_size is None or r.get("texture_size") == texture_size
+        ):
             return r
     return None
+
+
+def _texture_sizes(records) -> list[int]:
+    return sorted({r["texture_size"] for r in records if r["backend"] == "texture" and "texture_size" in r})
 
 
 def _range(values, fmt="{:.2f}", unit=""):
@@ -71,7 +77,9 @@ def summary(report: dict) -> str:
     """The table's headline figures per mesh and each target's verdict, as Markdown."""
     records = report["records"]
     meshes = [m for m in MESHES if any(r["scene"].startswith(f"{m}-") for r in records)]
-    lines = ["| mesh | k = 64 | k = 128 | right-sized | vertex PRT (Sloan) | GLSL k = 64 FPS |", "|---|---|---|---|---|---:|"]
+    textures = _texture_sizes(records)  # texture-space PRT columns, when the run measured them
+    head = ["mesh", "k = 64", "k = 128", "right-sized", "vertex PRT (Sloan)", *(f"texture {t}^2" for t in textures), "GLSL k = 64 FPS"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * (len(head) - 1) + "---:|"]
     verdict = {"accuracy": [], "right": [], "packing": [], "precision": [], "gemm": [], "gemm128": []}
     for mesh in meshes:
         cells = []
@@ -83,6 +91,10 @@ def summary(report: dict) -> str:
             cells.append(f"{d['psnr']:.1f} / {g['psnr']:.1f} ({d['flops_per_fragment'] / 1e3:.0f}k FLOPs, {d['weight_bytes'] / 1024:.0f} KiB)")
         vd, vg = _pick(records, f"{mesh}-k64", "vertex"), _pick(records, f"{mesh}-k64", "vertex", material="glossy")
         cells.append(f"{vd['psnr']:.1f} / {vg['psnr']:.1f} ({vd['weight_bytes'] / 1024:.0f} KiB)" if vd and vg else "-")
+        for t in textures:
+            td = _pick(records, f"{mesh}-k64", "texture", "fp16", texture_size=t)
+            tg = _pick(records, f"{mesh}-k64", "texture", "fp16", "glossy", texture_size=t)
+            cells.append(f"{td['psnr']:.1f} / {tg['psnr']:.1f} ({td['weight_bytes'] / 2**20:.1f} MiB)" if td and tg else "-")
         gl = _pick(records, f"{mesh}-k64", "glsl")
         cells.append(f"{gl['fps']:.2f}" if gl else "-")
         lines.append(f"| {mesh} | " + " | ".join(cells) + " |")
@@ -149,7 +161,8 @@ def main(argv=None) -> int:
     p.add_argument("--views", type=int, default=30)
     p.add_argument("--size", type=int, default=512)
     p.add_argument("--ref-rays", type=int, default=1024)
-    p.add_argument("--backends", nargs="*", default=["onnx", "glsl", "vertex"], help="passed to prt-bench")
+    p.add_argument("--backends", nargs="*", default=["onnx", "glsl", "vertex", "texture"], help="passed to prt-bench")
+    p.add_argument("--texture-size", nargs="*", type=int, default=[512, 1024], help="passed to prt-bench (texture-space PRT)")
     p.add_argument("--warmup", type=int, default=3, help="passed to prt-bench")
     p.add_argument("--precisions", nargs="*", default=None, help="passed to prt-bench (default: all)")
     p.add_argument("--packing-views", type=int, default=None, metavar="N", help="passed to prt-bench")
@@ -197,6 +210,7 @@ def main(argv=None) -> int:
              "--views", str(args.views), "--size", str(args.size), "--ref-rays", str(args.ref_rays),
              "--json", str(args.out.with_suffix(".json")), "--md", str(args.out.with_suffix(".md")),
              "--plot", str(args.out.with_suffix(".png")), "--backends", *args.backends, "--warmup", str(args.warmup),
+             *(["--texture-size", *map(str, args.texture_size)] if "texture" in args.backends else []),
              *(["--config-budget", str(args.config_budget)] if args.config_budget else []),
              *(["--packing-views", str(args.packing_views)] if args.packing_views else []),
              *(["--precisions", *args.precisions] if args.precisions else []), *(["--fresh"] if args.fresh else [])]  # fmt: skip
