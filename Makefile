@@ -14,3 +14,4 @@ bench: install
 	.venv/bin/python bench/studies/precompute_bench.py --json docs/benchmarks/precompute_bunny.json
 	.venv/bin/python bench/studies/train_bench.py --json docs/benchmarks/train_bunny.json
 	.venv/bin/python bench/studies/runtime_bench.py --json docs/benchmarks/runtime.json
+	RAY_USAGE_STATS_ENABLED=0 .venv/bin/python bench/studies/cluster_bench.py --json docs/benchmarks/cluster.json
