@@ -1,0 +1,22 @@
+// The environment map drawn where no geometry is: one fragment per pixel turns its camera ray
+// into equirectangular coordinates (prt.runtime.sh.direction_to_equirect_uv's convention:
+// u = 0.5 at -Z, 0.75 at +X; v = 0 at +Y) and samples the map, linear radiance out.
+uniform sampler2D u_envmap;     // row 0 (v = 0) is +Y
+uniform mat3 u_to_map;          // world direction -> the map's frame (inverse of the light's rotation)
+uniform vec3 u_forward;
+uniform vec3 u_right;
+uniform vec3 u_up;
+uniform vec2 u_half;            // tan(fov/2) * (aspect, 1)
+uniform vec2 u_size;            // framebuffer size in pixels
+out vec4 f_color;
+
+const float PI = 3.14159265358979;
+
+void main() {
+    // Framebuffer row 0 is the image's top row, so the read-back needs no flip.
+    vec2 ndc = vec2(gl_FragCoord.x / u_size.x * 2.0 - 1.0, 1.0 - gl_FragCoord.y / u_size.y * 2.0);
+    vec3 d = normalize(u_to_map * (u_forward + ndc.x * u_half.x * u_right + ndc.y * u_half.y * u_up));
+    float u = fract(atan(d.x, -d.z) / (2.0 * PI) + 0.5);
+    float v = acos(clamp(d.y, -1.0, 1.0)) / PI;
+    f_color = vec4(textureLod(u_envmap, vec2(u, v), 0.0).rgb, 1.0);
+}
