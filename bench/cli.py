@@ -42,6 +42,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--views", type=int, default=30, help="orbit views per configuration (default 30)")
     p.add_argument("--size", type=int, nargs="+", default=[512], help="image sizes, square (default 512)")
     p.add_argument("--ref-rays", type=int, default=1024, help="rays per pixel of the reference (default 1024)")
+    p.add_argument("--ref-rays-max", type=int, default=4096, metavar="N",
+                   help="more reference rays, up to N, where the reference's noise is not 6 dB above the best PSNR (default 4096)")
     p.add_argument("--warmup", type=int, default=3, help="frames before timing each configuration (default 3)")
     p.add_argument("--packing-views", type=int, default=None, metavar="N",
                    help="views of the naive-vs-packed baseline, spread over the orbit (default: all; the naive path "
@@ -86,7 +88,7 @@ def main(argv=None) -> int:
     if cache is None and args.json is not None:
         cache = args.json.parent / f"{args.json.stem}_cache"
     settings = Settings(
-        views=args.views, sizes=tuple(args.size), ref_rays=args.ref_rays, warmup=args.warmup, config_budget=args.config_budget,
+        views=args.views, sizes=tuple(args.size), ref_rays=args.ref_rays, ref_rays_max=args.ref_rays_max, warmup=args.warmup, config_budget=args.config_budget,
         packing_views=args.packing_views,
         precisions=tuple(dict.fromkeys(args.precisions)), backends=tuple(args.backends), cache=cache,
         texture_sizes=tuple(dict.fromkeys(args.texture_size)),

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,7 +29,11 @@ from prt.runtime.shading import shade, tonemap
 from prt.train import compute_transfer
 from prt.train.geometry import Geometry, load_geometry
 
-__all__ = ["mesh_checksum", "load_scene_geometry", "cached_transfer", "shade_image", "reference_images", "noise_psnr", "View"]
+__all__ = ["mesh_checksum", "load_scene_geometry", "cached_transfer", "shade_image", "reference_images", "noise_psnr", "View",
+           "REFERENCE_MARGIN_DB", "rays_for_margin", "convergence"]
+
+# The reference's two-seed PSNR must exceed the best configuration's PSNR by this much (issue 12).
+REFERENCE_MARGIN_DB = 6.0
 
 
 @dataclass
@@ -68,7 +73,8 @@ def load_scene_geometry(manifest):
     """
     if manifest.geometry.type == "sdf":
         name = manifest.geometry.name
-        geometry = load_geometry(name)
+        network = manifest.root / name  # a neural SDF travels in the scene folder as <name>.sdf.onnx
+        geometry = load_geometry(str(network) if name.endswith(".sdf.onnx") and network.is_file() else name)
         return geometry, {"type": "sdf", "source": name, "checksum": None, "matches_build_source": None}
     path = Path(manifest.geometry.path)
     with np.load(path) as data:
@@ -148,3 +154,29 @@ def reference_images(transfer, gbuffer, eye, lighting, materials: dict) -> dict:
 def noise_psnr(other: dict, references: dict, covered) -> dict:
     """The reference's own noise: {material: PSNR (dB, covered pixels) of a second seed's image against it}."""
     return {m: round(image_metrics(other[m], references[m], covered)["psnr"], 2) for m in references}
+
+
+def rays_for_margin(noise: dict, best: dict, rays: int, most: int, margin: float = REFERENCE_MARGIN_DB) -> int:
+    """Rays per pixel at which the reference's noise clears every material's best PSNR by ``margin``.
+
+    Monte Carlo variance falls as 1/rays, so the two-seed PSNR rises 10 log10(2) ~ 3 dB per
+    doubling: ``rays`` is doubled as often as the largest shortfall needs, capped at ``most``
+    (returned as is when it already suffices, or when ``rays >= most``).
+
+    Parameters
+    ----------
+    noise, best : {material: dB}
+        Two-seed PSNR of the reference; the best configuration's PSNR (a pilot or the run's).
+    """
+    short = max((best[m] + margin - noise[m] for m in noise if m in best), default=0.0)
+    if short <= 0 or rays >= most:
+        return rays
+    doublings = math.ceil(short / (10 * math.log10(2)) - 1e-9)
+    return int(min(most, rays * 2**doublings))
+
+
+def convergence(noise: dict, best: dict, rays: int, margin: float = REFERENCE_MARGIN_DB) -> dict:
+    """The report's verdict: per material the noise, best PSNR and their gap; ``floor`` when a gap < ``margin``."""
+    gap = {m: round(noise[m] - best[m], 2) for m in noise if m in best}
+    return {"rays": rays, "noise_psnr": dict(noise), "best_psnr": {m: round(best[m], 2) for m in gap}, "margin_db": gap,
+            "required_db": margin, "floor": any(g < margin for g in gap.values())}  # fmt: skip

@@ -16,8 +16,11 @@ JSON report (``--json``)
     ``scenes``: one entry per scene: ``scene``, ``path``, ``geometry`` (``type``, ``source``
     used, ``checksum``, ``matches_build_source``: the vertex checksum of ``build.json``'s
     source re-loaded against ``geometry.npz``, or None), ``networks``, ``weight_bytes``,
-    ``reference`` (``rays``, ``seed``, ``cache``, ``noise_psnr``: {size: {material: dB}},
-    ``noise_note``), ``packing``: one entry per size with ``resolution``, ``all_pixels``,
+    ``reference`` (``rays`` asked for, ``seed``, ``cache``, ``noise_psnr``: {size: {material: dB}},
+    ``noise_note``, ``rays_by_size``: {size: rays used, raised up to ``--ref-rays-max`` where the
+    noise was not 6 dB above a pilot's PSNR}, ``convergence``: {size: ``rays``, ``noise_psnr``,
+    ``best_psnr``, ``margin_db`` per material, ``required_db``, ``floor``: True when the reference
+    is not 6 dB above the best PSNR measured, so it bounds what is measured}), ``packing``: one entry per size with ``resolution``, ``all_pixels``,
     ``covered_pixels`` (median), ``network_segments``, ``naive_rows_per_segment``
     ({segment: rows}, each H*W),
     ``naive_total_rows``, ``naive_inference_ms``, ``packed_inference_ms`` (medians over
@@ -158,6 +161,11 @@ def markdown(report: dict) -> str:
         ref = s["reference"]
         lines.append(f"**{s['scene']}**: reference {ref['rays']} rays per pixel; its noise (two seeds, view 0): "
                      + "; ".join(f"{res}: " + ", ".join(f"{m} {db:.1f} dB" for m, db in d.items()) for res, d in ref["noise_psnr"].items()))  # fmt: skip
+        for res, c in ref.get("convergence", {}).items():
+            gaps = ", ".join(f"{m} {c['noise_psnr'][m]:.1f} vs {c['best_psnr'][m]:.1f} dB ({c['margin_db'][m]:+.1f})" for m in c["margin_db"])
+            verdict = (f"under {c['required_db']:g} dB apart even at {c['rays']} rays: **the reference is the floor** of these PSNRs"
+                       if c["floor"] else f">= {c['required_db']:g} dB apart at {c['rays']} rays: converged enough")  # fmt: skip
+            lines.append(f"- reference noise vs best PSNR {res}: {gaps}; {verdict}")
         for p in s["packing"]:
             lines.append(
                 f"- packing {p['resolution']} ({p.get('packing_views', '?')} views): naive {p['naive_inference_ms']:.1f} ms ({p['network_segments']} networks x "
@@ -323,7 +331,7 @@ def error_figure(view, images: dict, path: Path, title: str) -> None:
 
 
 # Settings that change what a scene's measurement is (the cache only says where things live).
-_CHECKPOINT_SETTINGS = ("views", "sizes", "ref_rays", "warmup", "config_budget", "packing_views", "precisions",
+_CHECKPOINT_SETTINGS = ("views", "sizes", "ref_rays", "ref_rays_max", "warmup", "config_budget", "packing_views", "precisions",
                         "backends", "gemm_size", "seed", "blas_threads")  # fmt: skip
 
 

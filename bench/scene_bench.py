@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import datetime
 import json
+import math
 import os
 import tempfile
 import time
@@ -31,7 +32,7 @@ from threadpoolctl import threadpool_limits
 from prt.bench.machine import busy_seconds, cpu_name, machine_gemm, other_cpu_share
 from prt.bench.metrics import image_metrics, mark_pareto
 from prt.bench.packing import packing_baseline
-from prt.bench.reference import View, cached_transfer, load_scene_geometry, noise_psnr, reference_images
+from prt.bench.reference import View, cached_transfer, convergence, load_scene_geometry, noise_psnr, rays_for_margin, reference_images
 from prt.bench.report import error_figure, scene_checkpoint
 from prt.bench.texture_prt import texture_variants
 from prt.bench.vertex_prt import VertexPRT, vertex_transfer
@@ -61,6 +62,7 @@ class Settings:
     views: int = 30
     sizes: tuple = (512,)
     ref_rays: int = 1024
+    ref_rays_max: int = 4096  # more rays, up to this, where the reference is not 6 dB above the best PSNR
     warmup: int = 3
     config_budget: float | None = None  # seconds of frames per configuration (slow ones measure fewer views)
     packing_views: int | None = None  # views of the naive-vs-packed baseline (None: all), spread over the orbit
@@ -123,6 +125,7 @@ def _measure_renderer(renderer, views, material_name, material, settings, transf
     if material.kind == "glossy":
         kw.update(specular=material.specular, exponent=material.exponent)
     renderer.set_material(material.kind, **kw)
+    renderer.set_background(False)  # the reference is black where no geometry is
     warm_s = None
     for i in range(settings.warmup):  # sessions, shader compilation, caches; a new view each time
         renderer.set_camera_object(views[0].camera.orbit(0.01 * (i + 1)))
@@ -236,7 +239,8 @@ class SceneBench:
             "networks": sum(s.kind == "network" for s in manifest.segments), "weight_bytes": self.weights["fp32"],
             "reference": {"rays": settings.ref_rays, "seed": settings.seed, "cache": str(self.transfer_cache), "noise_psnr": {},
                           "noise_note": "PSNR between two references with different seeds at view 0 (covered pixels); "
-                                        "each is ~3 dB closer to the converged image than this"},
+                                        "each is ~3 dB closer to the converged image than this",
+                          "rays_by_size": {}, "convergence": {}},
             "packing": [], "vertex_baseline": vertex_info, "texture_baseline": texture_info, "error_images": [],
         }  # fmt: skip
         self.records: list[dict] = []
@@ -255,6 +259,7 @@ class SceneBench:
                 if self.vertex_data is not None:
                     self._vertex_records(size, views, base.gbuffer, base.lighting)
                 self._texture_records(size, views)
+                self._check_convergence(size)
                 if self.settings.images is not None:
                     path = Path(self.settings.images) / f"{self.manifest.name}-{size}x{size}.png"
                     error_figure(views[0], {m: self.images[(f"{size}x{size}", m)] for m in self.materials}, path,
@@ -278,33 +283,68 @@ class SceneBench:
         return (front, back), info
 
     def _references(self, renderer, size: int) -> list:
-        """The views at ``size``: G-buffers, reference images (cached transfer) and the reference's noise."""
+        """The views at ``size``: G-buffers, reference images (cached transfer) and the reference's noise.
+
+        View 0 is traced with two seeds; while their PSNR is not REFERENCE_MARGIN_DB above a pilot
+        (this renderer's fp32 image of view 0) it is traced again with more rays
+        (:func:`rays_for_margin`, at most ``ref_rays_max``); the other views use the rays settled on.
+        """
         settings, resolution = self.settings, f"{size}x{size}"
-        views, seconds = [], 0.0
+        views, seconds, rays = [], 0.0, settings.ref_rays
         for v, camera in enumerate(self.cameras):
             renderer.set_camera_object(camera)
             gbuffer = renderer.gbuffer_image()
             points, normals = gbuffer.position[gbuffer.covered], gbuffer.normal[gbuffer.covered]
             tag = f"view{v:03d}-{resolution}"
-            images = {}
-            # A second seed (other frame spins) at view 0 measures the reference's own noise.
-            for seed in (settings.seed, settings.seed + 1) if v == 0 else (settings.seed,):
-                transfer, spent = cached_transfer(
-                    self.transfer_cache, tag, self.geometry, self.tracer, points, normals, settings.ref_rays, seed, self.geometry_id,
-                    executor=self.executor,
-                )
-                seconds += spent
-                images[seed] = reference_images(transfer, gbuffer, camera.eye, renderer.lighting, self.materials)
-            references = images[settings.seed]
-            if v == 0:
-                other = images[settings.seed + 1]
-                self.entry["reference"]["noise_psnr"][resolution] = noise_psnr(other, references, gbuffer.covered)
+            while True:
+                images = {}
+                # A second seed (other frame spins) at view 0 measures the reference's own noise.
+                for seed in (settings.seed, settings.seed + 1) if v == 0 else (settings.seed,):
+                    transfer, spent = cached_transfer(
+                        self.transfer_cache, tag, self.geometry, self.tracer, points, normals, rays, seed, self.geometry_id,
+                        executor=self.executor,
+                    )
+                    seconds += spent
+                    images[seed] = reference_images(transfer, gbuffer, camera.eye, renderer.lighting, self.materials)
+                references = images[settings.seed]
+                if v != 0:
+                    break
+                noise = self.entry["reference"]["noise_psnr"][resolution] = noise_psnr(images[settings.seed + 1], references, gbuffer.covered)
+                more = rays_for_margin(noise, self._pilot_psnr(renderer, references, gbuffer.covered), rays, settings.ref_rays_max)
+                if more == rays:
+                    break
+                self.log(f"  reference {resolution}: noise PSNR {noise} at {rays} rays is within 6 dB of the pilot; {more} rays")
+                rays = more
+                renderer.set_camera_object(camera)
             views.append(View(camera, gbuffer, references, _segment_flops(self.manifest, gbuffer.segment)))
+        self.entry["reference"]["rays_by_size"][resolution] = rays
         self.log(
-            f"  reference {resolution}: {len(views)} views x {settings.ref_rays} rays ({seconds:.1f} s computed, "
+            f"  reference {resolution}: {len(views)} views x {rays} rays ({seconds:.1f} s computed, "
             f"rest cached); noise PSNR {self.entry['reference']['noise_psnr'][resolution]}"
         )
         return views
+
+    def _pilot_psnr(self, renderer, references: dict, covered) -> dict:
+        """{material: PSNR} of ``renderer``'s image of its current view (fp32 networks) against ``references``."""
+        pilot = {}
+        for name, material in self.materials.items():
+            kw = {"specular": material.specular, "exponent": material.exponent} if material.kind == "glossy" else {}
+            renderer.set_material(material.kind, albedo=material.albedo, **kw)
+            pilot[name] = image_metrics(tonemap(renderer.render()), references[name], covered)["psnr"]
+        return pilot
+
+    def _check_convergence(self, size: int) -> None:
+        """Record the reference's noise against the best PSNR measured at ``size`` (``floor`` when under 6 dB apart)."""
+        resolution = f"{size}x{size}"
+        best = {}
+        for r in self.records:
+            if r["resolution"] == resolution:
+                best[r["material"]] = max(best.get(r["material"], -math.inf), r["psnr"])
+        ref = self.entry["reference"]
+        verdict = ref["convergence"][resolution] = convergence(ref["noise_psnr"][resolution], best, ref["rays_by_size"][resolution])
+        if verdict["floor"]:
+            self.log(f"  reference {resolution}: noise PSNR {verdict['noise_psnr']} is not 6 dB above the best PSNR "
+                     f"{verdict['best_psnr']} even at {verdict['rays']} rays (--ref-rays-max): the reference is the floor")  # fmt: skip
 
     def _common(self, size: int, views: list) -> dict:
         """The fields every record of this scene and size shares."""
@@ -314,7 +354,7 @@ class SceneBench:
             "scene": self.manifest.name, "resolution": f"{size}x{size}", "width": size, "height": size,
             "views": len(views), "covered_pixels": float(np.median(covered)),
             "flops_per_fragment": round(flops / sum(covered), 1) if sum(covered) else 0.0,
-            "machine_gflops": round(self.machine_gflops, 2), "ref_rays": self.settings.ref_rays,
+            "machine_gflops": round(self.machine_gflops, 2), "ref_rays": self.entry["reference"]["rays_by_size"][f"{size}x{size}"],
         }  # fmt: skip
 
     def _add(self, common: dict, backend: str, precision: str, material: str, summary: dict, weight_bytes: int) -> None:

@@ -33,12 +33,12 @@ __all__ = ["write_manifest", "relative_to_scene"]
 # id, kind and type lead); keys not listed (object ids, lighting names) follow, sorted.
 _KEY_ORDER = [
     "format", "version", "id", "kind", "type", "name", "generator", "sh_bands",
-    "geometry", "segmentation", "segments", "lighting", "material", "camera", "memory",
+    "geometry", "segmentation", "segments", "lighting", "material", "materials", "camera", "memory",
     "file", "model", "glsl", "glsl_weights", "to_source", "triangles", "objects",
     "roots", "nodes", "leaf_segment", "axis", "split", "left", "right", "leaf",
     "bounds", "architecture", "flops_per_fragment", "weight_bytes", "samples", "validation",
     "hidden", "layers", "pos_freqs", "normal_freqs", "input_dim", "coeff_mae", "shaded_mae",
-    "envmap", "sh", "rotation", "albedo", "specular", "exponent",
+    "envmap", "sh", "rotation", "object", "albedo", "specular", "exponent", "source",
     "eye", "target", "up", "fov", "vertex_storage_bytes",
 ]  # fmt: skip
 _KEY_RANK = {key: rank for rank, key in enumerate(_KEY_ORDER)}

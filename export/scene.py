@@ -20,6 +20,7 @@ import numpy as np
 
 from ..runtime.camera import DEFAULT_CAMERA
 from ..runtime.files import atomic_save_npy, atomic_save_npz, atomic_write_bytes
+from ..runtime.materials import materials_to_dicts
 from ..runtime.manifest import (
     GENERATOR,
     MANIFEST_NAME,
@@ -110,7 +111,7 @@ def export_segment(out: Path, segment: TrainedSegment, glsl_layout: str = "auto"
     return info
 
 
-def export_geometry(geometry, out: Path) -> GeometryInfo:
+def export_geometry(geometry, out: Path, albedo_uv: np.ndarray | None = None) -> GeometryInfo:
     """Write the scene's geometry into ``out``; its manifest entry.
 
     Parameters
@@ -120,6 +121,8 @@ def export_geometry(geometry, out: Path) -> GeometryInfo:
         ``to_source`` and ``sdf`` (an SDF scene: ``name`` and ``glsl(function_name)``).
     out : Path
         The scene folder.
+    albedo_uv : (F, 3, 2) float32, optional
+        The mesh's own UV of every corner (albedo textures), stored as ``albedo_uv``.
     """
     to_source = np.asarray(geometry.to_source, dtype=np.float64)
     if geometry.sdf is not None:
@@ -134,10 +137,33 @@ def export_geometry(geometry, out: Path) -> GeometryInfo:
         faces=np.asarray(mesh.faces, dtype=np.uint32),
         object_ids=np.asarray(geometry.object_ids, dtype=np.int32),
         two_sided=np.asarray(geometry.two_sided, dtype=bool),
+        **({} if albedo_uv is None else {"albedo_uv": np.asarray(albedo_uv, dtype=np.float32)}),
     )
     return GeometryInfo(
         type="mesh", path=path, to_source=to_source, triangles=int(len(mesh.faces)), objects=list(geometry.object_names)
     )
+
+
+def _export_texture(out: Path, index: int, material):
+    """``material`` with its albedo texture written into ``out/textures`` (path relative to ``out``)."""
+    import dataclasses
+    import re
+
+    texture = material.albedo_texture
+    if texture is None:
+        return material
+    folder = out / "textures"
+    folder.mkdir(exist_ok=True)
+    stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", material.object)[:40] or "object"
+    if isinstance(texture, np.ndarray):
+        import imageio.v3 as iio
+
+        name = f"{index:03d}_{stem}.png"
+        atomic_write_bytes(folder / name, iio.imwrite("<bytes>", texture, extension=".png"))
+    else:
+        name = f"{index:03d}_{re.sub(r'[^A-Za-z0-9_.-]+', '_', Path(texture).name)}"
+        atomic_write_bytes(folder / name, Path(texture).read_bytes())
+    return dataclasses.replace(material, albedo_texture=Path("textures") / name)
 
 
 def export_scene(
@@ -152,6 +178,8 @@ def export_scene(
     material: dict,
     camera: dict,
     glsl_layout: str = "auto",
+    materials: list | None = None,
+    albedo_uv: np.ndarray | None = None,
 ) -> Manifest:
     """Write a whole scene folder: segment files, geometry, then ``scene.json``.
 
@@ -175,6 +203,11 @@ def export_scene(
         :data:`~prt.runtime.camera.DEFAULT_CAMERA`).
     glsl_layout : str
         ``"auto"``, ``"const"`` or ``"texture"``.
+    materials : list of prt.runtime.materials.ObjectMaterial, optional
+        Per-object materials, written as the manifest's optional ``materials`` list; their
+        albedo textures are written to ``textures/``.
+    albedo_uv : (F, 3, 2) float32, optional
+        Corner UVs for the albedo textures (see :func:`export_geometry`).
 
     Returns
     -------
@@ -189,7 +222,7 @@ def export_scene(
     out = Path(out)
     path = out / MANIFEST_NAME
     infos = [export_segment(out, segment, glsl_layout) for segment in segments]
-    geometry_info = export_geometry(geometry, out)
+    geometry_info = export_geometry(geometry, out, albedo_uv)
     for key, value in (("material", material), ("camera", camera)):
         validate_manifest_field(key, value, str(path))
     manifest = Manifest(
@@ -209,5 +242,11 @@ def export_scene(
             vertex_storage_bytes=int(len(geometry.mesh.vertices) * sh_bands**2 * 4),
         ),
     )
-    write_manifest(path, manifest)
+    if materials:
+        data = manifest.to_dict(root=out)
+        data["materials"] = materials_to_dicts([_export_texture(out, k, m) for k, m in enumerate(materials)])
+        write_manifest(path, data)
+        manifest.raw = data
+    else:
+        write_manifest(path, manifest)
     return manifest

@@ -10,7 +10,10 @@ and moderngl only; it never imports torch (a test enforces this).
 - :mod:`prt.runtime.backends`    transfer backends by name behind one interface: ``onnx`` (packed
                                  per-segment inference with ONNX Runtime), ``glsl`` (generated GLSL)
 - :mod:`prt.runtime.camera`      the look-at camera, the default camera, orbits
-- :mod:`prt.runtime.orbit`       turntable frames to PNG with median stage timings
+- :mod:`prt.runtime.orbit`       turntables and camera paths to PNG, linear EXR or MP4, with median
+                                 stage timings
+- :mod:`prt.runtime.camera_path` camera paths: the versioned JSON of keyframes, interpolation
+- :mod:`prt.runtime.background`  the env map drawn where no geometry is
 - :mod:`prt.runtime.envmap`      reading HDR environment maps (.hdr, .exr)
 - :mod:`prt.runtime.envmaps`     the bundled environment maps, by name
 - :mod:`prt.runtime.gl`          headless OpenGL contexts (EGL), full-screen programs, the GLSL

@@ -2,10 +2,14 @@
 
 usage: prt-runtime [scene.json] [--backend onnx|glsl] [--size W[xH]] [--headless] [--frames N]
                    [--out DIR] [--envmap NAME|PATH] [--material diffuse|glossy] [--exponent E]
+                   [--camera-path PATH.json] [--format png|exr|mp4] [--fps F]
+                   [--background envmap|black] [--target-fps F]
+                   [--object-albedo NAME=R,G,B ...]
 
 Without a scene it opens the bundled demo scene (Spot).  With a display (and pygame installed:
 ``pip install "prt-runtime[viewer]"``) it opens a window; without one, or with --headless, it
-renders --frames frames along an orbit to PNG files and prints the median FPS and stage times.
+renders --frames frames along an orbit (or the views of --camera-path) to PNG files (linear EXR
+files, or an MP4 video with --format) and prints the median FPS and stage times.
 A thin layer over the library: :class:`prt.runtime.viewer.ViewerOptions`,
 :func:`prt.runtime.viewer.run_window` and :func:`prt.runtime.orbit.render_orbit`.
 """
@@ -21,7 +25,9 @@ from .backends import ALL_BACKENDS, BACKENDS
 from .envmaps import BUNDLED_ENVMAPS
 from .checks import finite_array, positive_int
 from .errors import InputError, PRTError
-from .orbit import render_orbit
+from .materials import parse_object_albedo
+from .camera_path import load_camera_path
+from .orbit import FORMATS, render_camera_path, render_orbit
 from .renderer import Scene
 from .viewer import ViewerOptions, run_window
 
@@ -43,9 +49,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--envmap", default=None, help=f"bundled env map name ({', '.join(BUNDLED_ENVMAPS)}) or an .hdr/.exr path")
     p.add_argument("--material", choices=("diffuse", "glossy"), default=None, help="override the scene's material")
     p.add_argument("--exponent", type=float, default=16.0, help="Phong exponent of the glossy material")
+    p.add_argument("--object-albedo", action="append", default=[], metavar="NAME=R,G,B",
+                   help="albedo of one object of the scene (repeatable; after --material)")
     p.add_argument("--exposure", type=float, default=1.0, help="exposure before tone mapping")
     p.add_argument("--providers", default=None, help="comma-separated ONNX Runtime providers (default: CUDA if present, then CPU)")
     p.add_argument("--threads", type=int, default=None, help="CPU threads of the ONNX backend")
+    p.add_argument("--camera-path", type=Path, default=None, help="headless: render the views of this camera-path JSON (saved by the viewer's c / o keys)")
+    p.add_argument("--format", choices=FORMATS, default="png", help="headless: PNG frames, linear EXR frames, or one MP4 video (--out DIR or FILE.mp4)")
+    p.add_argument("--fps", type=float, default=30.0, help="frame rate of an MP4")
+    p.add_argument("--background", choices=("envmap", "black"), default=None, help="what is drawn where no geometry is (default: the scene's choice)")
+    p.add_argument("--target-fps", type=float, default=30.0, help="window: render smaller while the camera moves to hold this (0: always full size)")
     return p
 
 
@@ -69,10 +82,14 @@ def options_from_args(args: argparse.Namespace) -> ViewerOptions:
     finite_array(args.exposure, "--exposure", (), minimum=0.0)
     if not float(finite_array(args.exponent, "--exponent", ())) > 0:
         raise InputError(f"--exponent must be > 0, got {args.exponent}")
+    target_fps = float(finite_array(args.target_fps, "--target-fps", (), minimum=0.0))
+    object_albedo = tuple(parse_object_albedo(text) for text in args.object_albedo)
     return ViewerOptions(
+        object_albedo=object_albedo,
         width=width, height=height, backend=args.backend, envmap=args.envmap, material=args.material,
         exponent=args.exponent, exposure=args.exposure,
         providers=args.providers.split(",") if args.providers else None, threads=args.threads,
+        background=None if args.background is None else args.background == "envmap", target_fps=target_fps or None,
     )  # fmt: skip
 
 
@@ -84,11 +101,15 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         options = options_from_args(args)
+        path = load_camera_path(args.camera_path) if args.camera_path is not None else None
         scene = Scene.load(args.scene)
-        if not args.headless and has_display():
+        if not args.headless and has_display() and path is None:
             return run_window(scene, options)
         with options.renderer(scene) as r:
-            summary = render_orbit(r, args.frames, args.out, exposure=options.exposure)
+            if path is not None:
+                summary = render_camera_path(r, path, args.out, exposure=options.exposure, fmt=args.format, fps=args.fps)
+            else:
+                summary = render_orbit(r, args.frames, args.out, exposure=options.exposure, fmt=args.format, fps=args.fps)
     except PRTError as exc:
         print(f"prt-runtime: error: {exc}", file=sys.stderr)
         return 2

@@ -11,6 +11,8 @@ Render targets (RGBA32F, ``width x height``, plus a depth texture):
   normal facing the camera (``dot(n, eye - p) >= 0``) and the segment id as a float;
 - attachment 2 (:attr:`GBufferPass.uv_texture`), only for scenes with a transfer texture:
   ``u, v, atlas, covered``, the UV of the visible side (open faces have one chart per side);
+- the next attachment (:attr:`GBufferPass.material_texture`), only for mesh scenes shaded with
+  per-object materials (:mod:`prt.runtime.materials`): ``u, v, object id, covered``;
 - background is ``(0, 0, 0, 0)`` and ``(0, 0, 0, -1)`` (and ``(0, 0, 0, 0)``); depth is GL's window depth in
   ``[0, 1]`` (1 on background), written by both paths from the hit's clip-space depth.
 
@@ -185,7 +187,8 @@ def load_mesh(path: str | Path) -> dict[str, np.ndarray]:
     -------
     dict
         ``vertices`` (V, 3) float32, ``faces`` (F, 3) int64, ``object_ids`` (F,) int32
-        (zeros if the file has none), ``two_sided`` (F,) bool (False if absent).
+        (zeros if the file has none), ``two_sided`` (F,) bool (False if absent); ``albedo_uv``
+        (F, 3, 2) float32 per corner, only if the file has it.
 
     Raises
     ------
@@ -222,12 +225,18 @@ def load_mesh(path: str | Path) -> dict[str, np.ndarray]:
         raise GeometryError(f"{path}: two_sided must have shape ({n_faces},), got {two_sided.shape}")
     if two_sided.dtype != np.bool_:
         raise GeometryError(f"{path}: two_sided must be booleans, got {two_sided.dtype}")
-    return {
+    out = {
         "vertices": vertices.astype(np.float32),
         "faces": faces,
         "object_ids": object_ids.astype(np.int32),
         "two_sided": two_sided.astype(bool),
     }
+    albedo_uv = arrays.get("albedo_uv")  # optional: the mesh's own UVs, for albedo textures
+    if albedo_uv is not None:
+        if albedo_uv.shape != (n_faces, 3, 2) or albedo_uv.dtype.kind != "f" or not np.all(np.isfinite(albedo_uv)):
+            raise GeometryError(f"{path}: albedo_uv must be ({n_faces}, 3, 2) finite floats, got {albedo_uv.shape} {albedo_uv.dtype}")
+        out["albedo_uv"] = albedo_uv.astype(np.float32)
+    return out
 
 
 def _mesh_vertices(mesh: dict[str, np.ndarray]) -> np.ndarray:
@@ -328,6 +337,7 @@ class GBufferPass:
         *,
         max_steps: int = 256,
         hit_eps: float = 1e-4,
+        object_materials: bool | None = None,
     ) -> None:
         width, height = int(width), int(height)
         if width < 1 or height < 1:
@@ -336,6 +346,7 @@ class GBufferPass:
         self.width, self.height = width, height
         self.kind = manifest.geometry.type
         self._released = False
+        self._cull = False  # set by _build_mesh
         self._vbo = None
         self._vao = self._program = None
         self._fbo = self._normal_fbo = None
@@ -343,6 +354,11 @@ class GBufferPass:
         # Texture-space transfer needs the UV of each pixel; other scenes draw exactly as before.
         self._with_uv = self.kind == "mesh" and getattr(manifest, "transfer_texture", None) is not None
         self.uv_texture = self._uv_vbo = None
+        # Per-object materials need each pixel's object id (None: when the manifest has materials).
+        if object_materials is None:
+            object_materials = bool((manifest.raw or {}).get("materials"))
+        self._with_material = self.kind == "mesh" and bool(object_materials)
+        self.material_texture = self._albedo_uv_vbo = None
         try:
             self._build_targets()
             if self.kind == "mesh":
@@ -363,10 +379,10 @@ class GBufferPass:
         self.normal_texture = self._target_texture(size)
         self.depth_texture = self.ctx.depth_texture(size)
         self.uv_texture = self._target_texture(size) if self._with_uv else None
+        self.material_texture = self._target_texture(size) if self._with_material else None
         colour = [self.position_texture, self.normal_texture] + ([self.uv_texture] if self._with_uv else [])
+        colour += [self.material_texture] if self._with_material else []
         self._fbo = self.ctx.framebuffer(colour, self.depth_texture)
-        # Lets the normal target alone be cleared to its own background value (segment -1).
-        self._normal_fbo = self.ctx.framebuffer([self.normal_texture])
 
     def _target_texture(self, size: tuple[int, int]) -> moderngl.Texture:
         texture = self.ctx.texture(size, 4, dtype="f4")
@@ -379,8 +395,10 @@ class GBufferPass:
         tables = segment_tables(manifest, mesh["object_ids"])
         _check_uniform_budget(self.ctx, tables, str(manifest.path))
         uv_define = {"PRT_GBUFFER_UV": 1} if self._with_uv else {}
-        fragment = assemble("segment_lookup.glsl", "gbuffer_mesh.frag", defines={**_lookup_defines(tables), **uv_define})
-        vertex = assemble("gbuffer_mesh.vert", defines=uv_define)
+        material_define = {"PRT_GBUFFER_MATERIAL": self.material_attachment} if self._with_material else {}
+        defines = {**_lookup_defines(tables), **uv_define, **material_define}
+        fragment = assemble("segment_lookup.glsl", "gbuffer_mesh.frag", defines=defines)
+        vertex = assemble("gbuffer_mesh.vert", defines={**uv_define, **material_define})
         self._program = compile_program(self.ctx, fragment, "G-buffer pass", vertex=vertex)
         _set_tables(self._program, tables)
         self._vbo = self.ctx.buffer(_mesh_vertices(mesh).tobytes())
@@ -388,8 +406,16 @@ class GBufferPass:
         if self._with_uv:
             self._uv_vbo = self.ctx.buffer(_uv_vertices(manifest, len(mesh["faces"])).tobytes())
             buffers.append((self._uv_vbo, "4f 1f", "in_uv", "in_atlas"))
+        if self._with_material:
+            albedo_uv = mesh.get("albedo_uv")
+            corners = np.zeros((len(mesh["faces"]) * 3, 2), np.float32) if albedo_uv is None else albedo_uv.reshape(-1, 2)
+            self._albedo_uv_vbo = self.ctx.buffer(np.ascontiguousarray(corners, dtype=np.float32).tobytes())
+            buffers.append((self._albedo_uv_vbo, "2f", "in_albedo_uv"))
         self._vao = self.ctx.vertex_array(self._program, buffers)
         self._vertices = 3 * len(mesh["faces"])
+        # Without two-sided faces GL's culling drops exactly what the shader would discard
+        # (gl_FrontFacing and culling read the same winding), before any fragment runs.
+        self._cull = not bool(mesh["two_sided"].any())
 
     def _build_sdf(self, manifest: Manifest, max_steps: int, hit_eps: float) -> None:
         if max_steps < 1 or not hit_eps > 0.0:
@@ -441,23 +467,35 @@ class GBufferPass:
             self._set("u_far", camera.far)
             self._set("u_pixel_angle", 2.0 * half_y / self.height)
         previous = self.ctx.fbo
-        # Culling stays off: back faces of closed surfaces are discarded in the shader.
+        # Back faces of closed surfaces are discarded in the shader; culled by GL as well where no
+        # face is two-sided (the same fragments, fewer of them run).
         self.ctx.disable(moderngl.BLEND | moderngl.CULL_FACE)
+        if self._cull:
+            self.ctx.front_face, self.ctx.cull_face = "ccw", "back"
+            self.ctx.enable(moderngl.CULL_FACE)
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.depth_func = "<"
         try:
+            self._fbo.use()
             self._fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
-            # Clearing the main target sets both attachments alike; the normal's w needs -1.
-            self._normal_fbo.clear(0.0, 0.0, 0.0, -1.0)
-            # use() after the clears: it also restores the depth mask, which a clear of the
-            # depth-less normal framebuffer turns off.
+            # Clearing the main target sets both attachments alike; the normal's w needs -1.  A
+            # colour mask on the same framebuffer (not a second one) keeps llvmpipe to one pass.
+            everything = self._fbo.color_mask
+            self._fbo.color_mask = tuple((k == 1,) * 4 for k in range(len(everything)))
+            self._fbo.clear(0.0, 0.0, 0.0, -1.0, depth=1.0)
+            self._fbo.color_mask = everything
             self._fbo.use()
             self._vao.render(moderngl.TRIANGLES, vertices=self._vertices)
         finally:
-            self.ctx.disable(moderngl.DEPTH_TEST)
+            self.ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
             bind_framebuffer(self.ctx, previous)
 
     # ----------------------------------------------------------------- read-back
+
+    def read_targets(self) -> np.ndarray:
+        """Both targets read back: (2, H, W, 4) float32, a view with rows flipped to top-first (no
+        copy; ``[:, ::-1]`` of it is GL's contiguous bottom-first order); the next call overwrites it."""
+        return self._read_targets()
 
     def _read_targets(self) -> np.ndarray:
         """(2, H, W, 4) view of both targets, rows flipped to top-first (no copy)."""
@@ -465,6 +503,21 @@ class GBufferPass:
         for attachment in (0, 1):
             self._fbo.read_into(self._staging[attachment], components=4, attachment=attachment, dtype="f4")
         return self._staging[:, ::-1]
+
+    @property
+    def material_attachment(self) -> int | None:
+        """Index of the material target in the framebuffer, None without one."""
+        return (3 if self._with_uv else 2) if self._with_material else None
+
+    def read_material(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Per pixel, rows from the top as :meth:`read_packed`: object id (H * W,) int32 (-1 on
+        background) and albedo-texture UV (H * W, 2) float32; None without a material target."""
+        self._check_alive()
+        if not self._with_material:
+            return None
+        raw = self._fbo.read(components=4, attachment=self.material_attachment, dtype="f4")
+        rows = np.frombuffer(raw, dtype=np.float32).reshape(self.height, self.width, 4)[::-1].reshape(-1, 4)
+        return np.where(rows[:, 3] > 0.5, rows[:, 2], -1.0).astype(np.int32), rows[:, :2].copy()
 
     def read_packed(self, out: np.ndarray | None = None) -> np.ndarray:
         """Both targets interleaved per pixel in one contiguous array.
@@ -529,8 +582,9 @@ class GBufferPass:
             return
         self._released = True
         resources = [
-            self._vao, self._program, self._vbo, self._uv_vbo,
+            self._vao, self._program, self._vbo, self._uv_vbo, self._albedo_uv_vbo,
             self._normal_fbo, self._fbo, self.position_texture, self.normal_texture, self.depth_texture, self.uv_texture,
+            self.material_texture,
         ]  # fmt: skip
         for resource in resources:
             if resource is not None:

@@ -250,16 +250,19 @@ class LightingInfo:
         RGB light coefficients.
     rotation : ndarray, shape (3, 3), or None
         Rotation applied to the lighting.
+    background : bool
+        Draw ``envmap`` where no geometry is (else black).
     """
 
     envmap: Path | None = None
     sh: np.ndarray | None = None
     rotation: np.ndarray | None = None
+    background: bool = False
 
     @classmethod
     def from_dict(cls, data: dict, envmap: Path | None) -> LightingInfo:
         """From the manifest's ``lighting`` object, with its env map already resolved."""
-        return cls(envmap=envmap, sh=_array(data.get("sh")), rotation=_array(data.get("rotation")))
+        return cls(envmap=envmap, sh=_array(data.get("sh")), rotation=_array(data.get("rotation")), background=bool(data.get("background", False)))
 
     def to_dict(self, root: Path) -> dict:
         """The manifest's ``lighting`` object; ``envmap`` is always written (null for none)."""
@@ -268,6 +271,8 @@ class LightingInfo:
             out["sh"] = _listed(self.sh)
         if self.rotation is not None:
             out["rotation"] = _listed(self.rotation)
+        if self.background:
+            out["background"] = True
         return out
 
 

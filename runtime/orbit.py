@@ -1,28 +1,38 @@
-"""Render a turntable: views on an orbit about the scene's target, written as PNG frames.
+"""Render a turntable or a camera path headlessly: PNG frames, linear EXR frames, or an MP4.
 
-What ``prt-runtime --headless`` does, as a library function: :func:`render_orbit`.
+What ``prt-runtime --headless`` does, as library functions: :func:`render_orbit` (the orbit of
+the renderer's camera) and :func:`render_camera_path` (a :class:`~prt.runtime.camera_path.CameraPath`).
+Output is never left half-written: each frame file is written through a temporary file and a
+rename, a video is encoded into a temporary file renamed at the end, the output folder is
+created only when the first frame is ready, and a failure removes what the call wrote.
 """
 
 from __future__ import annotations
 
+import os
+import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
 
-from .camera import orbit_views
+from .camera_path import CameraPath, orbit_path
 from .checks import finite_array, positive_int
-from .errors import OutputError
+from .envmap import write_hdr
+from .errors import ArgumentTypeError, InputError, OutputError
 from .files import atomic_write_bytes
 from .shading import to_srgb8
 
-__all__ = ["render_orbit", "OrbitSummary"]
+__all__ = ["render_orbit", "render_camera_path", "OrbitSummary", "FORMATS", "VIDEO_INSTALL"]
+
+FORMATS = ("png", "exr", "mp4")
+VIDEO_INSTALL = 'pip install "prt-runtime[video]"  (imageio-ffmpeg)'
 
 
 @dataclass(frozen=True)
 class OrbitSummary:
-    """Median timings of an orbit (warm-up frames excluded); ``str()`` gives the one-line report."""
+    """Median timings of an orbit or path (warm-up frames excluded); ``str()`` gives the one-line report."""
 
     scene: str
     frames: int
@@ -31,6 +41,7 @@ class OrbitSummary:
     backend: str
     median_ms: dict  # stage -> median milliseconds, "frame" included
     out: Path
+    wrote: str = ""  # what was written, for the report (default: the PNG frames in ``out``)
 
     @property
     def fps(self) -> float:
@@ -41,12 +52,12 @@ class OrbitSummary:
         parts = ", ".join(f"{k} {v:.1f}" for k, v in med.items() if k != "frame")
         return (
             f"{self.scene}: {self.frames} frames {self.width}x{self.height}, backend {self.backend}: median {self.fps:.1f} FPS "
-            f"({med['frame']:.1f} ms/frame; {parts} ms); wrote {self.out}/frame_000.png ..."
+            f"({med['frame']:.1f} ms/frame; {parts} ms); wrote {self.wrote or f'{self.out}/frame_000.png ...'}"
         )
 
 
-def render_orbit(r, frames: int, out, *, exposure: float = 1.0, warmup: int = 2) -> OrbitSummary:
-    """Render ``frames`` views on a full orbit of the renderer's camera into ``out``/frame_NNN.png.
+def render_orbit(r, frames: int, out, *, exposure: float = 1.0, warmup: int = 2, fmt: str = "png", fps: float = 30.0) -> OrbitSummary:
+    """Render ``frames`` views on a full orbit of the renderer's camera into ``out``.
 
     Parameters
     ----------
@@ -54,52 +65,174 @@ def render_orbit(r, frames: int, out, *, exposure: float = 1.0, warmup: int = 2)
         Its camera is the first view, and is restored at the end.
     frames : int
         Views, evenly spaced (:func:`prt.runtime.camera.orbit_views`).
-    out : str or os.PathLike
-        Folder for the frames, created when the first frame is ready (never for a failed first
-        frame); if the orbit fails later, the frames written and a folder it created are removed.
-    exposure : float
-        Exposure before tone mapping.
-    warmup : int
-        Frames rendered first, each from a view just short of the start, and not timed.
+    out, exposure, warmup, fmt, fps
+        As :func:`render_camera_path`.
 
     Returns
     -------
     OrbitSummary
     """
     frames = positive_int(frames, "--frames")
+    return render_camera_path(r, orbit_path(r.camera, frames), out, exposure=exposure, warmup=warmup, fmt=fmt, fps=fps)
+
+
+def render_camera_path(r, path: CameraPath, out, *, exposure: float = 1.0, warmup: int = 2, fmt: str = "png",
+                       fps: float = 30.0) -> OrbitSummary:  # fmt: skip
+    """Render every frame of ``path``.
+
+    Parameters
+    ----------
+    r : prt.runtime.renderer.Renderer
+        Its camera is restored at the end.
+    path : CameraPath
+    out : str or os.PathLike
+        ``png`` / ``exr``: folder for ``frame_NNN.png`` (tone-mapped sRGB) or ``frame_NNN.exr``
+        (linear radiance times ``exposure``, float32).  ``mp4``: the video file if ``out`` ends
+        in ``.mp4``, else ``out/turntable.mp4``.  Folders are created when the first frame is
+        ready (never for a failed first frame); if a later frame fails, what was written and
+        the folders created are removed.
+    exposure : float
+        Exposure before tone mapping (PNG, MP4) or scale of the radiance (EXR).
+    warmup : int
+        Frames rendered first, each from a view just short of the start, and not timed.
+    fmt : {"png", "exr", "mp4"}
+    fps : float
+        Frame rate of the video.
+
+    Returns
+    -------
+    OrbitSummary
+    """
+    if not isinstance(path, CameraPath):
+        raise ArgumentTypeError(f"render_camera_path: expected a CameraPath, got {type(path).__name__}")
+    if fmt not in FORMATS:
+        raise InputError(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     exposure = float(finite_array(exposure, "--exposure", (), minimum=0.0))
+    fps = float(finite_array(fps, "--fps", ()))
+    if not 0 < fps <= 1000:
+        raise InputError(f"--fps must be in (0, 1000], got {fps}")
+    cameras = path.cameras()  # every view checked before anything is written
     out = Path(out)
+    sink = _VideoSink(out, r.width, r.height, fps) if fmt == "mp4" else _FrameSink(out, fmt)
     start = r.camera
-    written: list[Path] = []
-    created: list[Path] = []  # folders made here, deepest last
     try:
         for i in range(warmup):  # sessions, shader compilation, caches; a new view each time
-            r.set_camera_object(start.orbit(-0.01 * (i + 1)))
+            r.set_camera_object(cameras[0].orbit(-0.01 * (i + 1)))
             r.render()
         stages: dict[str, list[float]] = {}
-        for i, camera in enumerate(orbit_views(start, frames)):
+        for i, camera in enumerate(cameras):
             r.set_camera_object(camera)
             image = r.render()
             for k, v in r.timings.items():
                 stages.setdefault(k, []).append(v)
-            png = iio.imwrite("<bytes>", to_srgb8(image, exposure), extension=".png")
-            if not written:
-                created = _make_folder(out)
-            atomic_write_bytes(out / f"frame_{i:03d}.png", png)
-            written.append(out / f"frame_{i:03d}.png")
+            sink.add(i, image, exposure)
+        sink.finish()
     except BaseException:
-        for path in written:
-            path.unlink(missing_ok=True)
-        for folder in reversed(created):
-            try:
-                folder.rmdir()
-            except OSError:
-                break
+        sink.abort()
         raise
     finally:
         r.set_camera_object(start)
     med = {k: float(np.median(v)) for k, v in stages.items()}
-    return OrbitSummary(r.scene.name, frames, r.width, r.height, r.backend, med, out)
+    return OrbitSummary(r.scene.name, len(cameras), r.width, r.height, r.backend, med, out, sink.wrote())
+
+
+class _FrameSink:
+    """PNG or EXR frames in a folder."""
+
+    def __init__(self, out: Path, fmt: str) -> None:
+        self.out, self.fmt = out, fmt
+        self.written: list[Path] = []
+        self.created: list[Path] = []  # folders made here, outermost first
+
+    def add(self, i: int, image: np.ndarray, exposure: float) -> None:
+        target = self.out / f"frame_{i:03d}.{self.fmt}"
+        if self.fmt == "png":
+            data = iio.imwrite("<bytes>", to_srgb8(image, exposure), extension=".png")
+        if not self.written:
+            self.created = _make_folder(self.out)
+        if self.fmt == "png":
+            atomic_write_bytes(target, data)
+        else:
+            try:
+                write_hdr(target, image * np.float32(exposure))  # temporary file, then rename
+            except InputError as exc:  # EnvmapError: the writer's words, as an output problem
+                raise OutputError(str(exc)) from None
+        self.written.append(target)
+
+    def finish(self) -> None:
+        pass
+
+    def abort(self) -> None:
+        for path in self.written:
+            path.unlink(missing_ok=True)
+        _remove_folders(self.created)
+
+    def wrote(self) -> str:
+        return f"{self.out}/frame_000.{self.fmt} ..."
+
+
+class _VideoSink:
+    """An H.264 MP4 through imageio-ffmpeg, encoded into a temporary file renamed at the end."""
+
+    def __init__(self, out: Path, width: int, height: int, fps: float) -> None:
+        try:
+            import imageio_ffmpeg
+        except ImportError:
+            raise InputError(f"--format mp4 needs imageio-ffmpeg: {VIDEO_INSTALL}") from None
+        self.ffmpeg = imageio_ffmpeg
+        self.path = out if out.suffix.lower() == ".mp4" else out / "turntable.mp4"
+        self.tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.mp4")
+        self.fps = fps
+        self.writer = None
+        self.created: list[Path] = []
+
+    def add(self, i: int, image: np.ndarray, exposure: float) -> None:
+        frame = to_srgb8(image, exposure)
+        # H.264 in yuv420p needs even sizes: repeat the last row / column of an odd one
+        frame = np.ascontiguousarray(np.pad(frame, ((0, frame.shape[0] % 2), (0, frame.shape[1] % 2), (0, 0)), mode="edge"))
+        if self.writer is None:
+            self.created = _make_folder(self.path.parent)
+            size = (frame.shape[1], frame.shape[0])
+            self.writer = self.ffmpeg.write_frames(str(self.tmp), size, fps=self.fps, codec="libx264",
+                                                   quality=8, macro_block_size=1, ffmpeg_log_level="error")  # fmt: skip
+            self._call(self.writer.send, None)
+        self._call(self.writer.send, frame)
+
+    def _call(self, fn, *args) -> None:
+        try:
+            fn(*args)
+        except (OSError, RuntimeError, StopIteration) as exc:
+            raise OutputError(f"{self.path}: cannot encode the video ({' '.join(str(exc).split())[:200]})") from None
+
+    def finish(self) -> None:
+        if self.writer is not None:
+            self._call(self.writer.close)
+            self.writer = None
+            try:
+                os.replace(self.tmp, self.path)
+            except OSError as exc:
+                raise OutputError(f"{self.path}: cannot write ({exc.strerror or exc})") from None
+
+    def abort(self) -> None:
+        if self.writer is not None:
+            try:
+                self.writer.close()
+            except Exception:  # the encoder may have died already; the file goes anyway
+                pass
+        if self.writer is not None or self.created:  # the temporary exists only once encoding began
+            self.tmp.unlink(missing_ok=True)
+        _remove_folders(self.created)
+
+    def wrote(self) -> str:
+        return str(self.path)
+
+
+def _remove_folders(created: list[Path]) -> None:
+    for folder in reversed(created):
+        try:
+            folder.rmdir()
+        except OSError:
+            break
 
 
 def _make_folder(out: Path) -> list[Path]:

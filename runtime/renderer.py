@@ -6,14 +6,15 @@ A frame runs three stages, each timed (milliseconds in :attr:`Renderer.timings`)
 2. Transfer, by the backend chosen by name (:mod:`prt.runtime.backends`; its stages timed as
    it names them):
    - ``"onnx"`` (the analogue of the paper's CUDA path): read the G-buffer back (``readback``),
-     pack covered fragments by segment (``pack``), run each segment's ONNX model on its batch
-     (``inference``), gather the results per covered pixel (``scatter``);
+     pack covered fragments by segment with a counting sort (``pack``), run each segment's ONNX
+     model on its batch (``inference``); the transfer stays in packed order;
    - ``"glsl"``: a full-screen pass evaluates each fragment's network in the fragment shader
      (``network``), from GLSL generated out of the ONNX weights.
 3. Shading (``shade``), one definition with two twins tested against each other: a transfer
    that a backend returns on the CPU (:class:`prt.runtime.backends.CpuTransfer`) is shaded
-   there with :func:`prt.runtime.shading.shade` (numpy); one it leaves on the GPU is shaded by
-   a full-screen pass with ``shading.glsl``.  Then the image is assembled (``readout``).
+   there with :func:`prt.runtime.shading.shade` (numpy), packed row by row; one it leaves on the
+   GPU is shaded by a full-screen pass with ``shading.glsl``.  Then the image is assembled
+   (``readout``: the shaded rows scattered once into the image, or the GPU's image read back).
 
 Transfer depends only on the geometry and the camera: when only the light, the material or
 the backend's shading inputs change, :meth:`Renderer.render` re-shades the cached transfer and
@@ -38,6 +39,7 @@ import numpy as np
 
 from ..shaders import assemble
 from .backends import ALL_BACKENDS, BACKENDS, CpuTransfer, TransferBackend, create_backend
+from .background import EnvmapBackground
 from .camera import DEFAULT_CAMERA, Camera
 from .envmap import load_envmap_sh
 from .envmaps import BUNDLED_ENVMAPS, DEFAULT_ENVMAP, bundled_envmap_path
@@ -46,6 +48,8 @@ from .errors import ArgumentTypeError, FrameError, InputError, RendererStateErro
 from .gbuffer import PACKED_SEGMENT, GBufferPass
 from .gl import ShaderCompileError, bind_framebuffer, compile_program, create_context, draw_fullscreen
 from .manifest import Manifest, load_manifest
+from .albedo_textures import AlbedoTextures
+from .materials import MaterialTable, load_albedo_textures, object_materials, shade_objects
 from .shading import GLSL_DEFINES, GLSL_FILES, Lighting, Material, shade, shader_uniforms, to_srgb8
 
 __all__ = ["Scene", "Renderer", "BACKENDS", "demo_scene_path", "ShaderCompileError"]
@@ -164,12 +168,11 @@ class Renderer:
         except BaseException:
             self._finalizer()
             raise
-        # A transfer on the CPU: covered pixels, their transfer, and the image being assembled
+        # A transfer on the CPU: covered pixels, their transfer, and their position and normal
         self._covered = np.zeros(0, dtype=np.int64)
         self._transfer_cov = np.zeros((0, 16), dtype=np.float32)
         self._geometry_cov: tuple[np.ndarray, np.ndarray] | None = None
-        self._packed: np.ndarray | None = None
-        self._cpu_image = np.zeros((self.height * self.width, 3), dtype=np.float32)
+        self._inputs: np.ndarray | None = None
 
         self.camera = Camera.from_manifest(m.camera)
         self._envmap_sh: dict[str, np.ndarray] = {}
@@ -180,8 +183,19 @@ class Renderer:
             self.lighting = Lighting.from_sh(lighting.sh, rotation=lighting.rotation)
         else:
             self.lighting = Lighting.from_envmap(bundled_envmap_path(DEFAULT_ENVMAP))
+        # The env map drawn where no geometry is (set_background); it follows set_envmap.
+        self._envmap_path = lighting.envmap if lighting.envmap is not None or lighting.sh is not None else bundled_envmap_path(DEFAULT_ENVMAP)
+        self._envmap_rotation = lighting.rotation
+        self.background = bool(lighting.background)
+        self._background: EnvmapBackground | None = None
         mat = m.material
         self.material = Material(kind=mat.type, **{k: getattr(mat, k) for k in ("albedo", "specular", "exponent") if getattr(mat, k) is not None})
+        # One material per object (runtime/materials.py); self.material is the scene-wide one.
+        per_object = object_materials(m.raw, m.geometry.objects, str(m.path), root=m.root)
+        self.materials = MaterialTable(m.geometry.objects or [], self.material, per_object, load_albedo_textures(per_object))
+        self._object_ids_cov: np.ndarray | None = None
+        self._uv_cov: np.ndarray | None = None
+        self._material_gl: dict = {}  # the per-object shade program, its VAO and table texture
         self.backend = backend
         self.timings: dict[str, float] = {}
         self.stats = {"frames": 0, "network_runs": 0, "relight_frames": 0}
@@ -226,6 +240,7 @@ class Renderer:
         if key not in self._envmap_sh:  # turning the light must not re-read and re-project the file
             self._envmap_sh[key] = load_envmap_sh(path, self.scene.manifest.sh_bands)
         self.lighting = Lighting.from_sh(self._envmap_sh[key], rotation=rotation)
+        self._envmap_path, self._envmap_rotation = Path(path), rotation
 
     def set_lighting_sh(self, coeffs, rotation=None) -> None:
         """Light with SH coefficients (16, 3), finite in float32."""
@@ -235,16 +250,49 @@ class Renderer:
             n = self.scene.manifest.sh_bands
             raise InputError(f"Renderer.set_lighting_sh: the scene has {n} SH bands ({n * n} rows), got {lighting.bands} bands ({lighting.sh.shape[0]} rows)")
         self.lighting = lighting
+        self._envmap_path = None  # no image to draw behind the geometry
 
-    def set_material(self, kind: str = "diffuse", **params) -> None:
-        """``"diffuse"`` (albedo) or ``"glossy"`` (albedo, specular, exponent)."""
+    def set_background(self, envmap: bool) -> None:
+        """Draw the env map of the light where no geometry is (True), or black (False); a
+        manifest's ``lighting.background`` sets the default.  Runs no network."""
+        self._check_usable()
+        if not isinstance(envmap, bool):
+            raise ArgumentTypeError(f"Renderer.set_background: expected True or False, got {type(envmap).__name__}")
+        self.background = envmap
+
+    def set_material(self, kind: str = "diffuse", *, object: str | None = None, **params) -> None:
+        """``"diffuse"`` (albedo) or ``"glossy"`` (albedo, specular, exponent).
+
+        Without ``object`` every object takes this material (replacing the file's per-object
+        materials); with ``object="name"`` (a name in ``scene.manifest.geometry.objects``) only
+        that one.  A material set here has no albedo texture (the object's texture, if any, is
+        dropped).  Neither runs a network: transfer does not depend on the material.
+        """
         self._check_usable()
         try:
-            self.material = Material(kind=kind, **params)
+            material = Material(kind=kind, **params)
         except ArgumentTypeError:
             raise
         except TypeError as exc:  # an unknown parameter name
             raise ArgumentTypeError(f"material: {exc}") from None
+        if object is None:
+            self.material = material
+            self.materials.set_all(material)
+            return
+        self.materials.set(object, material)
+        if self.materials.uniform:
+            self.material = self.materials[0]
+        elif self.gbuffer.material_texture is None and self.gbuffer.kind == "mesh":
+            # The first per-object material of a scene built without any: pixels need object ids.
+            old = self.gbuffer
+            self.gbuffer = self._resources.keep(GBufferPass(self.ctx, self.scene.manifest, self.width, self.height, object_materials=True))
+            self._resources.objects.remove(old)
+            old.release()
+            self._transfer_valid = False
+
+    def _per_object_shading(self) -> bool:
+        """Whether pixels are shaded with their object's material (else with self.material)."""
+        return self.gbuffer.material_texture is not None and not self.materials.uniform
 
     def set_backend(self, backend: str) -> None:
         self._check_usable()
@@ -256,7 +304,8 @@ class Renderer:
     # ------------------------------------------------------------------ frames
 
     def render(self) -> np.ndarray:
-        """One frame: (H, W, 3) float32 linear radiance, row 0 at the top, background 0.
+        """One frame: (H, W, 3) float32 linear radiance, row 0 at the top, background 0 (or the
+        env map, :meth:`set_background`).
 
         Raises
         ------
@@ -277,8 +326,10 @@ class Renderer:
         if self._transfer_on_cpu:
             radiance = self._shade_cpu()
             t1 = time.perf_counter()
-            self._cpu_image[self._covered] = radiance
-            image = self._cpu_image.reshape(self.height, self.width, 3).copy()
+            # Shaded rows scattered once into a fresh image (background 0): no clearing, no copy.
+            image = np.zeros((self.height * self.width, 3), dtype=np.float32)
+            image[self._covered] = radiance
+            image, shaded = image.reshape(self.height, self.width, 3), radiance
         else:
             self._shade_gl()
             self.ctx.finish()
@@ -290,7 +341,8 @@ class Renderer:
                 self._transfer_valid = False
                 raise FrameError(message)
             image = np.ascontiguousarray(self._image[::-1, :, :3])
-        bad = count_nonfinite(image)
+            shaded = image
+        bad = count_nonfinite(shaded)  # the background is 0
         if bad:
             raise FrameError(
                 f"{self.scene.path}: the frame has {bad} NaN or Inf values after shading (lighting or material too "
@@ -299,10 +351,27 @@ class Renderer:
         t2 = time.perf_counter()
         timings["shade"] = 1e3 * (t1 - t0)
         timings["readout"] = 1e3 * (t2 - t1)
-        timings["frame"] = 1e3 * (t2 - t_frame)
+        if self.background and self._envmap_path is not None:  # after the check: the map is finite
+            self._composite_background(image)
+            timings["background"] = 1e3 * (time.perf_counter() - t2)
+        timings["frame"] = 1e3 * (time.perf_counter() - t_frame)
         self.timings = timings
         self.stats["frames"] += 1
         return image
+
+    def _composite_background(self, image: np.ndarray) -> None:
+        """Fill the uncovered pixels of ``image`` (H, W, 3) with the env map seen by the camera."""
+        if self._background is None:
+            self._background = self._resources.keep(EnvmapBackground(self.ctx, self.width, self.height))
+        self._background.set_envmap(self._envmap_path, str(self._envmap_path))
+        layer = self._background.image(self.camera, self._envmap_rotation)
+        if self._transfer_on_cpu:
+            uncovered = np.ones(self.height * self.width, dtype=bool)
+            uncovered[self._covered] = False
+            uncovered = uncovered.reshape(self.height, self.width, 1)
+        else:
+            uncovered = self._image[::-1, :, 3:] < 0.5  # shade_pass.frag: alpha 1 on geometry
+        np.copyto(image, layer, where=uncovered)
 
     def render_srgb(self, exposure: float = 1.0) -> np.ndarray:
         """One frame tone-mapped for display: (H, W, 3) uint8 sRGB."""
@@ -346,17 +415,18 @@ class Renderer:
         timings.update({"gbuffer": 1e3 * (t1 - t0), **backend.timings})
         if result is not None:
             self._take_cpu_transfer(result)
+            rows = self.gbuffer.read_material()
+            self._object_ids_cov, self._uv_cov = (None, None) if rows is None else (rows[0][self._covered], rows[1][self._covered])
         self._transfer_on_cpu = result is not None
         self._transfer_valid = True
 
     def _take_cpu_transfer(self, result: CpuTransfer) -> None:
         bad = ~np.isfinite(result.transfer).all(axis=1)
         if bad.any():
-            segments = np.unique(result.packed[result.covered[bad], PACKED_SEGMENT].astype(np.int64))
+            segments = np.unique(np.asarray(result.segment)[bad].astype(np.int64))
             raise FrameError(self._broken_segments_message(int(bad.sum()), segments))
-        self._cpu_image[self._covered] = 0.0  # the previous view's pixels
         self._covered, self._transfer_cov = result.covered, result.transfer
-        self._packed, self._geometry_cov = result.packed, None
+        self._inputs, self._geometry_cov = result.inputs, None
 
     def _shade_cpu(self) -> np.ndarray:
         """Radiance of the covered pixels (M, 3) from the cached transfer (numpy twin of the shader)."""
@@ -367,18 +437,30 @@ class Renderer:
             return self._shade_cpu_products()
 
     def _shade_cpu_products(self) -> np.ndarray:
-        if self.material.kind == "diffuse":  # the common case, in float32: T @ (albedo * L)
-            light = (self.lighting.sh * np.asarray(self.material.albedo)).astype(np.float32)
+        per_object = self._per_object_shading() and self._object_ids_cov is not None
+        material = self.materials[0] if self.materials.uniform else self.material
+        if not per_object and material.kind == "diffuse":  # the common case, in float32: T @ (albedo * L)
+            light = (self.lighting.sh * np.asarray(material.albedo)).astype(np.float32)
             return np.maximum(self._transfer_cov @ light, 0.0)
         if self._geometry_cov is None:
-            rows = self._packed[self._covered]
-            self._geometry_cov = (rows[:, 4:7], self.camera.eye[None, :] - rows[:, 0:3])
+            rows = self._inputs  # position, normal of each covered pixel
+            self._geometry_cov = (rows[:, 3:6], self.camera.eye[None, :] - rows[:, 0:3])
         normals, view_dirs = self._geometry_cov
-        return shade(self._transfer_cov, normals, view_dirs, self.lighting, self.material)
+        if per_object:
+            return shade_objects(self._transfer_cov, self._object_ids_cov, normals, view_dirs, self.lighting, self.materials, self._uv_cov)
+        return shade(self._transfer_cov, normals, view_dirs, self.lighting, material)
 
     def _shade_gl(self) -> None:
-        program = self._shade_program
-        for name, value in shader_uniforms(self.lighting, self.material).items():
+        program, vao = self._shade_program, self._vao
+        material = self.materials[0] if self.materials.uniform else self.material
+        extra = []
+        if self._per_object_shading():
+            program, vao, table = self._material_program()
+            extra = [(self.gbuffer.material_texture, 6), (table, 7), (self._material_gl["albedo"], 8)]
+            program["u_albedo_textures"].value = 8
+            program["u_gbuffer_material"].value = 6
+            program["u_material_table"].value = 7
+        for name, value in shader_uniforms(self.lighting, material).items():
             if name in program:
                 program[name].write(np.ascontiguousarray(value).tobytes())
         program["u_eye"].value = tuple(float(v) for v in self.camera.eye)
@@ -388,7 +470,27 @@ class Renderer:
             program[f"u_t{k}"].value = 2 + k
         program["u_position"].value = 0
         program["u_normal"].value = 1
-        draw_fullscreen(self.ctx, self._out_fbo, self._vao, textures)
+        draw_fullscreen(self.ctx, self._out_fbo, vao, textures + extra)
+
+    def _material_program(self):
+        """The shade program with per-object materials and its table texture (built on first use,
+        the table re-uploaded after each set_material)."""
+        gl = self._material_gl
+        if "program" not in gl:
+            source = assemble(*GLSL_FILES, "shade_pass.frag", defines={**GLSL_DEFINES, "PRT_OBJECT_MATERIALS": 1})
+            gl["program"] = self._resources.keep(compile_program(self.ctx, source, "shade_pass.frag (materials)"))
+            gl["vao"] = self._resources.keep(self.ctx.vertex_array(gl["program"], []))
+            gl["albedo"] = self._resources.keep((self.materials.textures or AlbedoTextures([])).gl_texture(self.ctx))
+        if gl.get("version") != self.materials.version or "table" not in gl:
+            data = self.materials.texture_data()  # (rows, K, 4)
+            if "table" in gl and gl["table"].size != (data.shape[1], data.shape[0]):
+                self._resources.objects.remove(gl["table"])
+                gl.pop("table").release()
+            if "table" not in gl:
+                gl["table"] = self._resources.keep(self._float_texture((data.shape[1], data.shape[0])))
+            gl["table"].write(np.ascontiguousarray(data).tobytes())
+            gl["version"] = self.materials.version
+        return gl["program"], gl["vao"], gl["table"]
 
     def _backend(self) -> TransferBackend:
         if self.backend not in self._backends:

@@ -65,6 +65,9 @@ from .errors import ArgumentTypeError, InputError
 __all__ = [
     "MATERIAL_KINDS",
     "Lighting",
+    "DERING_WINDOW",
+    "DERING_AUTO_RINGING",
+    "lighting_ringing",
     "Material",
     "compute_light_matrix",
     "reflect",
@@ -173,8 +176,8 @@ class Lighting:
         return math.isqrt(self.sh.shape[0])
 
     @classmethod
-    def from_sh(cls, coeffs, rotation=None) -> "Lighting":
-        """Lighting from SH coefficients, optionally rotated.
+    def from_sh(cls, coeffs, rotation=None, window=None) -> "Lighting":
+        """Lighting from SH coefficients, optionally rotated and deringed.
 
         Parameters
         ----------
@@ -182,6 +185,11 @@ class Lighting:
             SH projection of the environment (``sh.project_envmap``).
         rotation : array_like, shape (3, 3), optional
             Rotation of the environment: what was at direction ``w`` is now at ``rotation @ w``.
+        window : (kind, width) or "auto", optional
+            Deringing window on the lighting's bands (``sh.window``, Sloan 2008), e.g.
+            ``("hanning", 6.0)``; ``"auto"``: :data:`DERING_WINDOW` where the lighting rings
+            strongly (:func:`lighting_ringing` > :data:`DERING_AUTO_RINGING`), else none; None:
+            none.  It commutes with the rotation.
 
         Returns
         -------
@@ -198,10 +206,19 @@ class Lighting:
                 coeffs = sh.rotate(coeffs, rotation)
             except (TypeError, ValueError) as exc:
                 raise InputError(f"Lighting rotation: {' '.join(str(exc).split())[:200]}") from None
+        if isinstance(window, str) and window == "auto":
+            window = DERING_WINDOW if lighting_ringing(coeffs) > DERING_AUTO_RINGING else None
+        if window is not None:
+            try:
+                kind, width = window
+                coeffs = sh.apply_window(coeffs, sh.window(math.isqrt(coeffs.shape[0]), kind, width))
+            except (TypeError, ValueError) as exc:
+                raise InputError(f"Lighting window: expected (kind, width) with kind 'hanning' or 'lanczos' and width > 0; "
+                                 f"{' '.join(str(exc).split())[:160]}") from None  # fmt: skip
         return cls(coeffs)
 
     @classmethod
-    def from_envmap(cls, path, rotation=None, bands: int = 4) -> "Lighting":
+    def from_envmap(cls, path, rotation=None, bands: int = 4, window=None) -> "Lighting":
         """Lighting from an equirectangular ``.hdr`` / ``.exr`` env map.
 
         Parameters
@@ -211,6 +228,8 @@ class Lighting:
             As in :meth:`from_sh`.
         bands : int
             Number of SH bands (4 for the GLSL path).
+        window : (kind, width), optional
+            As in :meth:`from_sh`.
 
         Returns
         -------
@@ -223,7 +242,26 @@ class Lighting:
         InputError
             Naming ``rotation``.
         """
-        return cls.from_sh(load_envmap_sh(path, bands), rotation)
+        return cls.from_sh(load_envmap_sh(path, bands), rotation, window)
+
+
+# Issue 12 (bench/studies/dering.py, README "Deringing"): against the env map itself, Hanning at
+# width 6 takes the glossy (exponent 32) black-clamped pixels under ``studio`` from 4.5 % to 0 and
+# its PSNR from 15.7 to 19.4 dB, while it costs 3-10 dB where the light barely rings (potsdamer).
+DERING_WINDOW = ("hanning", 6.0)
+DERING_AUTO_RINGING = 1.0  # "auto" windows a light whose 4-band reconstruction dips below -1 x its mean
+
+
+def lighting_ringing(coeffs) -> float:
+    """How far the SH lighting's reconstruction goes negative: max over channels of -min / mean (0: never).
+
+    ``coeffs`` (n, 3); evaluated on a 32 x 64 grid of directions.
+    """
+    coeffs = np.asarray(coeffs, dtype=np.float64)
+    values = sh.evaluate(coeffs, sh.envmap_directions(32, 64).reshape(-1, 3))
+    weights = sh.texel_solid_angles(32, 64).reshape(-1, 1)
+    mean = np.maximum((values * weights).sum(axis=0) / weights.sum(), 1e-12)
+    return float(np.max(np.maximum(-values.min(axis=0), 0.0) / mean))
 
 
 # --------------------------------------------------------------------------- material

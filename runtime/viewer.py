@@ -5,12 +5,20 @@ Controls (also printed on ``h``):
   right drag / [ ] rotate the light          n / p        next / previous env map
   b                toggle backend onnx/glsl  g            diffuse / glossy
   + / -            Phong exponent x2 / /2    e / E        exposure up / down
-  s                screenshot (PNG)          h            help          q / Esc   quit
-FPS and stage timings are shown in the window title.
+  k                env-map background on/off s            screenshot (PNG)
+  c                save the camera path (the moves so far; the orbit if none)
+  o                save the orbit of the current view as a camera path
+  h                help                      q / Esc      quit
+The title shows the FPS of frames that ran the networks (camera moves) and, apart, the time
+of re-shading the cached transfer (light, material: no network runs), labelled "relight";
+the stage times of network frames are printed here.
+While the camera moves the frame is rendered smaller and upscaled to hold --target-fps;
+when it stops, the view is rendered again at full resolution.
 """
 
 from __future__ import annotations
 
+import filecmp
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,16 +29,19 @@ import numpy as np
 
 from ..shaders import assemble
 from .backends import BACKENDS
-from .envmaps import BUNDLED_ENVMAPS, DEFAULT_ENVMAP
+from .camera_path import PathRecorder, orbit_path, save_camera_path
+from .envmaps import BUNDLED_ENVMAPS, DEFAULT_ENVMAP, bundled_envmap_path
 from .errors import PRTError
 from .gl import compile_program
+from .materials import apply_object_albedo
 from .renderer import Renderer
 from .shading import GLSL_DEFINES, to_srgb8
 
-__all__ = ["run_window", "ViewerOptions", "HELP"]
+__all__ = ["run_window", "ViewerOptions", "HELP", "DynamicResolution", "envmap_cycle", "title_text", "stage_text"]
 
 HELP = __doc__.split("Controls (also printed on ``h``):\n", 1)[1]
 ENVMAPS = tuple(BUNDLED_ENVMAPS)
+ORBIT_FRAMES = 120  # frames of a saved orbit (4 s at 30 FPS)
 
 
 @dataclass(frozen=True)
@@ -38,7 +49,9 @@ class ViewerOptions:
     """What the viewer (and the headless orbit) starts with; ``prt-runtime`` builds it from its flags.
 
     ``envmap`` is a bundled name or a file (None: the scene's light); ``material`` overrides
-    the scene's kind (None: keep it), keeping its albedo, with ``exponent`` for glossy.
+    the scene's kind (None: keep it), keeping its albedo, with ``exponent`` for glossy;
+    ``background`` draws the env map behind the geometry (None: the scene's choice);
+    ``target_fps`` is the window's dynamic-resolution goal while the camera moves (None: off).
     """
 
     width: int = 512
@@ -50,11 +63,14 @@ class ViewerOptions:
     exposure: float = 1.0
     providers: list[str] | None = None
     threads: int | None = None
+    background: bool | None = None
+    target_fps: float | None = 30.0
+    object_albedo: tuple = ()  # ((object name, (r, g, b)), ...): per-object albedo overrides
 
-    def renderer(self, scene, ctx: moderngl.Context | None = None) -> Renderer:
-        """A :class:`Renderer` of ``scene`` at this size and backend, with the options applied."""
-        r = Renderer(scene, self.width, self.height, backend=self.backend, providers=self.providers,
-                     threads=self.threads, ctx=ctx)  # fmt: skip
+    def renderer(self, scene, ctx: moderngl.Context | None = None, size: tuple[int, int] | None = None) -> Renderer:
+        """A :class:`Renderer` of ``scene`` at this size (or ``size``) and backend, with the options applied."""
+        width, height = size or (self.width, self.height)
+        r = Renderer(scene, width, height, backend=self.backend, providers=self.providers, threads=self.threads, ctx=ctx)
         try:
             self.apply(r)
         except BaseException:
@@ -63,18 +79,159 @@ class ViewerOptions:
         return r
 
     def apply(self, r: Renderer) -> None:
-        """Set the light and the material of ``r`` from these options."""
+        """Set the light, the material and the background of ``r`` from these options."""
         if self.envmap:
             r.set_envmap(self.envmap)
         if self.material == "glossy":
             r.set_material("glossy", albedo=r.material.albedo, specular=(0.3, 0.3, 0.3), exponent=self.exponent)
         elif self.material == "diffuse":
             r.set_material("diffuse", albedo=r.material.albedo)
+        for name, albedo in self.object_albedo:
+            apply_object_albedo(r, name, albedo)
+        if self.background is not None:
+            r.set_background(self.background)
+
+
+# ---------------------------------------------------------------------------- pure parts
+
+
+def envmap_cycle(custom: str | None = None, scene_envmap: Path | None = None) -> tuple[tuple[str, ...], int]:
+    """The env maps ``n`` / ``p`` cycle through, and the index of the one shown first.
+
+    The bundled maps by name, then a custom file given on the command line (``custom``, a path)
+    and the scene's own map file, each unless it is one of the bundled maps (same bytes).
+    The first shown is ``custom``, else the scene's map, else the default bundled map.
+    """
+    cycle = list(ENVMAPS)
+
+    def entry(value) -> int:
+        if str(value) in ENVMAPS:
+            return ENVMAPS.index(str(value))
+        path = Path(value)
+        for i, name in enumerate(ENVMAPS):
+            try:
+                if filecmp.cmp(path, bundled_envmap_path(name), shallow=False):
+                    return i
+            except OSError:
+                break
+        if str(path) not in cycle:
+            cycle.append(str(path))
+        return cycle.index(str(path))
+
+    first = ENVMAPS.index(DEFAULT_ENVMAP)
+    if scene_envmap is not None:
+        first = entry(scene_envmap)
+    if custom:
+        first = entry(custom)
+    return tuple(cycle), first
+
+
+def envmap_label(entry: str) -> str:
+    return entry if entry in ENVMAPS else Path(entry).name
+
+
+class DynamicResolution:
+    """Which resolution scale to render at: full when the camera is still; while it moves, the
+    largest scale whose expected frame time meets the target.
+
+    Frame times are kept per scale (a moving average of network frames); a scale not yet
+    measured is estimated from the nearest measured one, in proportion to its pixels.
+    """
+
+    SCALES = (1.0, 0.75, 0.5, 0.375, 0.25)
+
+    def __init__(self, target_ms: float | None, scales=SCALES, smoothing: float = 0.5) -> None:
+        self.target_ms = target_ms
+        self.scales = tuple(sorted(scales, reverse=True))
+        self.smoothing = smoothing
+        self.frame_ms: dict[float, float] = {}
+
+    def record(self, scale: float, ms: float) -> None:
+        old = self.frame_ms.get(scale)
+        self.frame_ms[scale] = ms if old is None else old + self.smoothing * (ms - old)
+
+    def estimate(self, scale: float) -> float | None:
+        if scale in self.frame_ms:
+            return self.frame_ms[scale]
+        if not self.frame_ms:
+            return None
+        nearest = min(self.frame_ms, key=lambda s: abs(s - scale))
+        return self.frame_ms[nearest] * (scale / nearest) ** 2
+
+    def choose(self, moving: bool) -> float:
+        if not moving or not self.target_ms:
+            return self.scales[0]
+        for scale in self.scales:
+            expected = self.estimate(scale)
+            if expected is None or expected <= self.target_ms:
+                return scale
+        return self.scales[-1]
+
+    @staticmethod
+    def size(scale: float, width: int, height: int) -> tuple[int, int]:
+        return max(1, round(width * scale)), max(1, round(height * scale))
+
+
+def title_text(scene: str, backend: str, material: str, envmap: str, *, fps: float | None, size: tuple[int, int] | None,
+               relight_ms: float | None = None, full: bool = True) -> str:
+    """The window title, short enough for a 512-pixel window: the FPS of network frames (with
+    their size, and "moving" when smaller than the window), the re-shading time apart, labelled
+    "relight", then the backend, material and env map.  Stage times go to the terminal."""
+    parts = [scene]
+    if fps is not None and size is not None:
+        parts.append(f"{fps:.1f} FPS {size[0]}x{size[1]}{'' if full else ' moving'}")
+    if relight_ms is not None:
+        parts.append(f"relight {relight_ms:.1f} ms")
+    parts.append(f"{backend} {material} {envmap}")
+    return " | ".join(parts)
+
+
+def stage_text(fps: float, size: tuple[int, int], stages: dict) -> str:
+    """The terminal line of a network frame's stage times."""
+    return f"{fps:.1f} FPS at {size[0]}x{size[1]}: " + ", ".join(f"{k} {v:.1f}" for k, v in stages.items() if k != "frame") + " ms"
 
 
 def _rotation_y(angle: float) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)
     return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+# ---------------------------------------------------------------------------- the window
+
+
+class _View:
+    """What the user has set; applied to whichever renderer (resolution) draws the next frame."""
+
+    def __init__(self, r: Renderer, cycle: tuple[str, ...], envmap_index: int) -> None:
+        self.base_camera = r.camera
+        self.camera = r.camera
+        self.cycle, self.envmap_index = cycle, envmap_index
+        self.light_angle = 0.0
+        self.light_changed = False  # until then each renderer keeps the scene's (or --envmap's) light
+        self.material = r.material
+        self.material_changed = False  # until then each renderer keeps the scene's (per-object) materials
+        self._given: dict[int, object] = {}  # renderer id -> the material last set on it
+        self.backend = r.backend
+        self.background = r.background
+        self.yaw, self.pitch, self.zoom = 0.0, 0.0, 1.0
+
+    def update_camera(self) -> None:
+        cam = self.base_camera.orbit(self.yaw)
+        cam = cam.orbit(self.pitch, axis=np.cross(cam.forward, cam.true_up))
+        eye = cam.target + (cam.eye - cam.target) * self.zoom
+        self.camera = type(cam)(eye, cam.target, self.base_camera.up, cam.fov_y, cam.near, cam.far)
+
+    def apply(self, r: Renderer) -> None:
+        if r.camera is not self.camera:
+            r.set_camera_object(self.camera)
+        if self.light_changed:
+            r.set_envmap(self.cycle[self.envmap_index], rotation=_rotation_y(self.light_angle))
+        m = self.material
+        if self.material_changed and self._given.get(id(r)) is not m:
+            r.set_material(m.kind, albedo=m.albedo, specular=m.specular, exponent=m.exponent)
+            self._given[id(r)] = m
+        r.set_backend(self.backend)
+        r.set_background(self.background)
 
 
 def run_window(scene, options: ViewerOptions) -> int:
@@ -96,23 +253,27 @@ def run_window(scene, options: ViewerOptions) -> int:
         pygame.quit()
         raise PRTError(f"cannot open an OpenGL 3.3 window ({' '.join(str(exc).split())}); pass --headless") from None
     screen = ctx.detect_framebuffer()
-    renderer = options.renderer(scene, ctx=ctx)
+    renderers: dict[float, Renderer] = {1.0: options.renderer(scene, ctx=ctx)}
+    displays: dict[float, moderngl.Texture] = {}
     blit = compile_program(ctx, assemble("tonemap.glsl", "viewer_blit.frag", defines=GLSL_DEFINES), "viewer_blit.frag")
     blit_vao = ctx.vertex_array(blit, [])
-    display = ctx.texture((width, height), 3, dtype="f4")
-    envmap_index = ENVMAPS.index(options.envmap) if options.envmap in ENVMAPS else ENVMAPS.index(DEFAULT_ENVMAP)
-    light_angle = 0.0
+    full = renderers[1.0]
+    cycle, first = envmap_cycle(options.envmap, scene.manifest.lighting.envmap)
+    view = _View(full, cycle, first)
+    policy = DynamicResolution(1000.0 / options.target_fps if options.target_fps else None)
+    recorder = PathRecorder()
     exposure = options.exposure
-    base_camera = renderer.camera
-    yaw, pitch, zoom = 0.0, 0.0, 1.0
     dragging = None
+    network_ms: dict[tuple[int, int], list[float]] = {}  # per frame size: FPS never mixes sizes
+    fps = relight_ms = last_size = None
+    stages: dict = {}
+    shown_scale = 1.0
+    last_title = last_stages = 0.0
     print(HELP)
-    frame_times = []
-    running = True
-    image = renderer.render()
+    running, redraw, image = True, True, None
     try:
         while running:
-            camera_dirty = False
+            camera_moved = shade_changed = False
             for event in pygame.event.get():
                 if event.type == pygame.QUIT:
                     running = False
@@ -121,76 +282,107 @@ def run_window(scene, options: ViewerOptions) -> int:
                 elif event.type == pygame.MOUSEBUTTONUP:
                     dragging = None
                 elif event.type == pygame.MOUSEMOTION and dragging == 1:
-                    yaw -= event.rel[0] * 0.01
-                    pitch = float(np.clip(pitch + event.rel[1] * 0.01, -1.4, 1.4))
-                    camera_dirty = True
+                    view.yaw -= event.rel[0] * 0.01
+                    view.pitch = float(np.clip(view.pitch + event.rel[1] * 0.01, -1.4, 1.4))
+                    camera_moved = True
                 elif event.type == pygame.MOUSEMOTION and dragging == 3:
-                    light_angle += event.rel[0] * 0.01
-                    _relight(renderer, envmap_index, light_angle)
+                    view.light_angle += event.rel[0] * 0.01
+                    view.light_changed = shade_changed = True
                 elif event.type == pygame.MOUSEWHEEL:
-                    zoom = float(np.clip(zoom * (0.9 if event.y > 0 else 1.1), 0.2, 5.0))
-                    camera_dirty = True
+                    view.zoom = float(np.clip(view.zoom * (0.9 if event.y > 0 else 1.1), 0.2, 5.0))
+                    camera_moved = True
                 elif event.type == pygame.KEYDOWN:
                     key = event.unicode
                     if event.key == pygame.K_ESCAPE or key == "q":
                         running = False
                     elif key == "h":
                         print(HELP)
-                    elif key in "[]" and key:
-                        light_angle += 0.1 if key == "]" else -0.1
-                        _relight(renderer, envmap_index, light_angle)
+                    elif key and key in "[]":
+                        view.light_angle += 0.1 if key == "]" else -0.1
+                        view.light_changed = shade_changed = True
                     elif key in ("n", "p"):
-                        envmap_index = (envmap_index + (1 if key == "n" else -1)) % len(ENVMAPS)
-                        _relight(renderer, envmap_index, light_angle)
+                        view.envmap_index = (view.envmap_index + (1 if key == "n" else -1)) % len(view.cycle)
+                        view.light_changed = shade_changed = True
                     elif key == "b":
-                        renderer.set_backend(BACKENDS[(BACKENDS.index(renderer.backend) + 1) % len(BACKENDS)])
+                        view.backend = BACKENDS[(BACKENDS.index(view.backend) + 1) % len(BACKENDS)] if view.backend in BACKENDS else BACKENDS[0]
+                        redraw = True
                     elif key == "g":
-                        m = renderer.material
-                        if m.kind == "diffuse":
-                            renderer.set_material("glossy", albedo=m.albedo, specular=(0.3, 0.3, 0.3), exponent=m.exponent)
-                        else:
-                            renderer.set_material("diffuse", albedo=m.albedo)
+                        m = view.material
+                        kind = "glossy" if m.kind == "diffuse" else "diffuse"
+                        view.material = type(m)(kind=kind, albedo=m.albedo, specular=(0.3, 0.3, 0.3) if kind == "glossy" else m.specular, exponent=m.exponent)
+                        view.material_changed = shade_changed = True
                     elif key in ("+", "=", "-"):
-                        m = renderer.material
+                        m = view.material
                         e = float(np.clip(m.exponent * (2.0 if key != "-" else 0.5), 1.0, 1024.0))
-                        renderer.set_material(m.kind, albedo=m.albedo, specular=m.specular, exponent=e)
+                        view.material = type(m)(kind=m.kind, albedo=m.albedo, specular=m.specular, exponent=e)
+                        view.material_changed = shade_changed = True
+                    elif key == "k":
+                        view.background = not view.background
+                        shade_changed = True
                     elif key in ("e", "E"):
                         exposure *= 1.25 if key == "e" else 0.8
-                    elif key == "s":
+                        redraw = True
+                    elif key == "s" and image is not None:
                         path = Path(f"prt_screenshot_{time.strftime('%Y%m%d_%H%M%S')}.png")
                         iio.imwrite(path, to_srgb8(image, exposure))
                         print(f"screenshot: {path}")
-            if camera_dirty:
-                cam = base_camera.orbit(yaw)
-                axis = np.cross(cam.forward, cam.true_up)
-                cam = cam.orbit(pitch, axis=axis)
-                eye = cam.target + (cam.eye - cam.target) * zoom
-                renderer.set_camera(eye=eye, target=cam.target, up=base_camera.up, fov=cam.fov_y)
+                    elif key in ("c", "o"):
+                        recorded = recorder.path() if key == "c" else None
+                        path = save_camera_path(Path(f"prt_camera_path_{time.strftime('%Y%m%d_%H%M%S')}.json"),
+                                                recorded or orbit_path(view.camera, ORBIT_FRAMES))  # fmt: skip
+                        what = f"{recorded.frames} recorded views" if recorded else f"orbit of {ORBIT_FRAMES} frames"
+                        print(f"camera path: {path} ({what}; render it with prt-runtime --camera-path {path} --headless)")
+            if camera_moved:
+                view.update_camera()
+                recorder.add(view.camera)
+            moving = camera_moved or dragging == 1
+            scale = policy.choose(moving)
+            if not (camera_moved or shade_changed or redraw or scale != shown_scale):
+                pygame.time.wait(8)  # nothing changed: no frame, no busy loop
+                continue
+            r = renderers.get(scale)
+            if r is None:
+                r = renderers[scale] = options.renderer(scene, ctx=ctx, size=DynamicResolution.size(scale, width, height))
+            view.apply(r)
+            runs = r.stats["network_runs"]
             t0 = time.perf_counter()
-            image = renderer.render()
+            image = r.render()
+            display = displays.get(scale)
+            if display is None:
+                display = displays[scale] = ctx.texture((r.width, r.height), 3, dtype="f4")
+                display.filter = (moderngl.LINEAR, moderngl.LINEAR)
             display.write(np.ascontiguousarray(image[::-1]))  # GL rows run bottom-up
             display.use(0)
             blit["u_image"].value = 0
             blit["u_exposure"].value = exposure
+            blit["u_window"].value = (float(width), float(height))
             screen.use()
             ctx.disable(moderngl.DEPTH_TEST | moderngl.BLEND)
             blit_vao.render(moderngl.TRIANGLES, vertices=3)
             pygame.display.flip()
-            frame_times.append(time.perf_counter() - t0)
-            if len(frame_times) >= 10:
-                fps = 1.0 / float(np.median(frame_times))
-                stages = " ".join(f"{k} {v:.0f}" for k, v in renderer.timings.items() if k != "frame")
-                pygame.display.set_caption(
-                    f"prt-runtime {scene.name} [{renderer.backend}, {renderer.material.kind}, {ENVMAPS[envmap_index]}] {fps:.1f} FPS | {stages} ms"
-                )
-                frame_times.clear()
+            ms = 1e3 * (time.perf_counter() - t0)
+            shown_scale, redraw = scale, False
+            if r.stats["network_runs"] > runs:  # a frame that ran the networks: it counts for FPS
+                policy.record(scale, ms)
+                last_size = (r.width, r.height)
+                times = network_ms[last_size] = [*network_ms.get(last_size, [])[-9:], ms]
+                fps, stages = 1000.0 / float(np.median(times)), dict(r.timings)
+            else:  # the cached transfer re-shaded (light, material, background, exposure)
+                relight_ms = ms
+            now = time.perf_counter()
+            if now - last_title > 0.25 or not moving:
+                pygame.display.set_caption(title_text(
+                    scene.name, view.backend, view.material.kind, envmap_label(view.cycle[view.envmap_index]),
+                    fps=fps, size=last_size, relight_ms=relight_ms, full=last_size == (width, height),
+                ))  # fmt: skip
+                last_title = now
+            if fps is not None and now - last_stages > 2.0 and not moving:
+                print(stage_text(fps, last_size, stages), flush=True)
+                last_stages = now
     finally:
-        display.release()
-        renderer.close()
+        for texture in displays.values():
+            texture.release()
+        for r in renderers.values():
+            r.close()
         pygame.quit()
     return 0
-
-
-def _relight(renderer, envmap_index: int, angle: float) -> None:
-    renderer.set_envmap(ENVMAPS[envmap_index], rotation=_rotation_y(angle))
-

@@ -20,6 +20,12 @@ in vec4 v_uv;
 flat in float v_atlas;
 layout(location = 2) out vec4 o_uv;  // u, v, atlas, covered: of the side facing the camera
 #endif
+#ifdef PRT_GBUFFER_MATERIAL
+// Scenes with per-object materials: albedo-texture u, v, object id, covered.
+// PRT_GBUFFER_MATERIAL is the attachment's index (after the UV target when there is one).
+in vec2 v_albedo_uv;
+layout(location = PRT_GBUFFER_MATERIAL) out vec4 o_material;
+#endif
 
 void main() {
     bool two_sided = v_info.y != 0;
@@ -48,5 +54,8 @@ void main() {
 #ifdef PRT_GBUFFER_UV
     bool back = two_sided && dot(v_face_normal, to_eye) < 0.0;  // as the normal's flip above
     o_uv = vec4(back ? v_uv.zw : v_uv.xy, v_atlas, 1.0);
+#endif
+#ifdef PRT_GBUFFER_MATERIAL
+    o_material = vec4(v_albedo_uv, float(v_info.x), 1.0);
 #endif
 }

@@ -20,6 +20,10 @@ in float in_atlas;  // the face's atlas (texture set)
 out vec4 v_uv;
 flat out float v_atlas;
 #endif
+#ifdef PRT_GBUFFER_MATERIAL
+in vec2 in_albedo_uv;  // this corner's albedo-texture UV (the mesh's own; 0 without one)
+out vec2 v_albedo_uv;
+#endif
 
 void main() {
     v_position = in_position;
@@ -29,6 +33,9 @@ void main() {
 #ifdef PRT_GBUFFER_UV
     v_uv = in_uv;
     v_atlas = in_atlas;
+#endif
+#ifdef PRT_GBUFFER_MATERIAL
+    v_albedo_uv = in_albedo_uv;
 #endif
     gl_Position = u_view_projection * vec4(in_position, 1.0);
 }

@@ -10,6 +10,59 @@ uniform sampler2D u_t1;
 uniform sampler2D u_t2;
 uniform sampler2D u_t3;
 out vec4 f_color;
+#ifdef PRT_OBJECT_MATERIALS
+// Per-object materials (runtime/materials.py): the G-buffer's material target (u, v, object id,
+// covered) and the table, one column per object id: row 0 albedo.rgb + kind, row 1
+// specular.rgb, row 2 the Phong lobe's band factors Lambda_0..3, row 3 the albedo texture
+// (layer or -1, width, height) in u_albedo_textures (linear RGB, row 0 = top of the image).
+uniform sampler2D u_gbuffer_material;
+uniform sampler2D u_material_table;
+uniform sampler2DArray u_albedo_textures;
+
+// Bilinear, wrapping lookup: the twin of prt.runtime.albedo_textures.sample_bilinear.
+vec3 prt_albedo_texel(vec2 uv, vec4 info) {
+    int layer = int(info.x + 0.5);
+    ivec2 size = ivec2(info.yz + 0.5);
+    float x = uv.x * float(size.x) - 0.5;
+    float y = (1.0 - uv.y) * float(size.y) - 0.5;
+    float x0 = floor(x), y0 = floor(y);
+    float fx = x - x0, fy = y - y0;
+    int ix0 = int(x0), iy0 = int(y0);
+    int ix1 = ix0 + 1, iy1 = iy0 + 1;
+    ix0 = ((ix0 % size.x) + size.x) % size.x;  // GLSL's % may be negative for negative operands
+    iy0 = ((iy0 % size.y) + size.y) % size.y;
+    ix1 = ((ix1 % size.x) + size.x) % size.x;
+    iy1 = ((iy1 % size.y) + size.y) % size.y;
+    vec3 top = texelFetch(u_albedo_textures, ivec3(ix0, iy0, layer), 0).rgb * (1.0 - fx)
+             + texelFetch(u_albedo_textures, ivec3(ix1, iy0, layer), 0).rgb * fx;
+    vec3 bottom = texelFetch(u_albedo_textures, ivec3(ix0, iy1, layer), 0).rgb * (1.0 - fx)
+                + texelFetch(u_albedo_textures, ivec3(ix1, iy1, layer), 0).rgb * fx;
+    return top * (1.0 - fy) + bottom * fy;
+}
+
+vec3 prt_shade_pixel(vec4 t[4], vec3 n, vec3 v, ivec2 px) {
+    vec4 gm = texelFetch(u_gbuffer_material, px, 0);
+    int object_id = int(gm.z + 0.5);
+    vec4 albedo_kind = texelFetch(u_material_table, ivec2(object_id, 0), 0);
+    vec4 texture_info = texelFetch(u_material_table, ivec2(object_id, 3), 0);
+    if (texture_info.x > -0.5) {
+        albedo_kind.rgb *= prt_albedo_texel(gm.xy, texture_info);
+    }
+    vec3 specular = texelFetch(u_material_table, ivec2(object_id, 1), 0).rgb;
+    vec4 band = texelFetch(u_material_table, ivec2(object_id, 2), 0);
+    // Coefficient i of band l: i = 0 | 1..3 | 4..8 | 9..15.
+    vec4 lobe[4];
+    lobe[0] = vec4(band.x, band.y, band.y, band.y);
+    lobe[1] = vec4(band.z);
+    lobe[2] = vec4(band.z, band.w, band.w, band.w);
+    lobe[3] = vec4(band.w);
+    return prt_shade_with(t, n, v, albedo_kind.rgb, specular, lobe, int(albedo_kind.w + 0.5));
+}
+#else
+vec3 prt_shade_pixel(vec4 t[4], vec3 n, vec3 v, ivec2 px) {
+    return prt_shade(t, n, v);
+}
+#endif
 
 void main() {
     ivec2 px = ivec2(gl_FragCoord.xy);
@@ -28,5 +81,5 @@ void main() {
     // black, so the renderer reads the flag and refuses the frame.
     bool broken = false;
     for (int k = 0; k < 4; ++k) broken = broken || any(isnan(t[k])) || any(isinf(t[k]));
-    f_color = vec4(prt_shade(t, n, u_eye - p.xyz), broken ? 2.0 : 1.0);
+    f_color = vec4(prt_shade_pixel(t, n, u_eye - p.xyz, px), broken ? 2.0 : 1.0);
 }

@@ -30,23 +30,24 @@ vec3 prt_unit(vec3 v) {
 }
 
 // Outgoing radiance (linear RGB, >= 0) for transfer vector t, normal n and direction v from
-// the point towards the eye (n and v need not be unit length).
-vec3 prt_shade(vec4 t[4], vec3 n, vec3 v) {
+// the point towards the eye (n and v need not be unit length), with the material given
+// (a pixel's own, runtime/materials.py) rather than the uniform one.
+vec3 prt_shade_with(vec4 t[4], vec3 n, vec3 v, vec3 albedo, vec3 specular, vec4 lobe[4], int kind) {
     // Diffuse: dot(T, L_c) per channel.
     vec3 incident = vec3(0.0);
     for (int i = 0; i < 4; ++i) {
         incident += t[i].x * u_light[4 * i] + t[i].y * u_light[4 * i + 1]
                   + t[i].z * u_light[4 * i + 2] + t[i].w * u_light[4 * i + 3];
     }
-    vec3 radiance = u_albedo * incident;
+    vec3 radiance = albedo * incident;
 
-    if (u_material_kind == PRT_MATERIAL_GLOSSY) {
+    if (kind == PRT_MATERIAL_GLOSSY) {
         // Phong lobe about the mirror direction, evaluated as lobe-scaled basis at r.
         vec3 r = reflect(-prt_unit(v), prt_unit(n));
         vec4 lobe_at_r[4];
         prt_sh_basis(r, lobe_at_r);
         for (int i = 0; i < 4; ++i) {
-            lobe_at_r[i] *= u_lobe[i];
+            lobe_at_r[i] *= lobe[i];
         }
         // spec_c = pi * sum_k lobe_at_r[k] * (M_c t)_k, one 4-row slice of M_c t at a time.
         vec3 spec = vec3(0.0);
@@ -58,8 +59,13 @@ vec3 prt_shade(vec4 t[4], vec3 n, vec3 v) {
                 spec[c] += dot(lobe_at_r[bi], transferred);
             }
         }
-        radiance += u_specular * (PRT_PI * spec);
+        radiance += specular * (PRT_PI * spec);
     }
     // Four SH bands ring below zero near strong lights; negative radiance is not meaningful.
     return max(radiance, vec3(0.0));
+}
+
+// prt_shade_with the uniform material (u_albedo, u_specular, u_lobe, u_material_kind).
+vec3 prt_shade(vec4 t[4], vec3 n, vec3 v) {
+    return prt_shade_with(t, n, v, u_albedo, u_specular, u_lobe, u_material_kind);
 }

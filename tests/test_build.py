@@ -14,7 +14,9 @@ import trimesh
 
 from prt.runtime.camera import DEFAULT_CAMERA
 from prt.runtime.manifest import load_manifest
+from prt.runtime.errors import SpecError
 from prt.train.build import PRECOMPUTE_FIELDS, BuildSpec, spec_from_dict
+from prt.train.fit import DEFAULT_STEPS, FitSettings
 from prt.train.precompute import PrecomputeSettings
 from prt.train.train_cli import main as prt_train_main
 
@@ -146,6 +148,31 @@ def test_spec_is_flat_outside_and_composed_inside():
     assert again.precompute == PrecomputeSettings(samples=123, merge=False)
     assert (again.epochs, again.bands, again.seed) == (3, 4, 0)
     assert spec_from_dict(again.to_dict()) == again
+
+
+def test_old_specs_with_epochs_load_and_steps_reach_the_fit_settings():
+    """Issue 12: training is by steps; an old build.json (epochs, no steps) still loads and trains by epochs as it did."""
+    old = {k: v for k, v in BuildSpec(geometry="x").to_dict().items() if k not in ("steps", "time_budget")}
+    spec = spec_from_dict({**old, "epochs": 100})
+    assert (spec.steps, spec.epochs, spec.time_budget) == (None, 100, None)
+    assert spec.fit_settings().plan(80_000)[1:3] == (1000, 10)  # 100 epochs of 10 batches, validated per epoch
+    assert spec_from_dict(old).fit_settings().plan(80_000)[1] == DEFAULT_STEPS
+    settings = spec_from_dict({**old, "steps": 77, "time_budget": 9.5}).fit_settings()
+    assert (settings.steps, settings.epochs, settings.max_seconds) == (77, None, 9.5)
+    for field, value in (("steps", 0), ("time_budget", 0), ("time_budget", "1"), ("epochs", 1.5)):
+        with pytest.raises(SpecError, match=field):
+            spec_from_dict({**old, field: value})
+
+
+def test_fit_cache_keys_change_with_the_training_settings(tmp_path):
+    """Changed training settings must not reuse stale fits (the fit cache is keyed by them)."""
+    from prt.train.build import _FitCache
+    from prt.train.network import Architecture
+
+    arch = Architecture(hidden=8, layers=1)
+    paths = {_FitCache(tmp_path, "key", 0, FitSettings(**kw))._paths(arch)[0].name
+             for kw in ({}, {"steps": 10}, {"steps": 11}, {"epochs": 5}, {"max_seconds": 3.0}, {"batch": 64})}  # fmt: skip
+    assert len(paths) == 6
 
 
 def test_bad_inputs_fail_in_one_line(tmp_path, capsys):

@@ -208,3 +208,28 @@ def test_flops_grow_with_size():
     assert SMALL.flops_per_fragment() < Architecture(64, 4).flops_per_fragment() < Architecture(128, 4).flops_per_fragment()
     k64 = Architecture(64, 4)
     assert k64.weight_count() == sum(v.size for k, v in TransferMLP(k64, np.array([[-1] * 3, [1] * 3]), np.ones(16), np.zeros(16)).arrays().items() if k.startswith(("layer", "out_w", "out_b")))
+
+
+def test_steps_do_not_depend_on_the_sample_count(spot):
+    """Issue 12: a network trains for its steps whatever its sample count (not epochs x batches)."""
+    plans = [FitSettings(steps=300, batch=8192).plan(n) for n in (100, 10_000, 1_000_000)]
+    assert [total for _, total, _, _ in plans] == [300, 300, 300]
+    assert FitSettings(steps=300, epochs=2, batch=1000).plan(1_000_000)[1] == 2000  # epochs: a floor of passes
+    assert FitSettings(epochs=2, batch=1000).plan(5000)[1:3] == (10, 5)  # epochs alone: epoch-based as before
+    geometry, train, t, valid, tv = spot
+    bounds = np.array(geometry.mesh.bounds)
+    settings = FitSettings(steps=40, batch=256, patience=1000, seed=1)
+    for n in (300, 3000):
+        r = fit_segment(train.points[:n], train.normals[:n], t[:n], valid.points, valid.normals, tv, SMALL, bounds, settings)
+        assert r.steps == 40 and r.history[-1]["step"] == 40
+
+
+def test_steps_are_deterministic_and_a_time_budget_ends_the_fit(spot):
+    geometry, train, t, valid, tv = spot
+    args = (train.points[:1500], train.normals[:1500], t[:1500], valid.points, valid.normals, tv, SMALL, np.array(geometry.mesh.bounds))
+    a = fit_segment(*args, FitSettings(steps=30, batch=512, seed=3))
+    b = fit_segment(*args, FitSettings(steps=30, batch=512, seed=3))
+    for key, value in a.model.state_dict().items():
+        assert torch.equal(value, b.model.state_dict()[key]), key
+    cut = fit_segment(*args, FitSettings(steps=1_000_000, batch=512, seed=3, max_seconds=0.5))
+    assert cut.steps < 1_000_000 and cut.seconds < 30 and np.isfinite(cut.val_mae)

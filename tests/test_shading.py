@@ -447,7 +447,8 @@ def test_viewer_blit_tonemaps_like_numpy(gl_ctx):
     # The viewer window's program, assembled as the viewer does, run over an "image" of rows.
     radiance = np.exp(np.random.default_rng(16).uniform(-6.0, 3.0, size=(500, 3))).astype(np.float32)
     source = assemble("tonemap.glsl", "viewer_blit.frag", defines=GLSL_DEFINES)
-    uniforms = {"u_exposure": np.float32(0.75)}
+    # one window pixel per texel (the harness lays 500 rows out as one 500x1 image)
+    uniforms = {"u_exposure": np.float32(0.75), "u_window": np.array([len(radiance), 1], np.float32)}
     got = run_fragment_program(gl_ctx, source, {"u_image": radiance}, components=3, uniforms=uniforms)
     assert np.abs(got - tonemap(radiance, exposure=0.75)).max() <= 1e-5
 

@@ -32,8 +32,9 @@ from ..runtime.errors import SpecError
 from ..runtime.files import atomic_save_npz, atomic_write_json
 from ..runtime.manifest import validate_manifest_field
 from ..runtime.sh import unshadowed_transfer
-from .fit import DEFAULT_LADDER, FitResult, FitSettings, fit_segment, right_size, right_size_matching, shaded_error
+from .fit import DEFAULT_LADDER, DEFAULT_STEPS, FitResult, FitSettings, fit_segment, right_size, right_size_matching, shaded_error
 from .geometry import load_geometry
+from .materials import mesh_materials, textured_geometry
 from .executor import LocalExecutor
 from .network import Architecture
 from .outdir import check_output_folder, mark_output_folder
@@ -43,7 +44,7 @@ __all__ = ["BuildSpec", "SpecLimits", "SPEC_LIMITS", "load_spec", "spec_from_dic
 
 ENV_LIGHTS = tuple(BUNDLED_ENVMAPS)  # the shaded-error lightings, in the bundled order
 TRAIN_FORMAT = 1
-FIT_FORMAT = 1  # layout of the fit cache (precompute/fits/)
+FIT_FORMAT = 2  # layout of the fit cache (precompute/fits/); 2: trained by steps
 
 # The precompute settings a build spec sets, by their flat names (chunk_size is not a spec field).
 PRECOMPUTE_FIELDS = tuple(f.name for f in dataclasses.fields(PrecomputeSettings) if f.name != "chunk_size")
@@ -60,8 +61,12 @@ class BuildSpec:
     geometry: str = ""
     name: str = ""
     precompute: PrecomputeSettings = field(default_factory=PrecomputeSettings)
-    # training
-    epochs: int = 100
+    # training (prt.train.fit.FitSettings.plan): ``steps`` Adam steps per network whatever its sample
+    # count; ``epochs`` alone (old specs, ``--epochs``): the old epoch-based run; both: steps, with
+    # at least ``epochs`` passes over the data; ``time_budget``: seconds per network fit
+    steps: int | None = None  # None: DEFAULT_STEPS, unless ``epochs`` alone asks for the old epoch-based run
+    epochs: int | None = None
+    time_budget: float | None = None
     batch: int = 8192
     lr: float = 1e-2
     patience: int = 10
@@ -93,7 +98,8 @@ class BuildSpec:
         return copy.deepcopy(out)
 
     def fit_settings(self) -> FitSettings:
-        return FitSettings(epochs=self.epochs, batch=self.batch, lr=self.lr, patience=self.patience, seed=self.seed, bf16=self.bf16)
+        return FitSettings(epochs=self.epochs, batch=self.batch, lr=self.lr, patience=self.patience, seed=self.seed, bf16=self.bf16,
+                           steps=self.steps, max_seconds=self.time_budget)  # fmt: skip
 
     def architectures(self) -> list[Architecture]:
         """The sizes to try, smallest first (one when ``fixed``)."""
@@ -190,6 +196,8 @@ def spec_from_dict(data: dict) -> BuildSpec:
         ok = {
             "str": isinstance(value, str),
             "int": isinstance(value, int) and not isinstance(value, bool),
+            "int | None": value is None or (isinstance(value, int) and not isinstance(value, bool)),
+            "float | None": value is None or (isinstance(value, (int, float)) and not isinstance(value, bool)),
             "float": isinstance(value, (int, float)) and not isinstance(value, bool),
             "bool": isinstance(value, bool),
             "bool | None": value is None or isinstance(value, bool),
@@ -207,11 +215,13 @@ def spec_from_dict(data: dict) -> BuildSpec:
     spec = BuildSpec(**{k: v for k, v in data.items() if k not in PRECOMPUTE_FIELDS}, precompute=precompute)
     flat = spec.to_dict()
     check_settings(spec.precompute)
-    for key in ("epochs", "batch", "patience"):
-        if not 1 <= flat[key] <= getattr(SPEC_LIMITS, key):
+    for key in ("steps", "epochs", "batch", "patience"):
+        if flat[key] is not None and not 1 <= flat[key] <= getattr(SPEC_LIMITS, key):
             raise SpecError(f"{key}: expected 1 .. {getattr(SPEC_LIMITS, key)}, got {flat[key]}")
-    for key, positive in (("lr", True), ("target", False)):
+    for key, positive in (("lr", True), ("target", False), ("time_budget", True)):
         value = flat[key]
+        if value is None and key == "time_budget":
+            continue
         if not math.isfinite(value) or value < 0 or (positive and value == 0):
             raise SpecError(f"{key}: expected a finite {'positive' if positive else 'non-negative'} number, got {value!r}")
     if spec.glsl_layout not in ("auto", "const", "texture"):
@@ -292,6 +302,9 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
     geometry = load_geometry(spec.geometry)
     name = spec.name or Path(spec.geometry).stem
     log(geometry.summary())
+    # The mesh's own per-object materials (MTL, glTF); transfer does not depend on them.
+    materials = mesh_materials(spec.geometry, geometry.object_names, spec.material, log) if geometry.sdf is None else []
+    materials, albedo_uv = textured_geometry(spec.geometry, geometry, materials, log)
     mark_output_folder(out, "scene")
 
     # -- stage 1: precompute
@@ -374,6 +387,8 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
         material=spec.material,
         camera=spec.camera,
         glsl_layout=spec.glsl_layout,
+        materials=materials,
+        albedo_uv=albedo_uv,
     )
     memory = manifest.memory
     export_s = time.perf_counter() - t0
@@ -468,7 +483,8 @@ class _FitCache:
             meta = json.loads(meta_path.read_bytes())
             with np.load(weights_path, allow_pickle=False) as data:
                 arrays = {k: data[k] for k in data.files}
-            return FitResult(_StoredModel(arrays), arch, meta["val_mae"], meta["shaded"], meta["epochs"], meta["seconds"], meta["history"])
+            return FitResult(_StoredModel(arrays), arch, meta["val_mae"], meta["shaded"], meta["epochs"], meta["seconds"], meta["history"],
+                             meta.get("steps", 0))  # fmt: skip
         except MemoryError:
             raise
         except Exception:  # json, zipfile, zlib and a foreign record's missing keys each raise their own kind
@@ -483,7 +499,8 @@ class _FitCache:
         self.folder.mkdir(parents=True, exist_ok=True)
         atomic_save_npz(weights_path, **result.model.arrays())  # weights first: the json marks the entry complete
         atomic_write_json(meta_path, {"arch": result.arch.as_dict(), "val_mae": result.val_mae, "shaded": result.shaded,
-                                      "epochs": result.epochs, "seconds": result.seconds, "history": result.history})  # fmt: skip
+                                      "epochs": result.epochs, "seconds": result.seconds, "history": result.history,
+                                      "steps": result.steps})  # fmt: skip
 
 
 class _FitMemo:
@@ -574,11 +591,12 @@ def _train_segment(spec, s, seg, samples, valid, member_idx, archs, fit_settings
     def _fit(arch):
         bar = None
         if progress:
-            bar = tqdm(total=fit_settings.epochs, desc=f"  seg {s} {arch.label()}", unit="epoch", leave=False, mininterval=0.5)
+            bar = tqdm(desc=f"  seg {s} {arch.label()}", unit="step", leave=False, mininterval=0.5)
 
-        def on_epoch(epoch, train_l1, val_mae):
+        def on_epoch(step, total_steps, train_l1, val_mae):
             if bar is not None:
-                bar.update(1)
+                bar.total = total_steps
+                bar.update(step - bar.n)
                 bar.set_postfix(val_mae=f"{val_mae:.5f}", refresh=False)
 
         try:
@@ -605,6 +623,7 @@ def _train_segment(spec, s, seg, samples, valid, member_idx, archs, fit_settings
         "val_mae": result.val_mae,
         "shaded": result.shaded,
         "epochs": result.epochs,
+        "steps": result.steps,
         "train_s": result.seconds,
         "tried": tried,
         "met_target": met,

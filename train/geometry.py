@@ -151,6 +151,8 @@ def load_geometry(source, *, normalise: bool = True, sdf_resolution: int = 128) 
         raise GeometryError(f"{name!r}: not a file name or SDF scene name")
     if os.path.isdir(name):
         raise GeometryError(f"{name}: is a directory, not a mesh file")
+    if os.path.isfile(name) and name.lower().endswith(".sdf.onnx"):  # a neural SDF (prt.train.sdf.neural)
+        return _load_neural_sdf(name, sdf_resolution)
     if os.path.exists(name):
         vertices, faces, object_ids, object_names = _read_mesh_file(name)
         return _build_geometry(vertices, faces, object_ids, object_names, name, normalise=normalise)
@@ -312,6 +314,22 @@ def _load_sdf_scene(name: str, resolution: int) -> Geometry:
         sdf = get_sdf(name)
     except GeometryError as error:
         raise GeometryError(f"{name}: no such file and not a built-in SDF scene ({error})") from None
+    return _sdf_geometry(sdf, name, resolution)
+
+
+def _load_neural_sdf(path: str, resolution: int) -> Geometry:
+    """The geometry of an SDF network file (``*.sdf.onnx``, :mod:`prt.train.sdf.neural`)."""
+    from .sdf.neural import load_neural_sdf
+
+    try:
+        sdf = load_neural_sdf(path)
+    except (ValueError, OSError) as error:
+        raise GeometryError(f"{path}: not a neural SDF network ({error})") from None
+    return _sdf_geometry(sdf, path, resolution)
+
+
+def _sdf_geometry(sdf, name: str, resolution: int) -> Geometry:
+    """Marching-cubes mesh of an SDF in scene units, ``sdf`` attached."""
     mesh = sdf.to_mesh(resolution=resolution)
     geometry = _build_geometry(
         np.asarray(mesh.vertices, dtype=np.float64),

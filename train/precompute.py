@@ -64,6 +64,7 @@ class SpecLimits:
     rays: int = 1 << 16
     segments: int = 4096
     epochs: int = 1_000_000
+    steps: int = 100_000_000
     batch: int = 1 << 24
     patience: int = 1_000_000
     hidden: int = 4096

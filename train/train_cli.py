@@ -1,7 +1,8 @@
 """prt-train: build a deployable scene: precompute -> train -> export (ONNX, GLSL, scene.json).
 
-usage: prt-train INPUT -o OUTDIR [--samples N] [--rays R] [--segments S] [--epochs E] [--seed K]
+usage: prt-train INPUT -o OUTDIR [--samples N] [--rays R] [--segments S] [--steps N] [--time-budget S] [--seed K]
                  [--hidden K --layers L] [--target MAE | --match 64x4] [--cluster auto|ADDRESS] [--force]
+                 [--neural-sdf [--sdf-size KxL] [--sdf-samples N] [--sdf-steps N]]
 
 INPUT is a mesh file, a built-in SDF scene name (``prt-precompute --list-sdf``) or a build spec
 (``.json``; the flat fields of :meth:`prt.train.build.BuildSpec.to_dict`, flags override them).
@@ -18,6 +19,7 @@ from pathlib import Path
 
 from ..runtime.errors import InputError, PRTError, SpecError
 from .build import BuildSpec, load_spec, run_build, spec_from_dict
+from .fit import DEFAULT_STEPS
 from .cluster import open_executor
 from .executor import add_cluster_argument
 from .outdir import check_output_folder
@@ -42,7 +44,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--validation", type=int, default=None, help="held-out samples [5%% of --samples, at least 1000]")
     p.add_argument("--rays", type=int, default=None, help=f"rays per sample for the ground truth [{d.precompute.rays}]")
     p.add_argument("--segments", type=int, default=None, help=f"leaf budget of the spatial split before merging [{d.precompute.segments}]")
-    p.add_argument("--epochs", type=int, default=None, help=f"most epochs per network (early stopping on validation) [{d.epochs}]")
+    p.add_argument("--steps", type=int, default=None, help=f"Adam steps per network whatever its sample count (early stopping on validation) [{DEFAULT_STEPS}]")
+    p.add_argument("--epochs", type=int, default=None, help="alone: the old epoch-based run, E passes over each network's samples (a small segment then gets few steps); "
+                   "with --steps: at least E passes [off]")
+    p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
+                   help="wall-clock seconds per network fit: training (and its learning-rate decay) ends by then; not reproducible bit for bit [off]")
     p.add_argument("--batch", type=int, default=None, help=f"batch size [{d.batch}]")
     p.add_argument("--lr", type=float, default=None, help=f"peak learning rate (warm-up, then cosine) [{d.lr}]")
     p.add_argument("--seed", type=int, default=None, help=f"seed of sampling, ray frames and training [{d.seed}]")
@@ -57,6 +63,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--glsl-layout", choices=("auto", "const", "texture"), default=None, help="weights as baked mat4 constants or in a texture [auto]")
     p.add_argument("--threads", type=int, default=os.cpu_count(), help="CPU threads for ray tracing and training")
     add_cluster_argument(p)
+    p.add_argument("--neural-sdf", action="store_true",
+                   help="fit a small MLP to the mesh's signed distance first and build the scene from it (a neural SDF scene)")
+    p.add_argument("--sdf-size", default="64x4", metavar="KxL", help="with --neural-sdf: width x hidden layers of the SDF network (the paper: 32x4, 64x4)")
+    p.add_argument("--sdf-samples", type=int, default=200_000, help="with --neural-sdf: points with a signed distance to fit")
+    p.add_argument("--sdf-steps", type=int, default=3000, help="with --neural-sdf: Adam steps of the SDF fit")
     p.add_argument("--transfer-texture", type=int, default=None, metavar="SIZE",
                    help="also bake a SIZE x SIZE transfer texture (texture-space PRT, the runtime's texture backend) into the scene")
     p.add_argument("--texture-layout", choices=("shared", "per_object"), default="shared",
@@ -77,7 +88,9 @@ def _spec_from_args(args):
         "validation": args.validation,
         "rays": args.rays,
         "segments": args.segments,
+        "steps": args.steps,
         "epochs": args.epochs,
+        "time_budget": args.time_budget,
         "batch": args.batch,
         "lr": args.lr,
         "seed": args.seed,
@@ -108,6 +121,28 @@ def _spec_from_args(args):
     return spec
 
 
+def _neural_sdf_spec(args, spec):
+    """``--neural-sdf``: fit the mesh's SDF network into OUTDIR; the build's geometry becomes that network."""
+    from .neural_sdf_build import prepare_neural_sdf, require_torch
+    from .outdir import mark_output_folder
+    from .sdf.neural import parse_sdf_size
+
+    require_torch()
+    try:
+        size = parse_sdf_size(args.sdf_size)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    if args.sdf_samples < 1000 or args.sdf_steps < 1:
+        raise InputError(f"--sdf-samples >= 1000 and --sdf-steps >= 1, got {args.sdf_samples} and {args.sdf_steps}")
+    source = spec.geometry
+    mark_output_folder(args.out, "scene")
+    network = prepare_neural_sdf(source, args.out, size=size, samples=args.sdf_samples, steps=args.sdf_steps, seed=spec.precompute.seed)
+    data = spec.to_dict()
+    data["geometry"] = str(network)
+    data["name"] = spec.name or Path(source).stem
+    return spec_from_dict(data)
+
+
 def _bake_texture(args, spec) -> None:
     """``--transfer-texture``: bake the scene's transfer texture at the build's rays (resumable)."""
     from .transfer_texture import add_transfer_texture
@@ -128,6 +163,8 @@ def main(argv: list[str] | None = None) -> int:
             raise InputError(f"--threads: expected a positive integer, got {args.threads}")
         spec = _spec_from_args(args)
         check_output_folder(args.out, "scene", force=args.force)
+        if args.neural_sdf:
+            spec = _neural_sdf_spec(args, spec)
         with open_executor(args.cluster, args.threads) as executor:
             report = run_build(spec, args.out, threads=args.threads, progress=not args.no_progress, force=args.force, executor=executor)
         if args.transfer_texture is not None:

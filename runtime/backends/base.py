@@ -35,17 +35,20 @@ class CpuTransfer:
     Attributes
     ----------
     covered : (M,) int64
-        Indices of the covered pixels in the image (row-major, row 0 at the top), ascending.
+        Indices of the covered pixels in the image (row-major, row 0 at the top), in the order of
+        the transfer rows (any order: the ONNX backend lists them segment by segment).
     transfer : (M, n) float32
         The transfer vector of each covered pixel.
-    packed : (H * W, 8) float32
-        The packed G-buffer the transfer came from (:meth:`GBufferPass.read_packed`; columns
-        ``prt.runtime.gbuffer.PACKED_*``), for shading inputs such as normals and positions.
+    inputs : (M, 6) float32
+        Position xyz and normal xyz of each covered pixel (the networks' input), for shading.
+    segment : (M,) int
+        The segment id of each covered pixel (for messages).
     """
 
     covered: np.ndarray
     transfer: np.ndarray
-    packed: np.ndarray
+    inputs: np.ndarray
+    segment: np.ndarray
 
 
 class TransferBackend(ABC):
@@ -66,7 +69,7 @@ class TransferBackend(ABC):
     ----------
     timings : dict of str to float
         Milliseconds of the stages of the last :meth:`run`, in stage order (e.g. ``readback``,
-        ``pack``, ``inference``, ``scatter``; or ``network``).
+        ``pack``, ``inference``; or ``network``).
     """
 
     name: str = ""

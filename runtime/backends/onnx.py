@@ -1,18 +1,25 @@
 """The ``"onnx"`` backend: transfer per pixel with ONNX Runtime (pack covered fragments by
-segment, infer, scatter back), the analogue of the paper's CUDA path.
+segment, infer, no scatter), the analogue of the paper's CUDA path.
 
-Readback: the G-buffer comes back to the CPU as one packed array (:meth:`GBufferPass.read_packed`).
+Readback: the G-buffer's two targets come back as they are (:meth:`GBufferPass.read_targets`,
+two plain copies); no interleaved array is built.
 
-Packing: the segment id of every pixel comes from the G-buffer; one pass per segment over the
-covered pixels (``flatnonzero``, no argsort), then one gather of the six input floats.
-Inference: each network segment's batch is cut into cache-sized slices that a small pool of
-threads feeds to the segment's session concurrently (one intra-op thread per call, spinning
-off), which keeps two cores busy without thread pools fighting each other.  Analytic
-(unshadowed) segments skip the network: their transfer is :func:`prt.runtime.sh.unshadowed_transfer`
-(in float32).  The result is one transfer row per covered pixel, in pixel order.
+Packing, O(N): the segment ids are small integers, so one stable counting sort
+(:func:`segment_sort`: ``np.bincount`` for the segment sizes, NumPy's radix ``argsort`` on 16-bit
+ids for the order) lists the covered pixels segment by segment, ascending within each segment;
+one gather per target then builds the networks' input rows in that order
+(:func:`segment_sort_reference` is the plain twin: one ``flatnonzero`` pass per segment).
+Inference: each network segment's rows are one contiguous block, cut into cache-sized slices that
+a small pool of threads feeds to the segment's session concurrently (one intra-op thread per
+call, spinning off), which keeps two cores busy without thread pools fighting each other; each
+slice's output is copied into its block (no scatter: the transfer stays in packed order and the
+renderer shades packed rows, then scatters the radiance once).  Analytic (unshadowed) segments
+skip the network: their transfer is :func:`prt.runtime.sh.unshadowed_transfer` (in float32).
 
 :class:`OnnxTransfer` is the engine (sessions and packed inference, no OpenGL); :class:`OnnxBackend`
-puts it behind :class:`prt.runtime.backends.TransferBackend`.
+puts it behind :class:`prt.runtime.backends.TransferBackend`.  :meth:`OnnxTransfer.compute` keeps the
+pixel-ordered contract for callers with their own arrays (benchmarks); :meth:`OnnxTransfer.compute_reference`
+is the pre-counting-sort path it is tested against.
 """
 
 from __future__ import annotations
@@ -26,11 +33,10 @@ import numpy as np
 from .. import sh
 from ..checks import positive_int
 from ..errors import InputError
-from ..gbuffer import PACKED_COLUMNS, PACKED_SEGMENT
 from ..onnxfile import read_model
 from .base import CpuTransfer, TransferBackend
 
-__all__ = ["OnnxBackend", "OnnxTransfer", "default_providers"]
+__all__ = ["OnnxBackend", "OnnxTransfer", "default_providers", "segment_sort", "segment_sort_reference"]
 
 
 def default_providers() -> list[str]:
@@ -39,6 +45,44 @@ def default_providers() -> list[str]:
 
     available = ort.get_available_providers()
     return [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in available]
+
+
+def segment_sort(segment: np.ndarray, n_segments: int) -> tuple[np.ndarray, np.ndarray]:
+    """The covered pixels grouped by segment: a stable counting sort, O(N).
+
+    Parameters
+    ----------
+    segment : (P,) int, segment id per pixel, -1 on background
+    n_segments : ids must lie in ``0 .. n_segments - 1``
+
+    Returns
+    -------
+    order : (M,) int64, the covered pixels (segment >= 0), segment by segment, ascending within each
+    offsets : (n_segments + 1,) int64, segment ``s`` is ``order[offsets[s]:offsets[s + 1]]``
+
+    Raises
+    ------
+    InputError
+        If an id is ``n_segments`` or more.
+    """
+    covered = np.flatnonzero(segment >= 0)
+    seg = segment[covered]
+    if len(seg) and int(seg.max()) >= n_segments:
+        raise InputError(f"segment {int(seg.max())} appears in the G-buffer but the scene has no such segment")
+    # NumPy's stable argsort is a radix (counting) sort for 8- and 16-bit integers.
+    small = np.uint8 if n_segments <= 1 << 8 else np.uint16 if n_segments <= 1 << 16 else np.int64
+    order = np.argsort(seg.astype(small), kind="stable")
+    offsets = np.searchsorted(seg[order], np.arange(n_segments + 1)).astype(np.int64)
+    return covered[order], offsets
+
+
+def segment_sort_reference(segment: np.ndarray, n_segments: int) -> tuple[np.ndarray, np.ndarray]:
+    """Plain twin of :func:`segment_sort` (one ``flatnonzero`` pass per segment), for tests."""
+    parts = [np.flatnonzero(segment == s) for s in range(n_segments)]
+    if np.any(segment >= n_segments):
+        raise InputError(f"segment {int(segment.max())} appears in the G-buffer but the scene has no such segment")
+    offsets = np.concatenate([[0], np.cumsum([len(p) for p in parts])]).astype(np.int64)
+    return (np.concatenate(parts) if parts else np.zeros(0, np.int64)).astype(np.int64), offsets
 
 
 class OnnxTransfer:
@@ -53,8 +97,6 @@ class OnnxTransfer:
     """
 
     def __init__(self, manifest, providers=None, threads: int | None = None, slice_rows: int = 4096):
-        import onnxruntime as ort
-
         self.bands = manifest.sh_bands
         self.n = self.bands * self.bands
         self.providers = list(providers) if providers else default_providers()
@@ -64,29 +106,45 @@ class OnnxTransfer:
         self.input_names: dict[int, str] = {}
         self.models: dict[int, object] = {}  # segment id -> model path, for messages
         self.analytic: set[int] = set()
-        opts = ort.SessionOptions()
-        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        opts.intra_op_num_threads = 1  # parallelism comes from concurrent slices
-        opts.inter_op_num_threads = 1
-        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        opts.add_session_config_entry("session.inter_op.allow_spinning", "0")
+        self.segment_count = len(manifest.segments)
         for seg in manifest.segments:
             if seg.kind == "analytic":
                 self.analytic.add(seg.id)
                 continue
             model = read_model(seg.model)  # refuses external data (files outside the scene folder)
-            try:
-                sess = ort.InferenceSession(model, opts, providers=self.providers)
-            except Exception as exc:  # onnxruntime raises its own Fail/InvalidGraph types
-                msg = " ".join(str(exc).split())[:200]
-                raise InputError(f"{seg.model}: cannot load ONNX model ({msg})") from None
-            self.input_names[seg.id] = _check_signature(sess, seg.model, self.n)
-            self.sessions[seg.id] = sess
+            self.sessions[seg.id], self.input_names[seg.id] = self._open(model, seg.model)
             self.models[seg.id] = seg.model
-        self._pool = ThreadPoolExecutor(max_workers=self.threads, thread_name_prefix="ort") if self.threads > 1 else None
+        self._pool = ThreadPoolExecutor(max_workers=self.threads, thread_name_prefix="ort") if self._concurrent_slices() else None
         self.calls = 0  # network invocations so far (tests check relighting makes none)
         self.timings: dict[str, float] = {}
+
+    def _open(self, model: bytes, path):
+        """(session, input name) of one checked ONNX model (``path`` for messages)."""
+        import onnxruntime as ort
+
+        if not hasattr(self, "_options"):
+            opts = ort.SessionOptions()
+            opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+            opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+            opts.intra_op_num_threads = 1  # parallelism comes from concurrent slices
+            opts.inter_op_num_threads = 1
+            opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+            opts.add_session_config_entry("session.inter_op.allow_spinning", "0")
+            self._options = opts
+        try:
+            sess = ort.InferenceSession(model, self._options, providers=self.providers)
+        except Exception as exc:  # onnxruntime raises its own Fail/InvalidGraph types
+            msg = " ".join(str(exc).split())[:200]
+            raise InputError(f"{path}: cannot load ONNX model ({msg})") from None
+        return sess, _check_signature(sess, path, self.n)
+
+    def _concurrent_slices(self) -> bool:
+        """Whether slices run on a pool of threads (else one after another, the engine's own threads inside)."""
+        return self.threads > 1
+
+    def _infer(self, s: int, rows: np.ndarray) -> np.ndarray:
+        """Segment ``s``'s network on ``rows`` (R, 6)."""
+        return self.sessions[s].run(None, {self.input_names[s]: rows})[0]
 
     def close(self) -> None:
         if self._pool is not None:
@@ -94,8 +152,59 @@ class OnnxTransfer:
             self._pool = None
         self.sessions.clear()
 
+    def infer_sorted(self, x: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+        """Transfer of rows grouped by segment (as :func:`segment_sort` lists them).
+
+        Parameters
+        ----------
+        x : (M, 6) float32, C-contiguous, position xyz and normal xyz per row
+        offsets : (S + 1,) int, segment ``s`` owns rows ``offsets[s]:offsets[s + 1]``
+
+        Returns
+        -------
+        transfer : (M, n) float32, row for row
+        Timings (ms) of the last call are in ``self.timings``: inference.
+        """
+        t0 = time.perf_counter()
+        transfer = np.empty((len(x), self.n), dtype=np.float32)
+        jobs = []
+        for s in range(len(offsets) - 1):
+            lo, hi = int(offsets[s]), int(offsets[s + 1])
+            if hi == lo:
+                continue
+            if s in self.analytic:
+                transfer[lo:hi] = sh.unshadowed_transfer(x[lo:hi, 3:6], self.bands, dtype=np.float32)
+                continue
+            if s not in self.sessions:
+                raise InputError(f"segment {s} appears in the G-buffer but the scene has no such segment")
+            # The same slices as the pixel-ordered path: each segment's rows cut from its start.
+            jobs += [(s, x[a : min(a + self.slice_rows, hi)], a) for a in range(lo, hi, self.slice_rows)]
+        results = self._run([(s, None, rows, 0) for s, rows, _ in jobs])
+        for (_, rows, a), y in zip(jobs, results):
+            transfer[a : a + len(rows)] = y
+        self.timings = {"inference": 1e3 * (time.perf_counter() - t0)}
+        return transfer
+
     def compute(self, inputs: np.ndarray, segment: np.ndarray, columns=(0, 1, 2, 3, 4, 5)):
-        """Transfer of every covered pixel.
+        """Transfer of every covered pixel, in pixel order (the counting sort, then one scatter).
+
+        Parameters and results as :meth:`compute_reference`, which it equals exactly.
+        """
+        t0 = time.perf_counter()
+        order, offsets = segment_sort(segment, self.segment_count)  # InputError for an id the scene lacks
+        x = np.ascontiguousarray(np.take(inputs, order, axis=0)[:, list(columns)])
+        t1 = time.perf_counter()
+        packed = self.infer_sorted(x, offsets)
+        t2 = time.perf_counter()
+        covered = np.sort(order)
+        transfer = np.empty_like(packed)
+        transfer[np.searchsorted(covered, order)] = packed
+        t3 = time.perf_counter()
+        self.timings = {"pack": 1e3 * (t1 - t0), "inference": 1e3 * (t2 - t1), "scatter": 1e3 * (t3 - t2)}
+        return covered, transfer
+
+    def compute_reference(self, inputs: np.ndarray, segment: np.ndarray, columns=(0, 1, 2, 3, 4, 5)):
+        """Transfer of every covered pixel (the plain path: one pass per segment, then a scatter).
 
         Parameters
         ----------
@@ -148,8 +257,8 @@ class OnnxTransfer:
             s, _, x, a = job
             rows = x[a : a + self.slice_rows]
             try:
-                y = self.sessions[s].run(None, {self.input_names[s]: rows})[0]
-            except Exception as exc:  # onnxruntime's own error types
+                y = self._infer(s, rows)
+            except Exception as exc:  # the engine's own error types
                 raise InputError(f"{self.models[s]}: inference failed ({' '.join(str(exc).split())[:200]})") from None
             if not isinstance(y, np.ndarray) or y.shape != (len(rows), self.n) or y.dtype != np.float32:
                 what = f"{getattr(y, 'shape', '?')} {getattr(y, 'dtype', type(y).__name__)}"
@@ -162,9 +271,10 @@ class OnnxTransfer:
 
 
 class OnnxBackend(TransferBackend):
-    """:class:`OnnxTransfer` on the packed G-buffer: the transfer comes back on the CPU.
+    """:class:`OnnxTransfer` on the G-buffer's targets: the transfer comes back on the CPU, in packed
+    (segment-sorted) order, with the covered pixel of each row.
 
-    Timings: ``readback`` (the packed G-buffer), ``pack``, ``inference``, ``scatter``.
+    Timings: ``readback`` (the two targets), ``pack`` (counting sort and gather), ``inference``.
     """
 
     name = "onnx"
@@ -175,14 +285,23 @@ class OnnxBackend(TransferBackend):
 
     def run(self, gbuffer, target) -> CpuTransfer:
         t0 = time.perf_counter()
-        packed = gbuffer.read_packed()
+        position, normal = gbuffer.read_targets()  # (H, W, 4) each, top row first, no copy
         t1 = time.perf_counter()
-        segment = packed[:, PACKED_SEGMENT].astype(np.int32)
-        covered, transfer = self.engine.compute(packed, segment, columns=PACKED_COLUMNS)
+        height, width = position.shape[:2]
+        # The segment channel, top row first (a contiguous copy); ids are exact small integers.
+        wide = self.engine.segment_count > 1 << 15
+        segment = normal[..., 3].astype(np.int32 if wide else np.int16).reshape(-1)
+        order, offsets = segment_sort(segment, self.engine.segment_count)
+        # The targets keep GL's row order (bottom first): pixel i of the image is row (H-1 - i//W) there.
+        gl_rows = order + width * (height - 1) - 2 * width * (order // width)
+        raw = (position[::-1].reshape(-1, 4), normal[::-1].reshape(-1, 4))  # views of the read-back
+        x = np.empty((len(order), 6), dtype=np.float32)
+        x[:, 0:3] = np.take(raw[0], gl_rows, axis=0)[:, 0:3]  # whole-row take: far faster than [rows, 0:3]
+        x[:, 3:6] = np.take(raw[1], gl_rows, axis=0)[:, 0:3]
         t2 = time.perf_counter()
-        self.timings = {"readback": 1e3 * (t1 - t0), **self.engine.timings}
-        self.timings["pack"] += 1e3 * (t2 - t1) - sum(self.engine.timings.values())  # the segment-id column
-        return CpuTransfer(covered, transfer, packed)
+        transfer = self.engine.infer_sorted(x, offsets)
+        self.timings = {"readback": 1e3 * (t1 - t0), "pack": 1e3 * (t2 - t1), **self.engine.timings}
+        return CpuTransfer(order, transfer, x, segment[order])
 
     def release(self) -> None:
         self.engine.close()

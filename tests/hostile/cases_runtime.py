@@ -287,6 +287,20 @@ def _runtime_cases() -> list[Case]:
         _rt("exposure-negative", "--exposure -1", r"--exposure must be >= 0", argv=["{case}/scene.json", *FAST, "--exposure", "-1", "--out", OUT]),
         _rt("exponent-inf", "--exponent inf", r"--exponent: 1 value\(s\) NaN or Inf", argv=["{case}/scene.json", *FAST, "--exponent", "inf", "--out", OUT]),
         _rt("exponent-zero", "--exponent 0", r"--exponent must be > 0", argv=["{case}/scene.json", *FAST, "--exponent", "0", "--out", OUT]),
+        _rt("materials-unknown-object", "a per-object material naming no object", r"materials\[0\]\.object: 'nope' is not an object",
+            _scene(_set("materials", [{"object": "nope", "type": "diffuse", "albedo": [1, 0, 0]}]))),
+        _rt("materials-twice", "two materials for one object", r"materials\[1\]\.object: 'quad' has a material already",
+            _scene(_set("materials", [{"object": "quad", "type": "diffuse", "albedo": [1, 0, 0]}] * 2))),
+        _rt("materials-corrupt-texture", "a per-object albedo texture that is not an image", r"wood\.png: cannot read albedo texture",
+            _scene(_set("materials", [{"object": "quad", "type": "diffuse", "albedo": [1, 1, 1], "albedo_texture": "wood.png"}]),
+                   wood__png=b"\x89PNG\r\n\x1a\njunk")),
+        _rt("materials-texture-outside", "an albedo texture path leaving the scene folder", r"albedo_texture: '\.\./wood\.png' is outside the scene folder",
+            _scene(_set("materials", [{"object": "quad", "type": "diffuse", "albedo": [1, 1, 1], "albedo_texture": "../wood.png"}]))),
+        _rt("object-albedo-malformed", "--object-albedo without numbers", r"--object-albedo: expected NAME=R,G,B",
+            argv=["{case}/scene.json", *FAST, "--object-albedo", "quad=red", "--out", OUT]),
+        _rt("object-albedo-unknown-object", "--object-albedo naming no object", r"object 'nope' is not in the scene \(objects: quad\)",
+            argv=["{case}/scene.json", *FAST, "--object-albedo", "nope=1,0,0", "--out", OUT]),
+        *_camera_path_cases(),
         _rt("backend-unknown", "--backend cuda", r"argument --backend: invalid choice: 'cuda'", argv=["{case}/scene.json", *FAST, "--backend", "cuda"]),
         _rt("providers-unknown", "--providers naming no provider", r"providers: \['FooExecutionProvider'\] not available",
             argv=["{case}/scene.json", *FAST, "--providers", "FooExecutionProvider", "--out", OUT]),
@@ -296,6 +310,70 @@ def _runtime_cases() -> list[Case]:
             _scene(afile="not a folder"), ["{case}/scene.json", *FAST, "--out", "{case}/afile/frames"]),
     ]
     return cases
+
+
+def _path(data=None, **changes) -> str:
+    """A camera-path file: a valid two-keyframe path with ``changes`` applied (raw text if ``data`` is a str)."""
+    if isinstance(data, str):
+        return data
+    path = {"format": "prt-camera-path", "version": 1, "frames": 2,
+            "keyframes": [{"eye": [0.0, 0.5, 3.0], "target": [0.0, 0.0, 0.0]}, {"eye": [3.0, 0.5, 0.0], "target": [0.0, 0.0, 0.0]}]}
+    path.update(changes)
+    return json.dumps(path, allow_nan=True)
+
+
+def _camera_path_cases() -> list[Case]:
+    """--camera-path files, the output --format, --fps, --background, --target-fps, lighting.background."""
+    def run(name, what, message, text, extra=()):
+        files = _scene(path__json=_path() if text is None else text)
+        return _rt(name, what, message, files, ["{case}/scene.json", *FAST, "--camera-path", "{case}/path.json", *extra, "--out", OUT])
+
+    eye = [{"eye": [0.0, 0.0, 1.0], "target": [0.0, 0.0, 0.0]}, {"eye": [0.0, 0.0, -1.0], "target": [0.0, 0.0, 0.0]}]
+    return [
+        _rt("camera-path-missing", "--camera-path naming no file", r"nope\.json: cannot read the camera path \(No such file",
+            argv=["{case}/scene.json", *FAST, "--camera-path", "{case}/nope.json", "--out", OUT]),
+        _rt("camera-path-is-folder", "--camera-path naming a folder", r": is a folder, not a camera-path file",
+            argv=["{case}/scene.json", *FAST, "--camera-path", "{case}/.", "--out", OUT]),
+        run("camera-path-json-broken", "a camera path cut short", r"path\.json: not valid JSON \(line 1 column", '{"format": "prt-camera-path",'),
+        run("camera-path-not-utf8", "a camera path in UTF-16", r"path\.json: cannot read the camera path \(not UTF-8 text\)", _path().encode("utf-16")),
+        run("camera-path-nan", "a NaN literal in a keyframe", r"path\.json: not valid JSON \(NaN is not a number JSON allows\)",
+            _path(keyframes=[{"eye": [float("nan"), 0, 1], "target": [0, 0, 0]}])),
+        run("camera-path-format-wrong", "a scene.json given as a camera path", r"path\.json: format: expected 'prt-camera-path', got 'prt-scene'",
+            _path(format="prt-scene")),
+        run("camera-path-version-2", "a camera path from a newer runtime", r"path\.json: version: expected 1 .*got 2", _path(version=2)),
+        run("camera-path-field-unknown", "a field this version does not know", r"path\.json: speed: unknown field", _path(speed=2)),
+        run("camera-path-top-level-array", "a bare list of keyframes", r"path\.json: a camera path must be a JSON object, got list", "[]"),
+        run("camera-path-keyframes-empty", "no keyframes", r"path\.json: keyframes: expected a non-empty list", _path(keyframes=[])),
+        run("camera-path-keyframe-not-object", "a keyframe that is a number", r"path\.json: keyframes\[1\]: expected an object",
+            _path(keyframes=[eye[0], 7])),
+        run("camera-path-eye-missing", "a keyframe without an eye", r"path\.json: keyframes\[0\]\.eye: missing", _path(keyframes=[{"target": [0, 0, 0]}])),
+        run("camera-path-eye-string", "a keyframe eye that is a word", r"path\.json: keyframes\[0\]\.eye: expected 3 numbers, got 'behind'",
+            _path(keyframes=[{"eye": "behind", "target": [0, 0, 0]}])),
+        run("camera-path-eye-is-target", "a keyframe looking at itself", r"path\.json: keyframes\[0\]: eye and target coincide",
+            _path(keyframes=[{"eye": [0, 0, 0], "target": [0, 0, 0]}])),
+        run("camera-path-eye-1e39", "a keyframe beyond float32", r"path\.json: keyframes\[0\]\.eye\[2\]: number 1e\+39 is not finite in float32",
+            _path(keyframes=[{"eye": [0, 0, 1e39], "target": [0, 0, 0]}])),
+        run("camera-path-fov-180", "a keyframe fov of 180 degrees", r"path\.json: keyframes\[0\]: fov_y must be in \(0, 180\)",
+            _path(keyframes=[{"eye": [0, 0, 1], "target": [0, 0, 0], "fov": 180}])),
+        run("camera-path-frames-zero", "frames 0", r"path\.json: frames: expected an integer in 1\.\.100000, got 0", _path(frames=0)),
+        run("camera-path-frames-huge", "frames 10**12", r"path\.json: frames: expected an integer in 1\.\.100000", _path(frames=10**12)),
+        run("camera-path-interpolation-unknown", "interpolation 'bezier'", r"path\.json: interpolation: expected one of linear, smooth",
+            _path(interpolation="bezier")),
+        run("camera-path-loop-string", "loop 'yes'", r"path\.json: loop: expected true or false", _path(loop="yes")),
+        run("camera-path-through-target", "a path whose middle frame sits on the target", r"path\.json: frame 1: the interpolated camera is unusable",
+            _path(keyframes=eye, frames=3)),
+        run("format-unknown", "--format gif", r"argument --format: invalid choice: 'gif'", None, ["--format", "gif"]),
+        run("fps-zero", "--format mp4 --fps 0", r"--fps must be in \(0, 1000\], got 0", None, ["--format", "mp4", "--fps", "0"]),
+        _rt("mp4-out-below-a-file", "--format mp4 into a folder below a file", r"afile: cannot create the output folder",
+            _scene(afile="not a folder"), ["{case}/scene.json", *FAST, "--format", "mp4", "--out", "{case}/afile/v.mp4"]),
+        _rt("exr-out-is-a-file", "--format exr into a file", r"afile: cannot create the output folder",
+            _scene(afile="not a folder"), ["{case}/scene.json", *FAST, "--format", "exr", "--out", "{case}/afile"]),
+        _rt("background-unknown", "--background white", r"argument --background: invalid choice: 'white'",
+            argv=["{case}/scene.json", *FAST, "--background", "white"]),
+        _rt("target-fps-negative", "--target-fps -5", r"--target-fps must be >= 0", argv=["{case}/scene.json", *FAST, "--target-fps", "-5", "--out", OUT]),
+        _rt("background-not-boolean", "lighting.background 'yes'", r"scene\.json: lighting\.background: 'yes' is not of type 'boolean'",
+            _scene(_set("lighting.background", "yes"))),
+    ]
 
 
 # --------------------------------------------------------------------------- prt-bench
