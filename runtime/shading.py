@@ -60,7 +60,7 @@ from ..shaders import assemble
 from . import sh
 from .checks import check_finite, finite_array
 from .envmap import load_envmap_sh
-from .errors import ArgumentTypeError, InputError
+from .errors import InputError
 
 __all__ = [
     "MATERIAL_KINDS",
@@ -123,16 +123,10 @@ def compute_light_matrix(coeffs) -> np.ndarray:
 
 def _check_sh(coeffs) -> np.ndarray:
     """``coeffs`` as float64 (n, 3) with n a positive square and finite values, else InputError."""
-    if isinstance(coeffs, (str, bytes)) or coeffs is None:
-        raise ArgumentTypeError(f"Lighting.sh must be a numeric (n, 3) array, got {type(coeffs).__name__}")
-    try:
-        arr = np.array(coeffs, dtype=np.float64)
-    except (TypeError, ValueError, OverflowError):
-        raise ArgumentTypeError(f"Lighting.sh must be a numeric (n, 3) array, got {type(coeffs).__name__}") from None
-    n = arr.shape[0] if arr.ndim == 2 else 0
-    if arr.ndim != 2 or arr.shape[1] != 3 or n < 1 or math.isqrt(n) ** 2 != n:
+    arr = finite_array(coeffs, "Lighting.sh", shape=(-1, 3))  # finite in float32, the precision of the shading
+    n = arr.shape[0]
+    if n < 1 or math.isqrt(n) ** 2 != n:
         raise InputError(f"Lighting.sh must have shape (bands**2, 3), got {arr.shape}")
-    check_finite(arr, "Lighting.sh")  # in float32, the precision of the shading
     return arr
 
 
