@@ -60,7 +60,7 @@ class BounceRays:
 
 
 def trace_bounce_rays(mesh, points, normals, sample_faces=None, *, rays: int = BOUNCE_RAYS, seed: int = 0, chunk: int = 4096,
-                      workers: int = -1) -> BounceRays:
+                      workers: int = -1, targets=None) -> BounceRays:
     """Trace ``rays`` cosine-distributed rays per sample and find, at every hit, the nearest sample.
 
     Parameters
@@ -74,6 +74,9 @@ def trace_bounce_rays(mesh, points, normals, sample_faces=None, *, rays: int = B
     rays : int
     seed : int
         Ray frames are spun by angles drawn from (seed, chunk index): deterministic.
+    targets : (points, normals), optional
+        The samples searched at the hit points; default: ``points, normals`` themselves (the
+        bounce stage).  Other query points (the benchmark's pixels) pass the precomputed samples.
     """
     from scipy.spatial import cKDTree
 
@@ -83,7 +86,11 @@ def trace_bounce_rays(mesh, points, normals, sample_faces=None, *, rays: int = B
     points = np.asarray(points, dtype=np.float64)
     normals = _unit(np.asarray(normals, dtype=np.float64))
     local = cosine_directions(rays).astype(np.float32)
-    tree = cKDTree(np.concatenate([points, NORMAL_WEIGHT * normals], axis=1))
+    if targets is None:
+        targets = (points, normals)
+    target_points = np.asarray(targets[0], dtype=np.float64)
+    target_normals = _unit(np.asarray(targets[1], dtype=np.float64))
+    tree = cKDTree(np.concatenate([target_points, NORMAL_WEIGHT * target_normals], axis=1))
     nearest = np.full((len(points), rays), -1, dtype=np.int64)
     hit_face = np.full((len(points), rays), -1, dtype=np.int64)
     for c, start in enumerate(range(0, len(points), chunk)):
