@@ -1,0 +1,153 @@
+"""The interreflected part of the benchmark's reference (scenes built with ``--bounces N``).
+
+The renderer's interreflected transfer is ``T_0 + T_1 + ... + T_N`` (Sloan et al. 2002; see
+:mod:`prt.train.interreflection`).  At every covered pixel ``p`` the reference computes
+
+    T(p) = T_0(p) + mean_j  a(q_j) * [ T_0(q_j) + H(q_j) ]          (RGB: a is a colour)
+
+over ``hit_rays`` cosine-distributed rays from ``p`` hitting ``q_j``:
+
+- ``T_0(p)``: the ray-traced direct transfer of the pixel (the reference's usual
+  :func:`prt.bench.reference.cached_transfer`);
+- ``T_0(q_j)``: the direct transfer ray traced afresh *at the exact hit point* (``rays`` rays,
+  the hit's geometric normal turned towards ``p``), so the first bounce, which carries almost
+  all of the indirect light, involves no interpolation at all;
+- ``H(q_j) = T_1 + ... + T_{N-1}`` (``N >= 2`` only): the higher bounces, from the nearest of
+  an independent set of surface samples (own seed and count, not the build's) on which the
+  bounce operator of :mod:`prt.train.interreflection` ran with the same albedos.
+
+So the reference shares nothing with the build but the scene, the albedos recorded in the
+manifest and the SH-projected light: only the transfer representation differs.  Cached by
+content like the direct reference.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from prt.runtime.files import atomic_save_npz
+from prt.train import compute_transfer
+from prt.train.interreflection import NORMAL_WEIGHT, interreflect, trace_bounce_rays
+from prt.train.sampling import sample_surface
+from prt.train.transfer import cosine_directions, orthonormal_frames
+
+__all__ = ["face_albedo", "higher_bounce_samples", "indirect_transfer", "HIT_RAYS", "HIT_TRANSFER_RAYS", "HIGHER_SAMPLES"]
+
+HIT_RAYS = 64  # bounce rays per pixel
+HIT_TRANSFER_RAYS = 128  # rays of the direct transfer at each hit point (averaged again over HIT_RAYS hits)
+HIGHER_SAMPLES = 40_000  # independent samples carrying the bounces >= 2
+SEED_STREAM = 0x5EF  # keeps the reference's random streams apart from the build's
+
+
+def face_albedo(albedos: dict, geometry) -> np.ndarray:
+    """(F, 3) albedo of every triangle from ``{object name: [r, g, b]}`` (the manifest's record).
+
+    An object the record does not name is an error: the reference would silently differ from the
+    build otherwise.
+    """
+    names = list(geometry.object_names)
+    missing = [n for n in names if n not in albedos]
+    if missing:
+        raise ValueError(f"interreflection.albedos has no albedo for object(s) {', '.join(missing)}")
+    table = np.array([np.asarray(albedos[n], dtype=np.float64) for n in names]).reshape(len(names), 3)
+    return table[np.asarray(geometry.object_ids)]
+
+
+def _digest(*parts) -> str:
+    h = hashlib.sha1()
+    for part in parts:
+        h.update(np.ascontiguousarray(part).tobytes() if isinstance(part, np.ndarray) else repr(part).encode())
+    return h.hexdigest()[:12]
+
+
+def higher_bounce_samples(geometry, tracer, albedo, bounces: int, *, rays: int, count: int = HIGHER_SAMPLES, seed: int = 0,
+                          cache: Path | None = None, geometry_id: str = "", log=print):
+    """Independent surface samples with ``H = T_1 + ... + T_{bounces-1}`` (None when ``bounces < 2``).
+
+    Returns
+    -------
+    (points (S, 3), normals (S, 3), higher (S, 16, 3) float32) or None
+    """
+    if bounces < 2:
+        return None
+    path = None
+    if cache is not None:
+        path = Path(cache) / f"higher-b{bounces}-n{count}-r{rays}-s{seed}-{_digest(geometry_id, albedo, 'v1')}.npz"
+        if path.is_file():
+            with np.load(path) as data:
+                return data["points"], data["normals"], data["higher"]
+    t0 = time.perf_counter()
+    samples = sample_surface(geometry, count, seed=seed, stream=SEED_STREAM)
+    points, normals = samples.points, samples.normals
+    direct = compute_transfer(geometry, points, normals, rays=rays, seed=seed + SEED_STREAM, tracer=tracer)
+    found = trace_bounce_rays(geometry.mesh, points, normals, rays=HIT_RAYS, seed=seed + SEED_STREAM)
+    higher = (interreflect(direct, found, albedo, bounces - 1) - direct[:, :, None].astype(np.float64)).astype(np.float32)
+    log(f"  reference bounces >= 2: {count:,} samples x {rays} rays, {bounces - 1} bounce(s) in {time.perf_counter() - t0:.1f} s")
+    if path is not None:
+        atomic_save_npz(path, points=points, normals=normals, higher=higher)
+    return points, normals, higher
+
+
+def _hits(tracer, points, normals, rays: int, seed: int):
+    """Cosine-distributed rays from every point: hit points (P, M, 3), normals facing the ray, faces (-1: miss)."""
+    local = cosine_directions(rays).astype(np.float32)
+    rng = np.random.default_rng(np.random.SeedSequence([seed, SEED_STREAM, len(points)]))
+    frames = orthonormal_frames(normals.astype(np.float64), rng.uniform(0.0, 2.0 * np.pi, len(points))).astype(np.float32)
+    dirs = np.matmul(local[None], frames.transpose(0, 2, 1)).reshape(-1, 3)
+    origins = np.repeat((points + tracer.offset * normals).astype(np.float32), rays, axis=0)
+    result = tracer._scene.run(origins, dirs, output=1)
+    faces = result["primID"].astype(np.int64)
+    hit_points = origins + result["tfar"][:, None].astype(np.float32) * dirs
+    ng = result["Ng"].astype(np.float64)
+    ng /= np.maximum(np.linalg.norm(ng, axis=1, keepdims=True), 1e-30)
+    ng *= -np.sign(np.einsum("qc,qc->q", ng, dirs))[:, None]  # the side the ray sees
+    return hit_points, ng.astype(np.float32), faces
+
+
+def indirect_transfer(geometry, tracer, points, normals, albedo, bounces: int, *, hit_rays: int = HIT_RAYS,
+                      rays: int = HIT_TRANSFER_RAYS, higher=None, seed: int = 0, chunk: int = 2048) -> np.ndarray:
+    """``mean_j a(q_j) [T_0(q_j) + H(q_j)]`` at ``points``: (P, 16, 3) float32 (zeros when ``bounces == 0``).
+
+    Parameters
+    ----------
+    geometry, tracer :
+        The scene and its Embree tracer (:func:`prt.train.transfer.make_tracer`).
+    points, normals : (P, 3)
+        Pixels' positions and normals (facing the camera).
+    albedo : (F, 3)
+        Per-triangle albedo (:func:`face_albedo`).
+    higher : the result of :func:`higher_bounce_samples` (needed when ``bounces >= 2``).
+    """
+    points = np.ascontiguousarray(points, dtype=np.float32)
+    normals = np.ascontiguousarray(normals, dtype=np.float32)
+    normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-30)
+    out = np.zeros((len(points), 16, 3), dtype=np.float32)
+    if bounces <= 0 or len(points) == 0:
+        return out
+    if bounces >= 2 and higher is None:
+        raise ValueError("indirect_transfer: bounces >= 2 needs the higher-bounce samples")
+    albedo = np.asarray(albedo, dtype=np.float64)
+    tree = None
+    if bounces >= 2:  # the nearest-sample rule of the bounce stage, on the independent samples
+        s_points, s_normals, _ = higher
+        tree = cKDTree(np.concatenate([s_points, NORMAL_WEIGHT * s_normals], axis=1))
+    for c, start in enumerate(range(0, len(points), chunk)):
+        rows = slice(start, start + chunk)
+        q, nq, faces = _hits(tracer, points[rows], normals[rows], hit_rays, seed + c)
+        hit = faces >= 0
+        t = np.zeros((len(q), 16, 3), dtype=np.float64)
+        if hit.any():
+            t0 = compute_transfer(geometry, q[hit], nq[hit], rays=rays, seed=seed + c, tracer=tracer).astype(np.float64)
+            t[hit] = t0[:, :, None]
+            if tree is not None:
+                _, nearest = tree.query(np.concatenate([q[hit], NORMAL_WEIGHT * nq[hit]], axis=1), k=1)
+                t[hit] += higher[2][nearest]
+        weight = np.where(hit[:, None], albedo[np.where(hit, faces, 0)], 0.0)  # (P*M, 3)
+        n = len(points[rows])
+        out[rows] = np.einsum("pmc,pmkc->pkc", weight.reshape(n, hit_rays, 3), t.reshape(n, hit_rays, 16, 3)) / hit_rays
+    return out
