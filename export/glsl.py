@@ -329,22 +329,35 @@ def evaluate_glsl(ctx, onnx_path, x, layout: str = "auto", function_name: str = 
     if layout == "auto":
         layout = choose_layout(network.architecture)
     outputs = network.outputs
-    source = evaluation_program(_source(network, fn, layout), fn, outputs)
-    program = ctx.program(vertex_shader=assemble("fullscreen.vert"), fragment_shader=source)
-    textures = {}
-    try:
-        if layout == "texture":
-            texels, meta = _texture(network)
-            weights = ctx.texture((meta["width"], meta["height"]), 4, texels.tobytes(), dtype="f4")
-            weights.filter = (moderngl.NEAREST, moderngl.NEAREST)
-            textures[f"{fn}_weights"] = weights
-        inputs = {"u_position": data[:, :3], "u_normal": data[:, 3:]}
-        result = run_fragment_program(ctx, program, inputs, 4 * outputs, attachments=outputs, textures=textures)
-    finally:
-        for texture in textures.values():
-            texture.release()
-        program.release()
-    return result[:, : network.coefficients]
+    snippet = _source(network, fn, layout)
+    # At most 8 colour attachments (GL 3.3's guaranteed draw buffers): wider networks (the
+    # 64 outputs of interreflection) are read 8 vec4 blocks per draw, through a wrapper.
+    parts = [(0, outputs)] if outputs <= _MAX_ATTACHMENTS else [(a, min(_MAX_ATTACHMENTS, outputs - a)) for a in range(0, outputs, _MAX_ATTACHMENTS)]
+    results = []
+    for first, count in parts:
+        name, source = fn, snippet
+        if len(parts) > 1:
+            name = f"{fn}_part{first}"
+            source += (f"\nvoid {name}(vec3 position, vec3 normal, out vec4 t[{count}]) {{\n    vec4 all_t[{outputs}];\n"
+                       f"    {fn}(position, normal, all_t);\n    for (int j = 0; j < {count}; ++j) t[j] = all_t[{first} + j];\n}}\n")
+        program = ctx.program(vertex_shader=assemble("fullscreen.vert"), fragment_shader=evaluation_program(source, name, count))
+        textures = {}
+        try:
+            if layout == "texture":
+                texels, meta = _texture(network)
+                weights = ctx.texture((meta["width"], meta["height"]), 4, texels.tobytes(), dtype="f4")
+                weights.filter = (moderngl.NEAREST, moderngl.NEAREST)
+                textures[f"{fn}_weights"] = weights
+            inputs = {"u_position": data[:, :3], "u_normal": data[:, 3:]}
+            results.append(run_fragment_program(ctx, program, inputs, 4 * count, attachments=count, textures=textures))
+        finally:
+            for texture in textures.values():
+                texture.release()
+            program.release()
+    return np.concatenate(results, axis=1)[:, : network.coefficients]
+
+
+_MAX_ATTACHMENTS = 8
 
 
 def _network(onnx_path) -> _Network:
@@ -354,7 +367,7 @@ def _network(onnx_path) -> _Network:
         if value.dtype.kind == "f" and not np.isfinite(value).all():
             raise ValueError(f"{onnx_path}: initialiser {name} holds a non-finite value")
     layers, bands = int(arch["layers"]), int(arch["bands"])
-    hidden, coefficients = int(arch["hidden"]), bands * bands
+    hidden, coefficients = int(arch["hidden"]), int(arch.get("outputs", bands * bands))  # 4 bands^2: interreflection
     pos_freqs, normal_freqs = int(arch["pos_freqs"]), int(arch["normal_freqs"])
     expected = {
         "enc_pos_freq": (3, 3 * pos_freqs),
@@ -426,7 +439,7 @@ def _weight_blocks(arch: dict) -> int:
     """mat4 blocks of all layers for an architecture (what ``choose_layout`` measures)."""
     hidden, layers = math.ceil(int(arch["hidden"]) / 4), int(arch["layers"])
     groups = 2 + 2 * math.ceil(3 * int(arch["pos_freqs"]) / 4) + 2 * math.ceil(3 * int(arch["normal_freqs"]) / 4)
-    outputs = math.ceil(int(arch["bands"]) ** 2 / 4)
+    outputs = math.ceil(int(arch.get("outputs", int(arch["bands"]) ** 2)) / 4)
     if layers == 0:
         return groups * outputs
     return groups * hidden + (layers - 1) * hidden * hidden + hidden * outputs

@@ -3,7 +3,8 @@
 Graph (opset 17), one input and one output, dynamic batch ``N``:
 
     x : float32 [N, 6]   position (scene units), normal (any length)
-    transfer : float32 [N, bands^2]
+    transfer : float32 [N, bands^2]   (or [N, architecture["outputs"]]: 4 bands^2 for the
+               "direct+rgb" layout of interreflection: direct, then indirect R, G, B)
 
 The encoding is part of the graph (Split, Sub/Mul/Clip, ReduceL2/Max/Div, MatMul, Sin, Cos,
 Concat), then ``layers`` x (Gemm, LeakyRelu), Gemm, Tanh, Mul, Add.  Initialiser names match
@@ -41,7 +42,7 @@ def build_model(arrays: dict[str, np.ndarray], architecture: dict, *, name: str 
 
     layers = int(architecture["layers"])
     bands = int(architecture["bands"])
-    outputs = bands * bands
+    outputs = int(architecture.get("outputs", bands * bands))  # 4 bands^2 with interreflection ("direct+rgb")
     nodes = []
     inits = [numpy_helper.from_array(np.asarray(v, dtype=np.float32), k) for k, v in sorted(arrays.items())]
     inits += [

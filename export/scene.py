@@ -29,6 +29,7 @@ from ..runtime.manifest import (
     LightingInfo,
     Manifest,
     MaterialInfo,
+    InterreflectionInfo,
     MemoryInfo,
     SegmentInfo,
     validate_manifest_field,
@@ -180,6 +181,7 @@ def export_scene(
     glsl_layout: str = "auto",
     materials: list | None = None,
     albedo_uv: np.ndarray | None = None,
+    interreflection: dict | None = None,
 ) -> Manifest:
     """Write a whole scene folder: segment files, geometry, then ``scene.json``.
 
@@ -208,6 +210,9 @@ def export_scene(
         albedo textures are written to ``textures/``.
     albedo_uv : (F, 3, 2) float32, optional
         Corner UVs for the albedo textures (see :func:`export_geometry`).
+    interreflection : dict, optional
+        ``bounces``, ``bounce_rays``, ``layout`` ("direct+rgb") and ``albedos`` (object -> RGB):
+        the manifest's ``interreflection`` (the networks then output 4 ``sh_bands**2`` values).
 
     Returns
     -------
@@ -239,8 +244,9 @@ def export_scene(
         camera=CameraInfo(**{**DEFAULT_CAMERA, **camera}),
         memory=MemoryInfo(
             weight_bytes=sum(s.weight_bytes for s in infos if s.is_network),
-            vertex_storage_bytes=int(len(geometry.mesh.vertices) * sh_bands**2 * 4),
+            vertex_storage_bytes=int(len(geometry.mesh.vertices) * sh_bands**2 * 4 * (4 if interreflection else 1)),
         ),
+        interreflection=None if interreflection is None else InterreflectionInfo.from_dict(interreflection),
     )
     if materials:
         data = manifest.to_dict(root=out)

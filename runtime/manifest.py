@@ -3,14 +3,15 @@
 A trained scene is a folder holding ``scene.json`` plus the files it names (geometry, one
 ONNX model and GLSL file per network segment, an optional environment map).  The format is
 described by the JSON Schema ``schemas/scene.schema.json`` (format version 1); the checks a
-schema cannot express are made here:
+schema cannot express are made by :mod:`prt.runtime.manifest_checks` (re-exported here):
 
 - segment ids are ``0 .. S-1`` in list order;
 - every index of the k-d tree is in range (roots and children -> nodes, leaves ->
   ``leaf_segment``, ``leaf_segment`` -> segments) and the nodes form trees (no cycles);
 - boxes have ``min <= max``; ``lighting.sh`` has ``sh_bands**2`` rows; ``lighting.rotation``
   is a rotation; the camera's eye, target and up define a view;
-- every path is relative and resolves (symlinks followed) to a file inside the scene folder.
+- every path is relative and resolves (symlinks followed) to a file inside the scene folder;
+- ``interreflection.albedos`` names objects of the (mesh) geometry.
 
 Every failure raises :class:`~prt.runtime.errors.SpecError` with a one-line message naming
 the file and the field, e.g. ``scene.json: segments[1].kind: 'netwrk' is not one of
@@ -26,19 +27,23 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Iterable
 from dataclasses import dataclass, field
-from importlib import resources
-from pathlib import Path, PurePath, PurePosixPath, PureWindowsPath
+from pathlib import Path, PurePath
 from typing import Any
 
 import numpy as np
-from jsonschema import Draft202012Validator
-from jsonschema.exceptions import ValidationError, best_match
 
-from .camera import DEFAULT_CAMERA, Camera
-from .checks import unusable_json_number
-from .errors import ArgumentTypeError, InputError, SpecError
+from .camera import DEFAULT_CAMERA
+from .errors import ArgumentTypeError, SpecError
+from .manifest_checks import (  # noqa: F401  (re-exported: the validation lives there)
+    MANIFEST_NAME,
+    SCENE_SCHEMA,
+    _one_line,
+    _resolve_paths,
+    format_field_path,
+    validate_manifest_dict,
+    validate_manifest_field,
+)
 from .transfer_texture import TransferTextureInfo
 
 __all__ = [
@@ -55,6 +60,7 @@ __all__ = [
     "CameraInfo",
     "MemoryInfo",
     "TransferTextureInfo",
+    "InterreflectionInfo",
     "Manifest",
     "load_manifest",
     "validate_manifest_dict",
@@ -65,20 +71,8 @@ __all__ = [
 FORMAT = "prt-scene"
 FORMAT_VERSION = 1  # the version runtime/schemas/scene.schema.json describes
 GENERATOR = "prt-train 0.1.0"  # what the build writes as ``generator``
-MANIFEST_NAME = "scene.json"
 
 
-def _load_schema() -> dict:
-    """The bundled JSON Schema (package data, so it is found in wheels and zip imports too)."""
-    text = resources.files("prt.runtime").joinpath("schemas", "scene.schema.json").read_text("utf-8")
-    return json.loads(text)
-
-
-SCENE_SCHEMA: dict = _load_schema()
-_VALIDATOR = Draft202012Validator(SCENE_SCHEMA)
-
-# Schema messages quote the offending value; a whole array in an error line helps nobody.
-_MAX_MESSAGE = 200
 
 
 def _array(value: Any) -> np.ndarray | None:
@@ -360,6 +354,41 @@ class MemoryInfo:
 
 
 @dataclass
+class InterreflectionInfo:
+    """Diffuse interreflection baked into the transfer (``prt-train --bounces``; optional field).
+
+    Attributes
+    ----------
+    bounces : int
+        N >= 1 diffuse bounces.
+    bounce_rays : int
+        Rays per sample of the bounce stage.
+    layout : str
+        ``"direct+rgb"``: each network outputs the direct transfer, then the indirect transfer of
+        the R, G and B channels (``4 sh_bands**2`` values).
+    albedos : dict of str to list of 3 floats
+        Diffuse albedo of each object as it bounced light (fixed at build time).
+    """
+
+    bounces: int
+    bounce_rays: int
+    layout: str = "direct+rgb"
+    albedos: dict = field(default_factory=dict)
+
+    # Outputs of a network per SH coefficient of the direct transfer.
+    WIDTHS = {"direct+rgb": 4}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> InterreflectionInfo:
+        return cls(bounces=data["bounces"], bounce_rays=data["bounce_rays"], layout=data["layout"],
+                   albedos={k: [float(x) for x in v] for k, v in data["albedos"].items()})  # fmt: skip
+
+    def to_dict(self) -> dict:
+        return {"bounces": self.bounces, "bounce_rays": self.bounce_rays, "layout": self.layout,
+                "albedos": {k: [float(x) for x in v] for k, v in self.albedos.items()}}  # fmt: skip
+
+
+@dataclass
 class Manifest:
     """A scene manifest: what :func:`load_manifest` returns and the writer serialises.
 
@@ -388,6 +417,8 @@ class Manifest:
         If recorded.
     transfer_texture : TransferTextureInfo or None
         If the scene has one (optional field; older manifests have none).
+    interreflection : InterreflectionInfo or None
+        Diffuse bounces baked into the transfer (optional field; absent: direct light only).
     raw : dict or None
         The parsed JSON, unchanged (None for a manifest not read from a file).
     """
@@ -406,6 +437,14 @@ class Manifest:
     memory: MemoryInfo | None
     transfer_texture: TransferTextureInfo | None = None
     raw: dict | None = field(default=None, repr=False)
+    interreflection: InterreflectionInfo | None = None
+
+    @property
+    def transfer_width(self) -> int:
+        """Values a segment outputs per fragment: ``sh_bands**2``, or 4 times that with interreflection
+        (direct, indirect R, G, B)."""
+        n = self.sh_bands * self.sh_bands
+        return n if self.interreflection is None else n * InterreflectionInfo.WIDTHS[self.interreflection.layout]
 
     @property
     def bounds(self) -> np.ndarray:
@@ -462,6 +501,7 @@ class Manifest:
             memory=MemoryInfo.from_dict(data["memory"]) if "memory" in data else None,
             transfer_texture=TransferTextureInfo.from_manifest(data, files),
             raw=data,
+            interreflection=InterreflectionInfo.from_dict(data["interreflection"]) if "interreflection" in data else None,
         )
 
     def to_dict(self, root: str | Path | None = None) -> dict:
@@ -494,229 +534,9 @@ class Manifest:
             out["memory"] = self.memory.to_dict()
         if self.transfer_texture is not None:
             out["transfer_texture"] = self.transfer_texture.to_dict(root)
+        if self.interreflection is not None:
+            out["interreflection"] = self.interreflection.to_dict()
         return out
-
-
-# --------------------------------------------------------------------------- messages
-
-
-def format_field_path(parts: Iterable[str | int]) -> str:
-    """Readable path of a field: ``["segments", 2, "id"]`` -> ``segments[2].id``.
-
-    Keys that are not identifiers (object ids in ``segmentation.roots``, lighting names) are
-    quoted: ``segmentation.roots["0"]``.
-    """
-    out = ""
-    for part in parts:
-        if isinstance(part, int):
-            out += f"[{part}]"
-        elif part.isidentifier():
-            out += f".{part}" if out else part
-        else:
-            out += f"[{json.dumps(part)}]"
-    return out or "(top level)"
-
-
-def _one_line(text: object, limit: int = _MAX_MESSAGE) -> str:
-    """Collapse whitespace so the message is one line, and clip it to ``limit`` characters."""
-    line = " ".join(str(text).split())
-    return line if len(line) <= limit else line[: limit - 3] + "..."
-
-
-def _fail(source: str, parts: Iterable[str | int], message: str) -> SpecError:
-    """The one-line error for ``message`` about field ``parts`` of manifest ``source``."""
-    return SpecError(f"{source}: {format_field_path(parts)}: {message}")
-
-
-def _schema_message(error: ValidationError) -> str:
-    """Message of one schema error, friendlier than jsonschema's for forbidden fields."""
-    if error.validator == "not" and error.validator_value == {}:
-        # The schema forbids a field with {"not": {}} only for analytic segments' network fields.
-        return "not allowed here (analytic segments have no network)"
-    return _one_line(error.message)
-
-
-# --------------------------------------------------------------------------- validation
-
-
-def validate_manifest_dict(
-    data: Any, source: str = MANIFEST_NAME, root: str | Path | None = None
-) -> None:
-    """Check an in-memory manifest against the schema and the semantic rules.
-
-    Parameters
-    ----------
-    data : dict
-        Parsed manifest (plain JSON types).
-    source : str
-        Name used at the start of error messages (the manifest's file name or path).
-    root : str or Path, optional
-        The scene folder.  When given, every referenced path must also resolve to an
-        existing file inside it.
-
-    Raises
-    ------
-    SpecError
-        On the first problem found, with a one-line message naming ``source`` and the field.
-    """
-    error = best_match(_VALIDATOR.iter_errors(data))
-    if error is not None:
-        raise _fail(source, error.absolute_path, _schema_message(error))
-    number = unusable_json_number(data)  # e.g. 1e39 where float32 is used, an integer beyond int64
-    if number is not None:
-        raise _fail(source, *number)
-    _check_semantics(data, source)
-    if root is not None:
-        _resolve_paths(data, Path(root), source)
-
-
-def validate_manifest_field(name: str, value: Any, source: str = MANIFEST_NAME) -> None:
-    """Check one top-level field (``"material"``, ``"camera"``, ...) against its schema.
-
-    The message of a failure is the one :func:`validate_manifest_dict` gives for the same
-    field in a whole manifest, e.g. ``scene.json: material: 'albedo' is a required property``.
-
-    Raises
-    ------
-    SpecError
-        If ``value`` breaks the schema of field ``name``.
-    """
-    schema = {"$defs": SCENE_SCHEMA["$defs"], **SCENE_SCHEMA["properties"][name]}
-    error = best_match(Draft202012Validator(schema).iter_errors(value))
-    if error is not None:
-        raise _fail(source, [name, *error.absolute_path], _schema_message(error))
-
-
-def _check_semantics(data: dict, source: str) -> None:
-    """The rules the schema cannot express; ``data`` already satisfies the schema."""
-    segments = data["segments"]
-    for i, seg in enumerate(segments):
-        if seg["id"] != i:
-            message = f"expected {i} (ids are 0..{len(segments) - 1} in order), got {seg['id']}"
-            raise _fail(source, ["segments", i, "id"], message)
-        lo, hi = np.asarray(seg["bounds"], dtype=np.float64)
-        if np.any(lo > hi):
-            message = f"min corner {lo.tolist()} exceeds max corner {hi.tolist()}"
-            raise _fail(source, ["segments", i, "bounds"], message)
-    _check_tree(data["segmentation"], len(segments), source)
-
-    lighting = data["lighting"]
-    bands = data["sh_bands"]
-    if "sh" in lighting and len(lighting["sh"]) != bands**2:
-        message = f"expected {bands**2} rows (sh_bands {bands}), got {len(lighting['sh'])}"
-        raise _fail(source, ["lighting", "sh"], message)
-    if "rotation" in lighting:
-        r = np.asarray(lighting["rotation"], dtype=np.float64)
-        if not (np.allclose(r @ r.T, np.eye(3), atol=1e-4) and np.linalg.det(r) > 0):
-            message = "not a rotation matrix (orthonormal, determinant +1)"
-            raise _fail(source, ["lighting", "rotation"], message)
-
-    camera = {**DEFAULT_CAMERA, **data.get("camera", {})}
-    view = np.subtract(camera["target"], camera["eye"], dtype=np.float64)
-    if np.linalg.norm(view) < 1e-9:
-        raise _fail(source, ["camera"], "eye and target coincide")
-    if np.linalg.norm(np.cross(view, camera["up"])) < 1e-9 * np.linalg.norm(view):
-        raise _fail(source, ["camera", "up"], "is zero or parallel to the view direction")
-    # The renderer's own checks, so that a valid manifest is a scene the renderer accepts.
-    try:
-        Camera(camera["eye"], camera["target"], camera["up"], camera["fov"])
-    except InputError as exc:
-        raise _fail(source, ["camera"], str(exc)) from None
-    if "sh" in lighting and bands**2 == len(lighting["sh"]):
-        from .shading import Lighting  # shading pulls in the shader sources; only needed here
-
-        try:
-            Lighting.from_sh(lighting["sh"], rotation=lighting.get("rotation"))
-        except InputError as exc:
-            raise _fail(source, ["lighting", "sh"], str(exc)) from None
-
-
-def _check_tree(seg: dict, n_segments: int, source: str) -> None:
-    """Indices of the k-d tree are in range and every root spans a proper tree."""
-    nodes, leaf_segment = seg["nodes"], seg["leaf_segment"]
-    base: list[str | int] = ["segmentation"]
-    for j, s in enumerate(leaf_segment):
-        if s >= n_segments:
-            message = f"segment {s} does not exist (there are {n_segments})"
-            raise _fail(source, base + ["leaf_segment", j], message)
-    for i, node in enumerate(nodes):
-        if "leaf" in node:
-            if node["leaf"] >= len(leaf_segment):
-                message = f"leaf {node['leaf']} does not exist (leaf_segment has {len(leaf_segment)})"
-                raise _fail(source, base + ["nodes", i, "leaf"], message)
-            continue
-        for child in ("left", "right"):
-            if node[child] >= len(nodes):
-                message = f"node {node[child]} does not exist (there are {len(nodes)})"
-                raise _fail(source, base + ["nodes", i, child], message)
-    for key, root in seg["roots"].items():
-        if root >= len(nodes):
-            message = f"node {root} does not exist (there are {len(nodes)})"
-            raise _fail(source, base + ["roots", key], message)
-
-    # A node reached twice means a cycle (descent would never end) or a shared subtree.
-    seen = np.zeros(len(nodes), dtype=bool)
-    for key, root in seg["roots"].items():
-        stack = [(root, base + ["roots", key])]
-        while stack:
-            index, parts = stack.pop()
-            if seen[index]:
-                message = f"node {index} is reached twice; nodes must form trees (no cycles, no sharing)"
-                raise _fail(source, parts, message)
-            seen[index] = True
-            node = nodes[index]
-            if "leaf" not in node:
-                stack.extend((node[c], base + ["nodes", index, c]) for c in ("left", "right"))
-
-
-# --------------------------------------------------------------------------- paths
-
-
-def _path_fields(data: dict) -> list[tuple[list[str | int], str]]:
-    """(field path, relative path) of every file the manifest references."""
-    geometry = data["geometry"]
-    key = "file" if geometry["type"] == "mesh" else "glsl"
-    fields: list[tuple[list[str | int], str]] = [(["geometry", key], geometry[key])]
-    for i, seg in enumerate(data["segments"]):
-        fields += [(["segments", i, k], seg[k]) for k in ("model", "glsl", "glsl_weights") if k in seg]
-    envmap = data["lighting"].get("envmap")
-    if envmap is not None:
-        fields.append((["lighting", "envmap"], envmap))
-    return fields + TransferTextureInfo.path_fields(data)
-
-
-def _resolve_inside(root: Path, rel: str, parts: list[str | int], source: str) -> Path:
-    """Absolute, resolved path of ``rel`` below ``root``; SpecError unless an existing file inside."""
-    if any(ord(c) < 32 for c in rel):  # a NUL byte ends the path inside the OS; line breaks hide in messages
-        raise _fail(source, parts, f"path {rel!r} holds a control character (NUL, line break)")
-    windows = PureWindowsPath(rel)
-    if PurePosixPath(rel).is_absolute() or windows.is_absolute() or windows.drive:
-        message = f"path {rel!r} is absolute; paths must be relative to the scene folder"
-        raise _fail(source, parts, message)
-    try:
-        real_root = root.resolve()
-        # resolve() follows symlinks, so a link pointing outside is caught like a '..' escape.
-        target = (root / rel).resolve()
-    except (OSError, RuntimeError, ValueError) as exc:  # symlink loops: RuntimeError before 3.13; ValueError: unencodable
-        raise _fail(source, parts, f"cannot resolve path {rel!r} ({_one_line(exc)})") from None
-    if not target.is_relative_to(real_root):
-        raise _fail(source, parts, f"path {rel!r} escapes the scene folder")
-    try:
-        is_file = target.is_file()
-    except (OSError, ValueError):
-        is_file = False
-    if not is_file:
-        what = "is not a file" if target.exists() else "does not exist"
-        raise _fail(source, parts, f"file {rel!r} {what} (scene folder {root})")
-    return target
-
-
-def _resolve_paths(data: dict, root: Path, source: str) -> dict[str, Path]:
-    """Resolve every referenced path; keys are field paths such as ``segments[0].model``."""
-    return {
-        format_field_path(parts): _resolve_inside(root, rel, parts, source)
-        for parts, rel in _path_fields(data)
-    }
 
 
 # --------------------------------------------------------------------------- loading

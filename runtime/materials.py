@@ -219,7 +219,8 @@ def shade_objects(transfer, object_ids, normals, view_dirs, lighting, table: Mat
 
     Parameters
     ----------
-    transfer : (N, n) float
+    transfer : (N, n) or (N, 4 n) float
+        ``4 n``: with interreflection (direct, indirect R, G, B; :func:`prt.runtime.shading.shade`).
     object_ids : (N,) int
         Object id of each point (ids outside the table take the table's default material).
     normals, view_dirs : (N, 3) float or None
@@ -233,26 +234,35 @@ def shade_objects(transfer, object_ids, normals, view_dirs, lighting, table: Mat
     -------
     (N, 3) float32, >= 0
     """
-    from .shading import shade
+    from .shading import diffuse_light_matrix, shade, split_transfer
 
     transfer = np.asarray(transfer)
+    n = lighting.sh.shape[0]
     object_ids = np.asarray(object_ids).reshape(-1)
     out = np.zeros((len(transfer), 3), dtype=np.float32)
     known = (object_ids >= 0) & (object_ids < len(table.objects))
+    # RGB transfer (4 n wide): dot(T, L_c) + dot(T_ind_c, L_c) once for every row (one product),
+    # so diffuse objects scale 3 values per row instead of gathering 4 n.
+    incident = transfer.astype(np.float32, copy=False) @ diffuse_light_matrix(lighting, (1.0, 1.0, 1.0), transfer.shape[1]) if transfer.shape[1] > n else None
     for k in np.unique(np.where(known, object_ids, -1)):
         rows = np.flatnonzero(object_ids == k) if k >= 0 else np.flatnonzero(~known)
         material = table[int(k)] if k >= 0 else table.default
         layer = int(table.texture_layer[k]) if k >= 0 else -1
         if layer >= 0 and uv is not None:  # per-pixel albedo (shade() with the albedo of each row)
             texel = table.textures.sample(layer, np.asarray(uv)[rows]).astype(np.float64) * np.asarray(material.albedo)
-            t = np.asarray(transfer[rows], dtype=np.float64)
-            radiance = texel * (t @ lighting.sh)
+            t, indirect = split_transfer(np.asarray(transfer[rows], dtype=np.float64), n)
+            incident = t @ lighting.sh
+            if indirect is not None:  # interreflected light: diffuse, scaled by the receiver's albedo
+                incident += np.einsum("pcn,nc->pc", indirect, lighting.sh)
+            radiance = texel * incident
             if material.kind == "glossy":
                 radiance += np.asarray(material.specular) * _specular(t, normals[rows], view_dirs[rows], lighting, material)
             out[rows] = np.maximum(radiance, 0.0)
             continue
-        if material.kind == "diffuse":  # as the renderer's uniform fast path: T @ (albedo * L)
-            light = (lighting.sh * np.asarray(material.albedo)).astype(np.float32)
+        if material.kind == "diffuse" and incident is not None:
+            out[rows] = np.maximum(incident[rows] * np.asarray(material.albedo, dtype=np.float32), 0.0)
+        elif material.kind == "diffuse":  # as the renderer's uniform fast path: T @ (albedo * L)
+            light = diffuse_light_matrix(lighting, material.albedo, transfer.shape[1])
             out[rows] = np.maximum(transfer[rows].astype(np.float32) @ light, 0.0)
         else:
             out[rows] = shade(transfer[rows], normals[rows], view_dirs[rows], lighting, material)

@@ -50,7 +50,7 @@ from .gl import ShaderCompileError, bind_framebuffer, compile_program, create_co
 from .manifest import Manifest, load_manifest
 from .albedo_textures import AlbedoTextures
 from .materials import MaterialTable, load_albedo_textures, object_materials, shade_objects
-from .shading import GLSL_DEFINES, GLSL_FILES, Lighting, Material, shade, shader_uniforms, to_srgb8
+from .shading import GLSL_DEFINES, GLSL_FILES, Lighting, Material, diffuse_light_matrix, shade, shader_uniforms, to_srgb8
 
 __all__ = ["Scene", "Renderer", "BACKENDS", "demo_scene_path", "ShaderCompileError"]
 
@@ -153,13 +153,19 @@ class Renderer:
             self._backends = self._resources.backends  # created on first use, kept while switching
             self.gbuffer = self._resources.keep(GBufferPass(self.ctx, m, self.width, self.height))
             size = (self.width, self.height)
-            self._t_textures = [self._resources.keep(self._float_texture(size)) for _ in range(4)]
-            self._t_fbo = self._resources.keep(self.ctx.framebuffer(self._t_textures))
+            # Transfer targets: 4 RGBA32F (16 coefficients), or 16 with interreflection (direct, indirect
+            # R, G, B), then written as two framebuffers of 8 (GL 3.3's draw buffers; backends/glsl.py).
+            self._transfer_width = m.transfer_width
+            self._t_textures = [self._resources.keep(self._float_texture(size)) for _ in range(self._transfer_width // 4)]
+            if len(self._t_textures) > 4:
+                self._t_fbo = tuple(self._resources.keep(self.ctx.framebuffer(self._t_textures[k : k + 8])) for k in (0, 8))
+            else:
+                self._t_fbo = self._resources.keep(self.ctx.framebuffer(self._t_textures))
             self._out_texture = self._resources.keep(self._float_texture(size))
             self._out_fbo = self._resources.keep(self.ctx.framebuffer([self._out_texture]))
             _check_allocation(self.ctx, width, height)
             self._image = np.empty((self.height, self.width, 4), dtype=np.float32)
-            shade_source = assemble(*GLSL_FILES, "shade_pass.frag", defines=GLSL_DEFINES)
+            shade_source = assemble(*GLSL_FILES, "shade_pass.frag", defines=self._shade_defines())
             self._shade_program = self._resources.keep(compile_program(self.ctx, shade_source, "shade_pass.frag"))
             self._vao = self._resources.keep(self.ctx.vertex_array(self._shade_program, []))
         except MemoryError:
@@ -170,7 +176,7 @@ class Renderer:
             raise
         # A transfer on the CPU: covered pixels, their transfer, and their position and normal
         self._covered = np.zeros(0, dtype=np.int64)
-        self._transfer_cov = np.zeros((0, 16), dtype=np.float32)
+        self._transfer_cov = np.zeros((0, self._transfer_width), dtype=np.float32)
         self._geometry_cov: tuple[np.ndarray, np.ndarray] | None = None
         self._inputs: np.ndarray | None = None
 
@@ -326,9 +332,10 @@ class Renderer:
         if self._transfer_on_cpu:
             radiance = self._shade_cpu()
             t1 = time.perf_counter()
-            # Shaded rows scattered once into a fresh image (background 0): no clearing, no copy.
-            image = np.zeros((self.height * self.width, 3), dtype=np.float32)
-            image[self._covered] = radiance
+            # Shaded rows scattered once into a fresh image: 0 where no geometry is, or the env map
+            # (drawn only there, copied; its time is the stage "background").
+            image = self._background_base(timings)
+            scatter_rows(image, self._covered, radiance)
             image, shaded = image.reshape(self.height, self.width, 3), radiance
         else:
             self._shade_gl()
@@ -350,8 +357,8 @@ class Renderer:
             )
         t2 = time.perf_counter()
         timings["shade"] = 1e3 * (t1 - t0)
-        timings["readout"] = 1e3 * (t2 - t1)
-        if self.background and self._envmap_path is not None:  # after the check: the map is finite
+        timings["readout"] = 1e3 * (t2 - t1) - timings.get("background", 0.0)
+        if not self._transfer_on_cpu and self._background_on():  # after the check: the map is finite
             self._composite_background(image)
             timings["background"] = 1e3 * (time.perf_counter() - t2)
         timings["frame"] = 1e3 * (time.perf_counter() - t_frame)
@@ -359,34 +366,48 @@ class Renderer:
         self.stats["frames"] += 1
         return image
 
-    def _composite_background(self, image: np.ndarray) -> None:
-        """Fill the uncovered pixels of ``image`` (H, W, 3) with the env map seen by the camera."""
+    def _background_on(self) -> bool:
+        return self.background and self._envmap_path is not None
+
+    def _background_layer(self) -> np.ndarray:
+        """(H, W, 3) the env map seen by the camera where the G-buffer has no geometry, 0 elsewhere
+        (drawn there only: the G-buffer's depth for this camera masks the rest); cached, not a copy."""
         if self._background is None:
             self._background = self._resources.keep(EnvmapBackground(self.ctx, self.width, self.height))
         self._background.set_envmap(self._envmap_path, str(self._envmap_path))
-        layer = self._background.image(self.camera, self._envmap_rotation)
-        if self._transfer_on_cpu:
-            uncovered = np.ones(self.height * self.width, dtype=bool)
-            uncovered[self._covered] = False
-            uncovered = uncovered.reshape(self.height, self.width, 1)
-        else:
-            uncovered = self._image[::-1, :, 3:] < 0.5  # shade_pass.frag: alpha 1 on geometry
-        np.copyto(image, layer, where=uncovered)
+        return self._background.image(self.camera, self._envmap_rotation, self.gbuffer.depth_texture)
+
+    def _background_base(self, timings: dict) -> np.ndarray:
+        """A fresh (H * W, 3) image to scatter shaded rows into: the background layer, or 0."""
+        if not self._background_on():
+            return np.zeros((self.height * self.width, 3), dtype=np.float32)
+        t0 = time.perf_counter()
+        image = np.empty((self.height * self.width, 3), dtype=np.float32)
+        np.copyto(image.reshape(self.height, self.width, 3), self._background_layer())
+        timings["background"] = 1e3 * (time.perf_counter() - t0)
+        return image
+
+    def _composite_background(self, image: np.ndarray) -> None:
+        """Fill the uncovered pixels of ``image`` (H, W, 3), a frame shaded on the GPU, with the env map
+        seen by the camera (a CPU frame is scattered into the layer instead: _background_base)."""
+        uncovered = self._image[::-1, :, 3:] < 0.5  # shade_pass.frag: alpha 1 on geometry
+        np.copyto(image, self._background_layer(), where=uncovered)
 
     def render_srgb(self, exposure: float = 1.0) -> np.ndarray:
         """One frame tone-mapped for display: (H, W, 3) uint8 sRGB."""
         return to_srgb8(self.render(), exposure)
 
     def render_transfer(self) -> np.ndarray:
-        """The transfer image of the current view: (H, W, 16) float32, row 0 at the top."""
+        """The transfer image of the current view: (H, W, 16) float32, row 0 at the top ((H, W, 64) with
+        interreflection: direct, indirect R, G, B)."""
         self._check_usable()
         if not self._transfer_valid:
             self._compute_transfer({})
             self.stats["network_runs"] += 1
         if self._transfer_on_cpu:
-            full = np.zeros((self.height * self.width, 16), dtype=np.float32)
+            full = np.zeros((self.height * self.width, self._transfer_width), dtype=np.float32)
             full[self._covered] = self._transfer_cov
-            return full.reshape(self.height, self.width, 16)
+            return full.reshape(self.height, self.width, self._transfer_width)
         parts = []
         for tex in self._t_textures:
             a = np.frombuffer(tex.read(), dtype=np.float32).reshape(self.height, self.width, 4)
@@ -421,8 +442,8 @@ class Renderer:
         self._transfer_valid = True
 
     def _take_cpu_transfer(self, result: CpuTransfer) -> None:
-        bad = ~np.isfinite(result.transfer).all(axis=1)
-        if bad.any():
+        if not all_finite(result.transfer):  # per row only when some value is not
+            bad = ~np.isfinite(result.transfer).all(axis=1)
             segments = np.unique(np.asarray(result.segment)[bad].astype(np.int64))
             raise FrameError(self._broken_segments_message(int(bad.sum()), segments))
         self._covered, self._transfer_cov = result.covered, result.transfer
@@ -440,7 +461,7 @@ class Renderer:
         per_object = self._per_object_shading() and self._object_ids_cov is not None
         material = self.materials[0] if self.materials.uniform else self.material
         if not per_object and material.kind == "diffuse":  # the common case, in float32: T @ (albedo * L)
-            light = (self.lighting.sh * np.asarray(material.albedo)).astype(np.float32)
+            light = diffuse_light_matrix(self.lighting, material.albedo, self._transfer_cov.shape[1])  # 4 n wide: + indirect R, G, B
             return np.maximum(self._transfer_cov @ light, 0.0)
         if self._geometry_cov is None:
             rows = self._inputs  # position, normal of each covered pixel
@@ -465,19 +486,23 @@ class Renderer:
                 program[name].write(np.ascontiguousarray(value).tobytes())
         program["u_eye"].value = tuple(float(v) for v in self.camera.eye)
         textures = [(self.gbuffer.position_texture, 0), (self.gbuffer.normal_texture, 1)]
-        for k, tex in enumerate(self._t_textures):
-            textures.append((tex, 2 + k))
-            program[f"u_t{k}"].value = 2 + k
+        for k, tex in enumerate(self._t_textures):  # units 2..5; the indirect transfer's 9..20 (after the materials')
+            textures.append((tex, 2 + k if k < 4 else 5 + k))
+            program[f"u_t{k}"].value = 2 + k if k < 4 else 5 + k
         program["u_position"].value = 0
         program["u_normal"].value = 1
         draw_fullscreen(self.ctx, self._out_fbo, vao, textures + extra)
+
+    def _shade_defines(self) -> dict:
+        """The shade pass's defines: the shading's, and PRT_INTERREFLECTION for RGB transfer."""
+        return {**GLSL_DEFINES, "PRT_INTERREFLECTION": 1} if self._transfer_width > 16 else dict(GLSL_DEFINES)
 
     def _material_program(self):
         """The shade program with per-object materials and its table texture (built on first use,
         the table re-uploaded after each set_material)."""
         gl = self._material_gl
         if "program" not in gl:
-            source = assemble(*GLSL_FILES, "shade_pass.frag", defines={**GLSL_DEFINES, "PRT_OBJECT_MATERIALS": 1})
+            source = assemble(*GLSL_FILES, "shade_pass.frag", defines={**self._shade_defines(), "PRT_OBJECT_MATERIALS": 1})
             gl["program"] = self._resources.keep(compile_program(self.ctx, source, "shade_pass.frag (materials)"))
             gl["vao"] = self._resources.keep(self.ctx.vertex_array(gl["program"], []))
             gl["albedo"] = self._resources.keep((self.materials.textures or AlbedoTextures([])).gl_texture(self.ctx))
@@ -501,7 +526,7 @@ class Renderer:
         """The FrameError text for a GPU transfer flagged non-finite: which segments (read back only now)."""
         packed = self.gbuffer.read_packed()
         parts = [np.frombuffer(t.read(), dtype=np.float32).reshape(self.height, self.width, 4)[::-1] for t in self._t_textures]
-        rows = np.flatnonzero(~np.isfinite(np.concatenate(parts, axis=2).reshape(-1, 16)).all(axis=1))
+        rows = np.flatnonzero(~np.isfinite(np.concatenate(parts, axis=2).reshape(-1, self._transfer_width)).all(axis=1))
         segments = np.unique(packed[rows, PACKED_SEGMENT].astype(np.int64)) if len(rows) else np.zeros(0, np.int64)
         return self._broken_segments_message(pixels, segments[segments >= 0])
 
@@ -615,6 +640,21 @@ def _check_allocation(ctx: moderngl.Context, width: int, height: int) -> None:
     error = ctx.error
     if error != "GL_NO_ERROR":
         raise InputError(f"image size {width}x{height}: the OpenGL driver cannot allocate the frame buffers ({error})")
+
+
+def all_finite(values: np.ndarray) -> bool:
+    """``np.isfinite(values).all()`` in two reductions and no temporary: min and max propagate NaN."""
+    return values.size == 0 or bool(np.isfinite(np.min(values)) and np.isfinite(np.max(values)))
+
+
+def scatter_rows(image: np.ndarray, rows: np.ndarray, values: np.ndarray) -> None:
+    """``image[rows] = values`` for C-contiguous float32 (P, C) and (M, C): each row moved as one
+    C * 4-byte item (a plain 2-D fancy assignment moves element by element, 3x slower)."""
+    width = image.shape[1] * image.itemsize
+    if image.flags.c_contiguous and values.flags.c_contiguous and values.dtype == image.dtype and len(values):
+        image.view(f"V{width}").reshape(-1)[rows] = values.view(f"V{width}").reshape(-1)
+    else:
+        image[rows] = values
 
 
 @functools.lru_cache(maxsize=1)

@@ -34,6 +34,16 @@ With ``r = reflect(-v, n) = 2 (n.v) n - v`` (unit ``n``, ``v``; the mirror direc
     radiance_c = max(0, albedo_c * diffuse_c)                             kind "diffuse"
     radiance_c = max(0, albedo_c * diffuse_c + specular_c * spec_c)       kind "glossy"
 
+Interreflection (``prt-train --bounces``): the transfer is ``4 n`` wide, ``[T, T_ind_R, T_ind_G,
+T_ind_B]`` (the "direct+rgb" layout), and the indirect light enters as a diffuse term::
+
+    indirect_c = dot(T_ind_c, L_c)
+    radiance_c = max(0, albedo_c * (diffuse_c + indirect_c) [+ specular_c * spec_c])
+
+Glossy receivers take the Phong lobe of the direct light only and the indirect light as if the
+surface were diffuse (scaled by its diffuse albedo): the approximation of a lobe that does not
+resolve the (smooth, low-frequency) interreflected light; the bounces themselves are diffuse.
+
 ``spec_c`` is ``L'_c`` convolved with the lobe and read at ``r`` (Funk-Hecke); the factor ``pi``
 undoes the ``1/pi`` inside ``T``, so under a white furnace (``L = 1``) an unoccluded point seen
 at normal incidence has ``spec ~ (e+1)/(e+2)``, up to 4-band truncation (exactly 1/2 as
@@ -70,6 +80,8 @@ __all__ = [
     "lighting_ringing",
     "Material",
     "compute_light_matrix",
+    "diffuse_light_matrix",
+    "split_transfer",
     "reflect",
     "shade",
     "shader_uniforms",
@@ -354,13 +366,41 @@ def _as_rows(name: str, value, width: int, lead: tuple[int, ...] | None) -> np.n
     return arr.reshape(-1, width)
 
 
+def split_transfer(t: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """Rows of transfer ``(M, n)`` or ``(M, 4 n)`` (interreflection) as (direct (M, n), indirect
+    (M, 3, n) or None)."""
+    if t.shape[1] == n:
+        return t, None
+    return t[:, :n], t[:, n:].reshape(len(t), 3, n)
+
+
+def _stacked_light(lighting: Lighting) -> np.ndarray:
+    """(4 n, 3) float64: ``[L; L_R e_R; L_G e_G; L_B e_B]``, so ``T @ it`` = ``dot(T, L_c) + dot(T_ind_c, L_c)``."""
+    n = lighting.sh.shape[0]
+    out = np.zeros((4 * n, 3))
+    out[:n] = lighting.sh
+    for c in range(3):
+        out[n * (c + 1) : n * (c + 2), c] = lighting.sh[:, c]
+    return out
+
+
+def diffuse_light_matrix(lighting: Lighting, albedo, width: int) -> np.ndarray:
+    """(width, 3) float32 ``A`` with ``T @ A`` = the diffuse radiance ``albedo_c (dot(T, L_c) +
+    dot(T_ind_c, L_c))`` of transfer rows ``T`` of ``width`` = n or 4 n (before the clamp at 0)."""
+    albedo = np.asarray(albedo, dtype=np.float64)
+    if width == lighting.sh.shape[0]:
+        return (lighting.sh * albedo).astype(np.float32)
+    return (_stacked_light(lighting) * albedo).astype(np.float32)
+
+
 def shade(transfer, normals, view_dirs, lighting: Lighting, material: Material) -> np.ndarray:
     """Outgoing radiance of shaded points (numpy reference; see the module docstring).
 
     Parameters
     ----------
-    transfer : array_like, shape (..., n)
-        Transfer vectors ``T``, ``n = lighting.bands**2``.
+    transfer : array_like, shape (..., n) or (..., 4 n)
+        Transfer vectors ``T``, ``n = lighting.bands**2``; ``4 n``: direct, then indirect R, G, B
+        (interreflection, see the module docstring).
     normals : array_like, shape (..., 3)
         Normals (normalised here), facing the eye for two-sided surfaces.
     view_dirs : array_like, shape (..., 3)
@@ -380,13 +420,15 @@ def shade(transfer, normals, view_dirs, lighting: Lighting, material: Material) 
     """
     n_coeffs = lighting.sh.shape[0]
     lead = np.shape(transfer)[:-1]
-    t_all = _as_rows("transfer", transfer, n_coeffs, None)
+    width = 4 * n_coeffs if np.shape(transfer)[-1:] == (4 * n_coeffs,) else n_coeffs
+    t_all = _as_rows("transfer", transfer, width, None)
     n_all = _as_rows("normals", normals, 3, lead)
     v_all = _as_rows("view_dirs", view_dirs, 3, lead)
 
     albedo = np.asarray(material.albedo)
     specular = np.asarray(material.specular)
     glossy = material.kind == "glossy"
+    stacked_light = lighting.sh if width == n_coeffs else _stacked_light(lighting)
     if glossy:
         lobe = sh.band_factors_to_coeff_scale(material.lobe_band_factors(lighting.bands))
         # (n, 3n): column c*n + k is row k of M_c, so t @ it gives every (M_c t)_k at once.
@@ -396,7 +438,11 @@ def shade(transfer, normals, view_dirs, lighting: Lighting, material: Material) 
     for start in range(0, t_all.shape[0], _SHADE_CHUNK):
         rows = slice(start, start + _SHADE_CHUNK)
         t = t_all[rows]
-        radiance = albedo * (t @ lighting.sh)
+        # dot(T, L_c), plus dot(T_ind_c, L_c) with interreflection (a diffuse term, also for glossy
+        # receivers): one product with the stacked lighting.
+        radiance = albedo * (t @ stacked_light)
+        if width != n_coeffs:
+            t = np.ascontiguousarray(t[:, :n_coeffs])  # the direct part (a strided view is slow in BLAS)
         if glossy:
             r = reflect(v_all[rows], n_all[rows])
             lobe_at_r = sh.basis(r, lighting.bands) * lobe

@@ -10,6 +10,11 @@ uniform sampler2D u_t1;
 uniform sampler2D u_t2;
 uniform sampler2D u_t3;
 out vec4 f_color;
+#ifdef PRT_INTERREFLECTION
+// Interreflection ("direct+rgb"): the indirect transfer of R, G, B, coefficients 4k .. 4k+3 of
+// channel c in u_t{4 + 4c + k} (the GLSL backend's second set of targets, or the CPU's upload).
+uniform sampler2D u_t4, u_t5, u_t6, u_t7, u_t8, u_t9, u_t10, u_t11, u_t12, u_t13, u_t14, u_t15;
+#endif
 #ifdef PRT_OBJECT_MATERIALS
 // Per-object materials (runtime/materials.py): the G-buffer's material target (u, v, object id,
 // covered) and the table, one column per object id: row 0 albedo.rgb + kind, row 1
@@ -40,7 +45,7 @@ vec3 prt_albedo_texel(vec2 uv, vec4 info) {
     return top * (1.0 - fy) + bottom * fy;
 }
 
-vec3 prt_shade_pixel(vec4 t[4], vec3 n, vec3 v, ivec2 px) {
+vec3 prt_shade_pixel(vec4 t[4], vec3 n, vec3 v, ivec2 px, vec3 indirect) {
     vec4 gm = texelFetch(u_gbuffer_material, px, 0);
     int object_id = int(gm.z + 0.5);
     vec4 albedo_kind = texelFetch(u_material_table, ivec2(object_id, 0), 0);
@@ -56,11 +61,11 @@ vec3 prt_shade_pixel(vec4 t[4], vec3 n, vec3 v, ivec2 px) {
     lobe[1] = vec4(band.z);
     lobe[2] = vec4(band.z, band.w, band.w, band.w);
     lobe[3] = vec4(band.w);
-    return prt_shade_with(t, n, v, albedo_kind.rgb, specular, lobe, int(albedo_kind.w + 0.5));
+    return prt_shade_with_indirect(t, n, v, albedo_kind.rgb, specular, lobe, int(albedo_kind.w + 0.5), indirect);
 }
 #else
-vec3 prt_shade_pixel(vec4 t[4], vec3 n, vec3 v, ivec2 px) {
-    return prt_shade(t, n, v);
+vec3 prt_shade_pixel(vec4 t[4], vec3 n, vec3 v, ivec2 px, vec3 indirect) {
+    return prt_shade_with_indirect(t, n, v, u_albedo, u_specular, u_lobe, u_material_kind, indirect);
 }
 #endif
 
@@ -81,5 +86,17 @@ void main() {
     // black, so the renderer reads the flag and refuses the frame.
     bool broken = false;
     for (int k = 0; k < 4; ++k) broken = broken || any(isnan(t[k])) || any(isinf(t[k]));
-    f_color = vec4(prt_shade_pixel(t, n, u_eye - p.xyz, px), broken ? 2.0 : 1.0);
+    vec3 indirect = vec3(0.0);
+#ifdef PRT_INTERREFLECTION
+    vec4 tr[4], tg[4], tb[4];
+    tr[0] = texelFetch(u_t4, px, 0); tr[1] = texelFetch(u_t5, px, 0); tr[2] = texelFetch(u_t6, px, 0); tr[3] = texelFetch(u_t7, px, 0);
+    tg[0] = texelFetch(u_t8, px, 0); tg[1] = texelFetch(u_t9, px, 0); tg[2] = texelFetch(u_t10, px, 0); tg[3] = texelFetch(u_t11, px, 0);
+    tb[0] = texelFetch(u_t12, px, 0); tb[1] = texelFetch(u_t13, px, 0); tb[2] = texelFetch(u_t14, px, 0); tb[3] = texelFetch(u_t15, px, 0);
+    for (int k = 0; k < 4; ++k) {
+        broken = broken || any(isnan(tr[k])) || any(isinf(tr[k])) || any(isnan(tg[k])) || any(isinf(tg[k]))
+                 || any(isnan(tb[k])) || any(isinf(tb[k]));
+    }
+    indirect = prt_incident_rgb(tr, tg, tb);
+#endif
+    f_color = vec4(prt_shade_pixel(t, n, u_eye - p.xyz, px, indirect), broken ? 2.0 : 1.0);
 }

@@ -29,12 +29,28 @@ vec3 prt_unit(vec3 v) {
     return len2 > 0.0 ? v * inversesqrt(len2) : vec3(0.0);
 }
 
+// dot(T_c, L_c) per channel of three transfer vectors (the indirect R, G, B transfer of
+// interreflection, "direct+rgb" layout).
+vec3 prt_incident_rgb(vec4 tr[4], vec4 tg[4], vec4 tb[4]) {
+    vec3 incident = vec3(0.0);
+    for (int i = 0; i < 4; ++i) {
+        for (int j = 0; j < 4; ++j) {
+            vec3 l = u_light[4 * i + j];
+            incident += vec3(tr[i][j] * l.r, tg[i][j] * l.g, tb[i][j] * l.b);
+        }
+    }
+    return incident;
+}
+
 // Outgoing radiance (linear RGB, >= 0) for transfer vector t, normal n and direction v from
 // the point towards the eye (n and v need not be unit length), with the material given
-// (a pixel's own, runtime/materials.py) rather than the uniform one.
-vec3 prt_shade_with(vec4 t[4], vec3 n, vec3 v, vec3 albedo, vec3 specular, vec4 lobe[4], int kind) {
+// (a pixel's own, runtime/materials.py) rather than the uniform one.  indirect: the
+// interreflected light dot(T_ind_c, L_c) (prt_incident_rgb; 0 without interreflection), added
+// as a diffuse term scaled by the albedo, also on glossy receivers (their lobe sees the direct
+// light only: the approximation stated in prt.runtime.shading).
+vec3 prt_shade_with_indirect(vec4 t[4], vec3 n, vec3 v, vec3 albedo, vec3 specular, vec4 lobe[4], int kind, vec3 indirect) {
     // Diffuse: dot(T, L_c) per channel.
-    vec3 incident = vec3(0.0);
+    vec3 incident = indirect;
     for (int i = 0; i < 4; ++i) {
         incident += t[i].x * u_light[4 * i] + t[i].y * u_light[4 * i + 1]
                   + t[i].z * u_light[4 * i + 2] + t[i].w * u_light[4 * i + 3];
@@ -63,6 +79,11 @@ vec3 prt_shade_with(vec4 t[4], vec3 n, vec3 v, vec3 albedo, vec3 specular, vec4 
     }
     // Four SH bands ring below zero near strong lights; negative radiance is not meaningful.
     return max(radiance, vec3(0.0));
+}
+
+// prt_shade_with_indirect without interreflected light.
+vec3 prt_shade_with(vec4 t[4], vec3 n, vec3 v, vec3 albedo, vec3 specular, vec4 lobe[4], int kind) {
+    return prt_shade_with_indirect(t, n, v, albedo, specular, lobe, kind, vec3(0.0));
 }
 
 // prt_shade_with the uniform material (u_albedo, u_specular, u_lobe, u_material_kind).

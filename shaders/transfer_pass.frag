@@ -4,36 +4,60 @@
 // placeholders filled in: networks (each segment's generated network function) and dispatch
 // (a switch over segment ids).
 
+// With interreflection ("direct+rgb") the networks give 16 vec4 blocks (direct, indirect R, G,
+// B): PRT_TRANSFER_BLOCKS 16, written in two draws of 8 targets (u_part 0: blocks 0..7, 1:
+// blocks 8..15), since OpenGL 3.3 guarantees 8 draw buffers.
+
 ${networks}
+#ifndef PRT_TRANSFER_BLOCKS
+#define PRT_TRANSFER_BLOCKS 4
+#endif
 uniform sampler2D u_position;  // xyz, covered
 uniform sampler2D u_normal;    // xyz, segment
 layout(location = 0) out vec4 o_t0;
 layout(location = 1) out vec4 o_t1;
 layout(location = 2) out vec4 o_t2;
 layout(location = 3) out vec4 o_t3;
+#if PRT_TRANSFER_BLOCKS > 4
+layout(location = 4) out vec4 o_t4;
+layout(location = 5) out vec4 o_t5;
+layout(location = 6) out vec4 o_t6;
+layout(location = 7) out vec4 o_t7;
+uniform int u_part;
+#endif
 uniform vec4 u_analytic_scale[4];  // clamped-cosine band factor / pi of each coefficient
 
-// Unshadowed transfer: the clamped cosine / pi turned to the normal (analytic segments).
-void prt_analytic_transfer(vec3 n, out vec4 t[4]) {
+// Unshadowed transfer: the clamped cosine / pi turned to the normal (analytic segments; no
+// interreflected light).
+void prt_analytic_transfer(vec3 n, out vec4 t[PRT_TRANSFER_BLOCKS]) {
     vec4 y[4];
     prt_sh_basis(n, y);
     for (int k = 0; k < 4; ++k) t[k] = y[k] * u_analytic_scale[k];
+    for (int k = 4; k < PRT_TRANSFER_BLOCKS; ++k) t[k] = vec4(0.0);
 }
 
 void main() {
     ivec2 px = ivec2(gl_FragCoord.xy);
     vec4 p = texelFetch(u_position, px, 0);
     vec4 ns = texelFetch(u_normal, px, 0);
-    vec4 t[4];
-    t[0] = t[1] = t[2] = t[3] = vec4(0.0);
+    vec4 t[PRT_TRANSFER_BLOCKS];
+    for (int k = 0; k < PRT_TRANSFER_BLOCKS; ++k) t[k] = vec4(0.0);
     if (p.w >= 0.5) {
         int segment = int(ns.w + 0.5);
         switch (segment) {
 ${dispatch}
         }
     }
+#if PRT_TRANSFER_BLOCKS > 4
+    if (u_part == 0) {  // constant indices: a dynamic one makes Mesa spill t[] (minutes of compile)
+        o_t0 = t[0]; o_t1 = t[1]; o_t2 = t[2]; o_t3 = t[3]; o_t4 = t[4]; o_t5 = t[5]; o_t6 = t[6]; o_t7 = t[7];
+    } else {
+        o_t0 = t[8]; o_t1 = t[9]; o_t2 = t[10]; o_t3 = t[11]; o_t4 = t[12]; o_t5 = t[13]; o_t6 = t[14]; o_t7 = t[15];
+    }
+#else
     o_t0 = t[0];
     o_t1 = t[1];
     o_t2 = t[2];
     o_t3 = t[3];
+#endif
 }

@@ -32,12 +32,13 @@ from ..runtime.errors import SpecError
 from ..runtime.files import atomic_save_npz, atomic_write_json
 from ..runtime.manifest import validate_manifest_field
 from ..runtime.sh import unshadowed_transfer
-from .fit import DEFAULT_LADDER, DEFAULT_STEPS, FitResult, FitSettings, fit_segment, right_size, right_size_matching, shaded_error
+from .fit import DEFAULT_LADDER, DEFAULT_STEPS, FitResult, FitSettings, fit_segment, right_size, right_size_matching, shaded_error, transfer_error
 from .geometry import load_geometry
 from .materials import mesh_materials, textured_geometry
 from .executor import LocalExecutor
 from .network import Architecture
 from .outdir import check_output_folder, mark_output_folder
+from .interreflection import BOUNCE_RAYS, bounce_stage
 from .precompute import SPEC_LIMITS, DamagedPrecompute, PrecomputeSettings, SpecLimits, check_settings, load_precompute, run_precompute
 
 __all__ = ["BuildSpec", "SpecLimits", "SPEC_LIMITS", "load_spec", "spec_from_dict", "run_build", "ENV_LIGHTS"]
@@ -77,6 +78,10 @@ class BuildSpec:
     match: dict | None = None  # right-size to this size's accuracy ({hidden, layers, ...}) instead of ``target``
     match_tolerance: float = 0.05  # with ``match``: validation MAE may exceed the reference's by this share
     analytic: bool = True  # let unshadowed segments skip the network
+    # interreflection (prt.train.interreflection): N diffuse bounces (0: direct transfer only, the
+    # paper's); N > 0 fits "direct+rgb" networks (direct + indirect R, G, B transfer)
+    bounces: int = 0
+    bounce_rays: int = BOUNCE_RAYS
     # export
     glsl_layout: str = "auto"
     material: dict = field(default_factory=lambda: {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]})
@@ -89,6 +94,11 @@ class BuildSpec:
     @property
     def seed(self) -> int:
         return self.precompute.seed
+
+    @property
+    def layout(self) -> str:
+        """The networks' output layout (:data:`prt.train.network.LAYOUTS`)."""
+        return "direct+rgb" if self.bounces else "direct"
 
     def to_dict(self) -> dict:
         """The spec as flat JSON fields (what a spec file holds and ``build.json`` records)."""
@@ -104,14 +114,14 @@ class BuildSpec:
     def architectures(self) -> list[Architecture]:
         """The sizes to try, smallest first (one when ``fixed``)."""
         if self.fixed is not None:
-            return [_architecture(self.fixed, self.bands, "fixed")]
+            return [_architecture(self.fixed, self.bands, "fixed", self.layout)]
         if self.ladder is not None:
-            return [_architecture(a, self.bands, f"ladder[{i}]") for i, a in enumerate(self.ladder)]
-        return [dataclasses.replace(a, bands=self.bands) for a in DEFAULT_LADDER]
+            return [_architecture(a, self.bands, f"ladder[{i}]", self.layout) for i, a in enumerate(self.ladder)]
+        return [dataclasses.replace(a, bands=self.bands, layout=self.layout) for a in DEFAULT_LADDER]
 
     def reference_architecture(self) -> Architecture | None:
         """The size whose accuracy right-sizing matches (``match``), or None (absolute ``target``)."""
-        return None if self.match is None else _architecture(self.match, self.bands, "match")
+        return None if self.match is None else _architecture(self.match, self.bands, "match", self.layout)
 
 
 def _shown(key: str) -> str:
@@ -119,7 +129,7 @@ def _shown(key: str) -> str:
     return key if key.isprintable() and key.strip() == key and key else repr(key)
 
 
-def _architecture(d: dict, bands: int, where: str) -> Architecture:
+def _architecture(d: dict, bands: int, where: str, layout: str = "direct") -> Architecture:
     allowed = {"hidden", "layers", "pos_freqs", "normal_freqs"}
     if not isinstance(d, dict):
         raise SpecError(f"{where}: expected an object with {sorted(allowed)}")
@@ -139,6 +149,7 @@ def _architecture(d: dict, bands: int, where: str) -> Architecture:
         pos_freqs=d.get("pos_freqs", base.pos_freqs),
         normal_freqs=d.get("normal_freqs", base.normal_freqs),
         bands=bands,
+        layout=layout,
     )
 
 
@@ -215,9 +226,11 @@ def spec_from_dict(data: dict) -> BuildSpec:
     spec = BuildSpec(**{k: v for k, v in data.items() if k not in PRECOMPUTE_FIELDS}, precompute=precompute)
     flat = spec.to_dict()
     check_settings(spec.precompute)
-    for key in ("steps", "epochs", "batch", "patience"):
+    for key in ("steps", "epochs", "batch", "patience", "bounce_rays"):
         if flat[key] is not None and not 1 <= flat[key] <= getattr(SPEC_LIMITS, key):
             raise SpecError(f"{key}: expected 1 .. {getattr(SPEC_LIMITS, key)}, got {flat[key]}")
+    if not 0 <= spec.bounces <= SPEC_LIMITS.bounces:
+        raise SpecError(f"bounces: expected 0 .. {SPEC_LIMITS.bounces} (0: direct light only), got {spec.bounces}")
     for key, positive in (("lr", True), ("target", False), ("time_budget", True)):
         value = flat[key]
         if value is None and key == "time_budget":
@@ -305,6 +318,8 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
     # The mesh's own per-object materials (MTL, glTF); transfer does not depend on them.
     materials = mesh_materials(spec.geometry, geometry.object_names, spec.material, log) if geometry.sdf is None else []
     materials, albedo_uv = textured_geometry(spec.geometry, geometry, materials, log)
+    if spec.bounces and geometry.sdf is not None:
+        raise SpecError(f"bounces: interreflection needs a triangle mesh; {spec.geometry!r} is an SDF scene (use --bounces 0)")
     mark_output_folder(out, "scene")
 
     # -- stage 1: precompute
@@ -321,6 +336,24 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
         data = load_precompute(out / "precompute")
     precompute_s = time.perf_counter() - t0
     samples, valid, members = data["samples"], data["validation"], data["members"]
+    # -- stage 1b: bounces (interreflection), before fitting; the fits' cache keys follow its settings
+    t0 = time.perf_counter()
+    data_key, interreflection = pre_summary["key"], None
+    if spec.bounces:
+        albedos = _object_albedos(geometry, materials, spec.material)
+        data_key = _hash(pre_summary["key"], spec.bounces, spec.bounce_rays, albedos)
+        log(f"bounces: {spec.bounces} diffuse bounce(s), {spec.bounce_rays} rays per sample ({len(samples['points']):,} + "
+            f"{len(valid['points']):,} samples)")  # fmt: skip
+        face_albedo = np.asarray([albedos[n] for n in geometry.object_names], dtype=np.float64)[geometry.object_ids]
+        indirect, valid_indirect = bounce_stage(
+            geometry.mesh, out / "precompute" / "cache", samples, valid, face_albedo, spec.bounces, rays=spec.bounce_rays, seed=spec.seed,
+            chunk_size=spec.precompute.chunk_size, key=_hash(pre_summary["key"], spec.bounce_rays, spec.seed, spec.precompute.chunk_size, "v1"),
+            executor=executor, threads=threads, progress=progress, log=log,
+        )  # fmt: skip
+        for part, extra in ((samples, indirect), (valid, valid_indirect)):  # [direct, indirect R, G, B]
+            part["transfer"] = np.concatenate([part["transfer"], extra.transpose(0, 2, 1).reshape(len(extra), -1)], axis=1)
+        interreflection = {"bounces": spec.bounces, "bounce_rays": spec.bounce_rays, "layout": spec.layout, "albedos": albedos}
+    bounce_s = time.perf_counter() - t0
     seg_json = data["segments"]
     lights = _env_lights(spec.bands)
 
@@ -331,7 +364,7 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
     records, todo = {}, []
     for seg in seg_json["segments"]:
         s = seg["id"]
-        key = _hash(pre_summary["key"], s, asdict(fit_settings), [a.as_dict() for a in archs], spec.target, spec.analytic, TRAIN_FORMAT,
+        key = _hash(data_key, s, asdict(fit_settings), [a.as_dict() for a in archs], spec.target, spec.analytic, TRAIN_FORMAT,
                     *([spec.match, spec.match_tolerance] if spec.match is not None else []))  # fmt: skip
         record_path = out / "train" / f"seg{s:03d}.json"
         weights_path = out / "train" / f"seg{s:03d}.npz"
@@ -346,7 +379,7 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
     job = _SegmentJob(spec, samples, valid, members, archs, fit_settings, lights, progress and executor.local, log if executor.local else None)
     items = []
     for seg, key in todo:  # a cluster gets the fits cached before with its task; its new fits come back
-        fits = _FitCache(fits_folder, pre_summary["key"], seg["id"], fit_settings)
+        fits = _FitCache(fits_folder, data_key, seg["id"], fit_settings)
         items.append((seg, key, fits if executor.local else fits.memo([*archs, *filter(None, [spec.reference_architecture()])])))
     bar = tqdm(total=len(todo), desc="train", unit="segment") if progress and todo and not executor.local else None
     try:  # torch's thread count changes a fit's bytes: a task uses this process's, wherever it runs
@@ -355,7 +388,7 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
                 s = seg["id"]
                 for line in lines:
                     log(line)
-                fits = _FitCache(fits_folder, pre_summary["key"], s, fit_settings)
+                fits = _FitCache(fits_folder, data_key, s, fit_settings)
                 for result in new_fits:
                     fits.put(result)
                 if record["kind"] == "network":
@@ -389,6 +422,7 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
         glsl_layout=spec.glsl_layout,
         materials=materials,
         albedo_uv=albedo_uv,
+        interreflection=interreflection,
     )
     memory = manifest.memory
     export_s = time.perf_counter() - t0
@@ -405,6 +439,7 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
         },
         "timings": {
             "precompute_s": precompute_s,
+            **({"bounce_s": bounce_s} if spec.bounces else {}),
             "train_s": train_s,
             "export_s": export_s,
             "total_s": time.perf_counter() - t_start,
@@ -413,6 +448,15 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
     }
     atomic_write_json(out / "build.json", report)
     return report
+
+
+def _object_albedos(geometry, materials, default: dict) -> dict[str, list[float]]:
+    """The diffuse albedo (``Kd``) of every object, as the bounces use it: the mesh's own per-object
+    material, else the scene-wide one.  A glossy surface bounces its diffuse part only; an albedo
+    texture is not sampled at the bounce (its object's ``Kd`` stands for it)."""
+    found = {m.object: [float(a) for a in m.material.albedo] for m in materials}
+    base = [float(a) for a in default.get("albedo", [0.7, 0.7, 0.7])]
+    return {name: found.get(name, base) for name in geometry.object_names}
 
 
 def _read_record(path: Path) -> dict | None:
@@ -570,8 +614,12 @@ def _train_segment(spec, s, seg, samples, valid, member_idx, archs, fit_settings
     analytic = None
     if spec.analytic:
         pred = unshadowed_transfer(vn, spec.bands)
-        mae = float(np.abs(pred - vt).mean())
-        analytic = {**base, "kind": "analytic", "val_mae": mae, "shaded": shaded_error(pred, vt, lights), "tried": [], "flops_per_fragment": 0, "weight_bytes": 0}
+        n_coeffs = pred.shape[1]
+        if vt.shape[1] > n_coeffs:  # "direct+rgb": an analytic segment has no indirect light
+            pred = np.concatenate([pred, np.zeros((len(pred), vt.shape[1] - n_coeffs), dtype=pred.dtype)], axis=1)
+        mae = transfer_error(pred, vt, n_coeffs)
+        analytic = {**base, "kind": "analytic", "val_mae": mae, "shaded": shaded_error(pred, vt, lights, n_coeffs), "tried": [], "flops_per_fragment": 0,
+                    "weight_bytes": 0}  # fmt: skip
         if mae <= spec.target and reference is None:
             log(f"segment {s}: analytic (unshadowed; validation MAE {mae:.5f} <= {spec.target})")
             return analytic

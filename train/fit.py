@@ -25,6 +25,8 @@ __all__ = [
     "right_size_matching",
     "PAPER_SIZES",
     "shaded_error",
+    "total_transfer",
+    "transfer_error",
     "bf16_supported",
 ]
 
@@ -107,12 +109,36 @@ def bf16_supported() -> bool:
     return (" avx512_bf16" in flags or " amx_bf16" in flags) and torch.backends.mkldnn.is_available()
 
 
-def shaded_error(pred: np.ndarray, truth: np.ndarray, lights: dict[str, np.ndarray]) -> dict[str, float]:
-    """Relative MAE of the diffuse shading ``T @ L`` per env map: mean|dT L| / mean|T L|."""
+def total_transfer(t: np.ndarray, n: int | None = None) -> np.ndarray:
+    """The transfer a network's output stands for: ``t`` itself (direct layout, ``n`` wide), or for
+    the "direct+rgb" layout of interreflection (``4 n`` wide: direct, indirect R, G, B) the total RGB
+    transfer ``direct + indirect_c``, shape (M, n, 3); the "rgb" layout (``3 n``: R, G, B) likewise."""
+    t = np.asarray(t)
+    if n is None or t.shape[1] == n:
+        return t
+    if t.shape[1] == 3 * n:  # the "rgb" layout: three total transfers
+        return t.reshape(len(t), 3, n).transpose(0, 2, 1)
+    direct, indirect = t[:, :n], t[:, n:].reshape(len(t), 3, n)
+    return direct[:, :, None] + indirect.transpose(0, 2, 1)
+
+
+def transfer_error(pred: np.ndarray, truth: np.ndarray, n: int | None = None) -> float:
+    """Validation MAE: of the coefficients (direct layout), or of the total RGB transfer (so the same
+    ``target`` means the same error in the shading with or without interreflection)."""
+    return float(np.abs(total_transfer(pred, n) - total_transfer(truth, n)).mean())
+
+
+def shaded_error(pred: np.ndarray, truth: np.ndarray, lights: dict[str, np.ndarray], n: int | None = None) -> dict[str, float]:
+    """Relative MAE of the diffuse shading ``T @ L`` per env map: mean|dT L| / mean|T L|
+    (RGB transfer, ``n`` coefficients per channel: ``sum_i T_ic L_ic``)."""
     out = {}
     for name, light in lights.items():
-        ref = truth.astype(np.float64) @ light
-        err = pred.astype(np.float64) @ light - ref
+        if n is None or np.shape(truth)[1] == n:
+            ref = truth.astype(np.float64) @ light
+            err = pred.astype(np.float64) @ light - ref
+        else:
+            ref = np.einsum("mnc,nc->mc", total_transfer(truth, n).astype(np.float64), light)
+            err = np.einsum("mnc,nc->mc", total_transfer(pred, n).astype(np.float64), light) - ref
         out[name] = float(np.abs(err).mean() / max(np.abs(ref).mean(), 1e-12))
     return out
 
@@ -144,7 +170,8 @@ def fit_segment(
 
     Parameters
     ----------
-    points, normals : (N, 3) training inputs; transfer : (N, n) targets
+    points, normals : (N, 3) training inputs; transfer : (N, arch.outputs) targets (the "direct+rgb"
+        layout: direct, indirect R, G, B; its validation error is that of the total RGB transfer)
     val_points, val_normals : (M, 3); val_transfer : (M, n) held-out samples (M >= 1)
     arch : network size; bounds : (2, 3) box the encoding normalises to
     lights : env name -> (n, 3) SH lighting for the shaded error
@@ -156,6 +183,9 @@ def fit_segment(
             raise ValueError(f"training {name} contain NaN or Inf")
     if len(points) == 0 or len(val_points) == 0:
         raise ValueError("a segment needs at least one training and one validation sample")
+    n_coeffs = arch.bands * arch.bands  # per channel; the "direct+rgb" layout outputs 4 sets
+    if np.shape(transfer)[1] != arch.outputs:
+        raise ValueError(f"transfer has {np.shape(transfer)[1]} columns, the network {arch.outputs} outputs ({arch.layout})")
     torch.manual_seed(settings.seed)
     gen = torch.Generator().manual_seed(settings.seed)
     scale, offset = target_scaling(transfer)
@@ -212,7 +242,7 @@ def fit_segment(
             continue
         evaluation += 1
         model.eval()
-        val_mae = float(np.abs(_predict(model, xv) - yv).mean())
+        val_mae = transfer_error(_predict(model, xv), yv, n_coeffs)
         model.train()
         history.append({"epoch": evaluation, "step": step, "train_l1": total / counted, "val_mae": val_mae})
         if progress is not None:
@@ -232,8 +262,8 @@ def fit_segment(
     return FitResult(
         model=model,
         arch=arch,
-        val_mae=float(np.abs(pred - yv).mean()),
-        shaded=shaded_error(pred, yv, lights or {}),
+        val_mae=transfer_error(pred, yv, n_coeffs),
+        shaded=shaded_error(pred, yv, lights or {}, n_coeffs),
         epochs=evaluation,
         seconds=time.perf_counter() - t0,
         history=history,

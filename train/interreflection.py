@@ -15,7 +15,8 @@ is RGB transfer, shape (S, n, 3).
 Estimator of ``T_{b-1}(q)`` at a hit point: the ray-traced transfer of the precomputed sample
 nearest to ``q`` in (position, NORMAL_WEIGHT * normal), the hit's normal turned towards the ray's
 origin: so the sample is on the side of the surface the ray sees (open surfaces have samples
-on both sides at the same places).
+on both sides at the same places).  The search is bounded (:data:`SEARCH_RADIUS`); a hit with no
+sample of its side that near takes the best of the samples nearest in position.
 Chosen over the fitted direct networks because it needs nothing beyond the precompute (the
 bounce stage runs before fitting, stays chunked and deterministic, and its error does not depend
 on how well a network fitted), and because each bounce then costs a sparse product: the rays,
@@ -24,8 +25,11 @@ hit points and nearest samples are found once (:func:`trace_bounce_rays`) and ev
 rays landing nearest to q.  Indirect light is smooth, so it takes fewer rays than the direct
 term (:data:`BOUNCE_RAYS`).
 
-Status: the operator and its tests; ``prt-train --bounces`` and RGB transfer in the networks,
-runtime and benchmark reference are not wired yet (see the issue).
+``prt-train --bounces N`` runs :func:`bounce_stage` after the direct precompute and fits
+networks of the "direct+rgb" layout (:mod:`prt.train.network`) to ``[T_0, T_ind_R, T_ind_G,
+T_ind_B]``; the albedos of the bouncing surfaces are the diffuse albedos (``Kd``) of the mesh's
+own per-object materials, fixed at build time and recorded in the manifest's ``interreflection``.
+Bounces are diffuse: a glossy surface bounces its diffuse albedo only.
 """
 
 from __future__ import annotations
@@ -34,13 +38,23 @@ import numpy as np
 
 from .transfer import _unit, cosine_directions, orthonormal_frames
 
-__all__ = ["BounceRays", "trace_bounce_rays", "interreflect", "bounce_matrices", "BOUNCE_RAYS", "NORMAL_WEIGHT"]
+__all__ = ["BounceRays", "BounceJob", "trace_bounce_rays", "bounce_chunk", "bounce_stage", "interreflect", "bounce_matrices",
+           "BOUNCE_RAYS", "NORMAL_WEIGHT"]
 
-# Rays per sample of the bounce stage (the direct transfer keeps its own count).
-BOUNCE_RAYS = 64
+# Rays per sample of the bounce stage (the direct transfer keeps its own count).  32: on the
+# Cornell box (105k samples, 512 direct rays) 64 bounce rays made the stage 3.5x the direct
+# transfer's time (the nearest-sample searches dominate), over the issue's 3x budget for the
+# whole precompute; the networks average the gather's noise over many samples.
+BOUNCE_RAYS = 32
 # Weight of the normal against the position in the nearest-sample search: the other side of
 # a sheet is 2 * NORMAL_WEIGHT away, far beyond the sample spacing (~0.03 at 20k samples).
 NORMAL_WEIGHT = 0.25
+# The search looks this far (in the weighted 6-d distance) and no farther: a hit with no sample of
+# its side that near (e.g. the underside of a box standing on the floor, a few % of the hits in the
+# Cornell box) makes an unbounded k-d search visit much of the tree (2-3x the time of all other
+# hits together); those take the best of the FALLBACK_CANDIDATES samples nearest in position.
+SEARCH_RADIUS = 0.15
+FALLBACK_CANDIDATES = 8
 
 
 class BounceRays:
@@ -78,27 +92,47 @@ def trace_bounce_rays(mesh, points, normals, sample_faces=None, *, rays: int = B
         The samples searched at the hit points; default: ``points, normals`` themselves (the
         bounce stage).  Other query points (the benchmark's pixels) pass the precomputed samples.
     """
-    from scipy.spatial import cKDTree
-
     from .transfer import EmbreeTracer
 
-    tracer = EmbreeTracer(mesh)
     points = np.asarray(points, dtype=np.float64)
     normals = _unit(np.asarray(normals, dtype=np.float64))
-    local = cosine_directions(rays).astype(np.float32)
     if targets is None:
         targets = (points, normals)
-    target_points = np.asarray(targets[0], dtype=np.float64)
-    target_normals = _unit(np.asarray(targets[1], dtype=np.float64))
-    tree = cKDTree(np.concatenate([target_points, NORMAL_WEIGHT * target_normals], axis=1))
+    job = BounceJob(EmbreeTracer(mesh), targets[0], targets[1], rays=rays, seed=seed, workers=workers)
     nearest = np.full((len(points), rays), -1, dtype=np.int64)
     hit_face = np.full((len(points), rays), -1, dtype=np.int64)
     for c, start in enumerate(range(0, len(points), chunk)):
         rows = slice(start, start + chunk)
-        rng = np.random.default_rng(np.random.SeedSequence([seed, 0xB0B, c]))
-        frames = orthonormal_frames(normals[rows], rng.uniform(0.0, 2.0 * np.pi, len(points[rows]))).astype(np.float32)
-        dirs = np.matmul(local[None], frames.transpose(0, 2, 1)).reshape(-1, 3)
-        origins = np.repeat((points[rows] + tracer.offset * normals[rows]).astype(np.float32), rays, axis=0)
+        nearest[rows], hit_face[rows] = job.chunk(points[rows], normals[rows], c)
+    del sample_faces
+    return BounceRays(nearest, hit_face)
+
+
+class BounceJob:
+    """What the chunks of one set of bounce rays share (picklable: the tracer sends its triangles,
+    the k-d tree of the target samples travels as it is)."""
+
+    def __init__(self, tracer, target_points, target_normals, *, rays: int = BOUNCE_RAYS, seed: int = 0, stream: int = 0,
+                 workers: int = -1):  # fmt: skip
+        from scipy.spatial import cKDTree
+
+        target_points = np.asarray(target_points, dtype=np.float64)
+        target_normals = _unit(np.asarray(target_normals, dtype=np.float64))
+        self.tracer, self.rays, self.seed, self.stream, self.workers = tracer, int(rays), int(seed), int(stream), workers
+        self.tree = cKDTree(np.concatenate([target_points, NORMAL_WEIGHT * target_normals], axis=1))
+        self.positions = cKDTree(target_points)
+        self.local = cosine_directions(self.rays).astype(np.float32)
+
+    def chunk(self, points, normals, c: int) -> tuple[np.ndarray, np.ndarray]:
+        """(nearest, hit_face), each (S, rays) int64, of the rays of chunk ``c`` (deterministic in seed, stream, c)."""
+        points = np.asarray(points, dtype=np.float64)
+        normals = _unit(np.asarray(normals, dtype=np.float64))
+        rays, tracer = self.rays, self.tracer
+        # Stream 0 keeps the seeding trace_bounce_rays always had; other streams (validation) add theirs.
+        rng = np.random.default_rng(np.random.SeedSequence([self.seed, 0xB0B, int(c)] + ([self.stream] if self.stream else [])))
+        frames = orthonormal_frames(normals, rng.uniform(0.0, 2.0 * np.pi, len(points))).astype(np.float32)
+        dirs = np.matmul(self.local[None], frames.transpose(0, 2, 1)).reshape(-1, 3)
+        origins = np.repeat((points + tracer.offset * normals).astype(np.float32), rays, axis=0)
         result = tracer._scene.run(origins, dirs, output=1)
         faces = result["primID"].astype(np.int64)
         hit = faces >= 0
@@ -106,13 +140,48 @@ def trace_bounce_rays(mesh, points, normals, sample_faces=None, *, rays: int = B
         q = origins[hit] + result["tfar"][hit, None] * dirs[hit]
         ng = _unit(result["Ng"][hit].astype(np.float64))
         ng *= -np.sign(np.einsum("qc,qc->q", ng, w))[:, None]  # the side facing the ray's origin
-        _, chosen = tree.query(np.concatenate([q, NORMAL_WEIGHT * ng], axis=1), k=1, workers=workers)
+        key = np.concatenate([q, NORMAL_WEIGHT * ng], axis=1)
+        distance, chosen = self.tree.query(key, k=1, distance_upper_bound=SEARCH_RADIUS, workers=self.workers)
+        far = np.flatnonzero(~np.isfinite(distance))
+        if len(far):  # the same 6-d distance, over the samples nearest in position
+            k = min(FALLBACK_CANDIDATES, self.tree.n)
+            _, near = self.positions.query(q[far], k=k, workers=self.workers)
+            near = near.reshape(len(far), k)
+            d2 = ((self.tree.data[near] - key[far, None, :]) ** 2).sum(axis=2)
+            chosen[far] = near[np.arange(len(far)), np.argmin(d2, axis=1)]
         flat_nearest = np.full(len(origins), -1, dtype=np.int64)
         flat_nearest[hit] = chosen
-        nearest[rows] = flat_nearest.reshape(-1, rays)
-        hit_face[rows] = faces.reshape(-1, rays)
-    del sample_faces
-    return BounceRays(nearest, hit_face)
+        return flat_nearest.reshape(-1, rays), faces.reshape(-1, rays)
+
+
+def bounce_chunk(job: BounceJob, item) -> np.ndarray:
+    """One chunk ``(c, points, normals)`` of bounce rays -> (S, 2, rays) int32 [nearest, hit_face]: a task."""
+    c, points, normals = item
+    nearest, faces = job.chunk(points, normals, c)
+    return np.stack([nearest, faces], axis=1).astype(np.int32)  # sample and face counts are far below 2^31
+
+
+class _IndexStore:
+    """A :class:`prt.train.cache.ChunkStore` of int32 chunks (its ``load`` takes float chunks only)."""
+
+    def __init__(self, folder, n_chunks: int):
+        from .cache import ChunkStore
+
+        self.store = ChunkStore(folder, n_chunks)
+
+    def has(self, k: int) -> bool:
+        return self.store.has(k)
+
+    def save(self, k: int, value: np.ndarray) -> None:
+        self.store.save(k, value)
+
+    def load(self, k: int, shape: tuple) -> np.ndarray | None:
+        """Chunk ``k``; None (trace it again) if damaged, foreign or not int32 of ``shape``."""
+        try:
+            value = np.load(self.store.path(k), allow_pickle=False)
+        except (OSError, ValueError, EOFError):
+            return None
+        return value if value.shape == tuple(shape) and value.dtype == np.int32 else None
 
 
 def interreflect(direct, bounce_rays: BounceRays, face_albedo, bounces: int, transfer_at=None, chunk: int = 1024) -> np.ndarray:
@@ -159,14 +228,106 @@ def interreflect(direct, bounce_rays: BounceRays, face_albedo, bounces: int, tra
     return total
 
 
-def bounce_matrices(bounce_rays: BounceRays, face_albedo) -> list:
-    """``W_c`` (S, S) sparse, per channel: ``W_c[p, q]`` = sum over p's rays landing nearest to q of
-    ``a_c(hit face) / M``."""
+def bounce_matrices(bounce_rays: BounceRays, face_albedo, targets: int | None = None) -> list:
+    """``W_c`` (S, T) sparse, per channel: ``W_c[p, q]`` = sum over p's rays landing nearest to q of
+    ``a_c(hit face) / M``; ``targets`` T: the samples searched (default: S, the rays' own samples)."""
     from scipy.sparse import csr_matrix
 
     nearest = bounce_rays.nearest
     count, rays = nearest.shape
     rows, cols = np.nonzero(nearest >= 0)
-    targets = nearest[rows, cols]
+    landed = nearest[rows, cols]
     albedo = np.asarray(face_albedo, dtype=np.float64)[bounce_rays.hit_face[rows, cols]] / rays
-    return [csr_matrix((albedo[:, c], (rows, targets)), shape=(count, count)) for c in range(3)]
+    shape = (count, count if targets is None else int(targets))
+    return [csr_matrix((albedo[:, c], (rows, landed)), shape=shape) for c in range(3)]
+
+
+def bounce_stage(mesh, folder, train: dict, valid: dict, face_albedo, bounces: int, *, rays: int = BOUNCE_RAYS, seed: int = 0,
+                 chunk_size: int = 2048, key: str = "", executor=None, threads: int | None = None, progress: bool = True,
+                 log=print) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The build's bounce stage: indirect transfer ``T_1 + ... + T_N`` of the training and validation samples.
+
+    Runs after the direct precompute and before fitting.  The rays (hit points and nearest
+    training samples, which do not depend on the albedos) are traced in deterministic chunks
+    through ``executor`` and stored in ``folder`` (:class:`prt.train.cache.ChunkStore`, keyed by
+    ``key``: the precompute's key, rays, seed, chunk size; int32 indices), so an interrupted stage resumes and a
+    change of albedo or bounce count retraces nothing.  The bounces are sparse products
+    (:func:`bounce_matrices`).  Validation samples shoot their own rays (another seed stream)
+    and gather the training samples' transfer of the previous bounce: the same estimator.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+    folder : path of the chunk stores
+    train, valid : dicts with ``points``, ``normals``, ``transfer`` (direct, (S, n))
+    face_albedo : (F, 3) diffuse albedo of every triangle
+    bounces : N >= 1
+
+    Returns
+    -------
+    (S, n, 3), (V, n, 3) float32: the indirect RGB transfer (without the direct term)
+    """
+    from contextlib import closing
+    from pathlib import Path
+
+    from .executor import LocalExecutor
+    from .transfer import EmbreeTracer
+
+    import time
+
+    executor = executor if executor is not None else LocalExecutor(threads)
+    tracer = EmbreeTracer(mesh)
+    found = {}
+    t0 = time.perf_counter()
+    for stream, (name, data) in enumerate((("train", train), ("validation", valid))):
+        points = np.ascontiguousarray(data["points"], dtype=np.float64)
+        normals = np.ascontiguousarray(data["normals"], dtype=np.float64)
+        count = len(points)
+        n_chunks = (count + chunk_size - 1) // chunk_size
+        store = _IndexStore(Path(folder) / f"bounce-{name}-{key}", n_chunks)
+        out = np.empty((count, 2, rays), dtype=np.int32)
+        todo = []
+        for k in range(n_chunks):
+            shape = (min(chunk_size, count - k * chunk_size), 2, rays)
+            cached = store.load(k, shape) if store.has(k) else None  # damaged: traced again
+            if cached is not None:
+                out[k * chunk_size : (k + 1) * chunk_size] = cached
+            else:
+                todo.append(k)
+        job = BounceJob(tracer, train["points"], train["normals"], rays=rays, seed=seed, stream=stream, workers=1)
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=count * rays, initial=(count - sum(min(chunk_size, count - k * chunk_size) for k in todo)) * rays,
+                       unit="ray", unit_scale=True, desc=f"bounce rays ({name})", mininterval=0.5)  # fmt: skip
+        items = [(k, points[k * chunk_size : (k + 1) * chunk_size], normals[k * chunk_size : (k + 1) * chunk_size]) for k in todo]
+        try:
+            with closing(executor.map(bounce_chunk, job, items, task_threads=1)) as finished:
+                for (k, chunk_points, _), value in finished:
+                    store.save(k, value)  # the driver alone writes the cache
+                    out[k * chunk_size : (k + 1) * chunk_size] = value
+                    if bar is not None:
+                        bar.update(len(chunk_points) * rays)
+        finally:
+            if bar is not None:
+                bar.close()
+        found[name] = BounceRays(out[:, 0].astype(np.int64), out[:, 1].astype(np.int64))
+
+    log(f"bounce rays: {sum(len(f.nearest) for f in found.values()):,} samples x {rays} rays in {time.perf_counter() - t0:.1f} s")
+    t0 = time.perf_counter()
+    albedo = np.asarray(face_albedo, dtype=np.float64)
+    direct = np.repeat(np.asarray(train["transfer"], dtype=np.float64)[:, :, None], 3, axis=2)
+    matrices = bounce_matrices(found["train"], albedo)
+    previous, indirect, before_last = direct, np.zeros_like(direct), direct.copy()
+    for b in range(1, int(bounces) + 1):
+        previous = np.stack([matrices[c] @ previous[:, :, c] for c in range(3)], axis=2)
+        indirect += previous
+        if b < bounces:
+            before_last += previous
+        log(f"bounce {b}/{bounces}: mean |T_{b}_0| {float(np.abs(previous[:, 0]).mean()):.5f} (direct {float(np.abs(direct[:, 0, 0]).mean()):.5f})")
+    # Validation rays gather T_0 + ... + T_{N-1} of the training samples at their hit points.
+    valid_matrices = bounce_matrices(found["validation"], albedo, targets=len(direct))
+    valid_indirect = np.stack([valid_matrices[c] @ before_last[:, :, c] for c in range(3)], axis=2)
+    log(f"bounces: {bounces} in {time.perf_counter() - t0:.1f} s")
+    return indirect.astype(np.float32), valid_indirect.astype(np.float32)

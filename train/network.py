@@ -7,6 +7,10 @@
     h  = leaky_relu(W_0 f + b_0); h = leaky_relu(W_i h + b_i), i < layers
     T  = tanh(W_out h + b_out) * out_scale + out_offset   (bands^2 coefficients)
 
+With interreflection (``layout = "direct+rgb"``, ``prt-train --bounces N``) the output is
+``4 bands^2`` wide: the direct transfer, then the indirect transfer of the R, G and B channels
+(``bands^2`` each): ``[T_direct, T_ind_R, T_ind_G, T_ind_B]``.
+
 The targets are mapped into [-0.9, 0.9] by ``out_scale``/``out_offset`` (stored in the model),
 so tanh never has to saturate to reach a real transfer value.  Clipping the normalised
 position keeps the output finite and bounded far outside the segment's box.
@@ -26,9 +30,17 @@ from torch import nn
 
 from ..export.onnx_model import LEAKY_SLOPE, NORMAL_EPS, POSITION_CLIP
 
-__all__ = ["Architecture", "TransferMLP", "frequency_matrix", "target_scaling", "TARGET_RANGE"]
+__all__ = ["Architecture", "TransferMLP", "frequency_matrix", "target_scaling", "TARGET_RANGE", "LAYOUTS", "layout_width"]
 
 TARGET_RANGE = 0.9  # scaled targets live in [-0.9, 0.9], where tanh' >= 0.19
+# Output layouts: "direct" (bands^2, the paper's), "direct+rgb" (direct + indirect R, G, B:
+# 4 bands^2, interreflection) and "rgb" (three total transfers, 3 bands^2: measured, not built).
+LAYOUTS = {"direct": 1, "direct+rgb": 4, "rgb": 3}
+
+
+def layout_width(layout: str, bands: int) -> int:
+    """Outputs of a network of ``layout`` at ``bands`` SH bands."""
+    return LAYOUTS[layout] * bands * bands
 
 
 @dataclass(frozen=True)
@@ -40,6 +52,7 @@ class Architecture:
     pos_freqs: int = 6
     normal_freqs: int = 2
     bands: int = 4
+    layout: str = "direct"  # see LAYOUTS
 
     @property
     def input_dim(self) -> int:
@@ -47,7 +60,7 @@ class Architecture:
 
     @property
     def outputs(self) -> int:
-        return self.bands * self.bands
+        return layout_width(self.layout, self.bands)
 
     def flops_per_fragment(self) -> int:
         """Multiply-adds count 2; encoding: 3 per sin/cos argument and ~20 per sin/cos."""
@@ -62,10 +75,17 @@ class Architecture:
         return d * k + k + (self.layers - 1) * (k * k + k) + k * o + o
 
     def as_dict(self) -> dict:
-        return {**asdict(self), "input_dim": self.input_dim}
+        """Fields and ``input_dim``; ``layout`` and ``outputs`` only when not "direct" (so the
+        records and files of a direct-only build are what they were before layouts existed)."""
+        out = {**asdict(self), "input_dim": self.input_dim}
+        if self.layout == "direct":
+            del out["layout"]
+        else:
+            out["outputs"] = self.outputs
+        return out
 
     def label(self) -> str:
-        return f"k{self.hidden}-l{self.layers}-f{self.pos_freqs}"
+        return f"k{self.hidden}-l{self.layers}-f{self.pos_freqs}" + ("" if self.layout == "direct" else f"-{self.layout}")
 
 
 def frequency_matrix(freqs: int) -> np.ndarray:

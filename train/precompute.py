@@ -71,6 +71,8 @@ class SpecLimits:
     layers: int = 64
     freqs: int = 24  # 2^23 pi x: float32 position encodings are noise beyond
     seed: int = (1 << 63) - 1  # torch.manual_seed's range
+    bounces: int = 16  # interreflection (prt-train --bounces); energy falls as albedo^N, 2 is the default study's pick
+    bounce_rays: int = 1 << 12  # rays per sample of the bounce stage (indirect light is smooth)
     memory_share: float = 0.5  # samples + validation may take this share of physical memory
 
 

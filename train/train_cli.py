@@ -1,6 +1,6 @@
 """prt-train: build a deployable scene: precompute -> train -> export (ONNX, GLSL, scene.json).
 
-usage: prt-train INPUT -o OUTDIR [--samples N] [--rays R] [--segments S] [--steps N] [--time-budget S] [--seed K]
+usage: prt-train INPUT -o OUTDIR [--samples N] [--rays R] [--segments S] [--steps N] [--time-budget S] [--seed K] [--bounces N]
                  [--hidden K --layers L] [--target MAE | --match 64x4] [--cluster auto|ADDRESS] [--force]
                  [--neural-sdf [--sdf-size KxL] [--sdf-samples N] [--sdf-steps N]]
 
@@ -59,6 +59,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--match", default=None, metavar="KxL", help="right-size to the accuracy of this size instead of --target: train it, then keep the cheapest smaller size on the ladder within --match-tolerance of its validation MAE (e.g. 64x4, the paper's k = 64)")
     p.add_argument("--match-tolerance", type=float, default=None, help=f"with --match: share by which the validation MAE may exceed the reference's [{d.match_tolerance}]")
     p.add_argument("--bf16", action="store_true", help="train the MLP layers under bf16 autocast (about 2x faster where the CPU has native bf16, slightly less accurate)")
+    p.add_argument("--bounces", type=int, default=None, metavar="N",
+                   help=f"diffuse interreflection: N bounces of light between surfaces, albedos from the mesh's own materials (0: direct light only) [{d.bounces}]")
+    p.add_argument("--bounce-rays", type=int, default=None, metavar="M", help=f"with --bounces: rays per sample of the bounce stage [{d.bounce_rays}]")
     p.add_argument("--no-analytic", action="store_true", help="give every segment a network, even unshadowed ones")
     p.add_argument("--glsl-layout", choices=("auto", "const", "texture"), default=None, help="weights as baked mat4 constants or in a texture [auto]")
     p.add_argument("--threads", type=int, default=os.cpu_count(), help="CPU threads for ray tracing and training")
@@ -97,6 +100,8 @@ def _spec_from_args(args):
         "target": args.target,
         "match_tolerance": args.match_tolerance,
         "glsl_layout": args.glsl_layout,
+        "bounces": args.bounces,
+        "bounce_rays": args.bounce_rays,
     }
     data = spec.to_dict()
     data.update({k: v for k, v in overrides.items() if v is not None})
@@ -198,10 +203,11 @@ def print_report(report: dict, out: Path) -> None:
     m = report["memory"]
     print(
         f"weights: {m['weight_bytes']:,} bytes for the scene vs {m['vertex_storage_bytes']:,} bytes of per-vertex "
-        f"transfer (16 floats x {m['vertices']:,} vertices)"
+        f"transfer ({m['vertex_storage_bytes'] // max(4 * m['vertices'], 1)} floats x {m['vertices']:,} vertices)"
     )
     t = report["timings"]
-    print(f"time: precompute {t['precompute_s']:.1f} s, train {t['train_s']:.1f} s, export {t['export_s']:.1f} s")
+    bounce = f", bounces {t['bounce_s']:.1f} s" if "bounce_s" in t else ""
+    print(f"time: precompute {t['precompute_s']:.1f} s{bounce}, train {t['train_s']:.1f} s, export {t['export_s']:.1f} s")
     print(f"wrote {out}/scene.json")
 
 

@@ -5,6 +5,12 @@ The program is assembled once per scene (``shaders/transfer_pass.frag`` after
 as in the paper; analytic (unshadowed) segments evaluate the clamped cosine turned to the
 normal, scaled by :func:`prt.runtime.sh.unshadowed_coeff_scale`.  The transfer is written to
 the renderer's four RGBA32F targets and stays on the GPU.
+
+With interreflection (the manifest's ``interreflection``, "direct+rgb" layout) each network gives
+16 vec4 blocks (direct, indirect R, G, B); the renderer's target is then a pair of framebuffers
+of 8 RGBA32F targets each, and the pass draws twice (``u_part`` 0 and 1), each draw evaluating
+the networks and writing its 8 blocks: OpenGL 3.3 guarantees only 8 draw buffers.  So a
+transfer pass costs two network evaluations per fragment there; relighting runs none.
 """
 
 from __future__ import annotations
@@ -46,8 +52,10 @@ class GlslBackend(TransferBackend):
             cases.append(f"            case {seg.id}: seg{seg.id}_transfer(p.xyz, ns.xyz, t); break;")
             if seg.glsl_weights is not None:
                 self._weights.append((f"seg{seg.id}_transfer_weights", _load_weights(seg.glsl_weights)))
+        self.blocks = manifest.transfer_width // 4  # vec4 blocks per fragment: 4, or 16 with interreflection
         source = assemble(
-            "sh_basis.glsl", "transfer_pass.frag", fills={"networks": Source.join(networks), "dispatch": "\n".join(cases)}
+            "sh_basis.glsl", "transfer_pass.frag", fills={"networks": Source.join(networks), "dispatch": "\n".join(cases)},
+            defines={"PRT_TRANSFER_BLOCKS": self.blocks} if self.blocks != 4 else None,
         )
         t0 = time.perf_counter()
         self.program = compile_program(ctx, source, f"{manifest.path.parent / 'segments'}/*.glsl (transfer pass)")
@@ -68,7 +76,12 @@ class GlslBackend(TransferBackend):
     def run(self, gbuffer, target) -> None:
         t0 = time.perf_counter()
         textures = ((gbuffer.position_texture, 0), (gbuffer.normal_texture, 1), *self._textures)
-        draw_fullscreen(self.ctx, target, self.vao, textures)
+        if isinstance(target, (tuple, list)):  # interreflection: 16 blocks, 8 targets per draw
+            for part, fbo in enumerate(target):
+                self.program["u_part"].value = part
+                draw_fullscreen(self.ctx, fbo, self.vao, textures)
+        else:
+            draw_fullscreen(self.ctx, target, self.vao, textures)
         self.ctx.finish()
         self.timings = {"network": 1e3 * (time.perf_counter() - t0)}
         return None

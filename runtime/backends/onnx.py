@@ -98,7 +98,8 @@ class OnnxTransfer:
 
     def __init__(self, manifest, providers=None, threads: int | None = None, slice_rows: int = 4096):
         self.bands = manifest.sh_bands
-        self.n = self.bands * self.bands
+        # Outputs per row: bands^2, or 4 bands^2 with interreflection (direct, indirect R, G, B)
+        self.n = getattr(manifest, "transfer_width", self.bands * self.bands)
         self.providers = list(providers) if providers else default_providers()
         self.threads = positive_int(threads, "threads") if threads is not None else (os.cpu_count() or 1)
         self.slice_rows = int(slice_rows)
@@ -173,7 +174,7 @@ class OnnxTransfer:
             if hi == lo:
                 continue
             if s in self.analytic:
-                transfer[lo:hi] = sh.unshadowed_transfer(x[lo:hi, 3:6], self.bands, dtype=np.float32)
+                self._analytic(transfer, slice(lo, hi), x[lo:hi, 3:6])
                 continue
             if s not in self.sessions:
                 raise InputError(f"segment {s} appears in the G-buffer but the scene has no such segment")
@@ -243,10 +244,17 @@ class OnnxTransfer:
             transfer[rows[a : a + self.slice_rows]] = y
         for s, rows, x in batches:
             if s in self.analytic:
-                transfer[rows] = sh.unshadowed_transfer(x[:, 3:6], self.bands, dtype=np.float32)
+                self._analytic(transfer, rows, x[:, 3:6])
         t3 = time.perf_counter()
         self.timings = {"pack": 1e3 * (t1 - t0), "inference": 1e3 * (t2 - t1), "scatter": 1e3 * (t3 - t2)}
         return covered, transfer
+
+    def _analytic(self, transfer: np.ndarray, rows, normals: np.ndarray) -> None:
+        """Unshadowed transfer into ``transfer[rows]``; no interreflected light (indirect part 0)."""
+        n = self.bands * self.bands
+        transfer[rows, :n] = sh.unshadowed_transfer(normals, self.bands, dtype=np.float32)
+        if self.n > n:
+            transfer[rows, n:] = 0.0
 
     def _run(self, jobs):
         if not jobs:
@@ -296,8 +304,11 @@ class OnnxBackend(TransferBackend):
         gl_rows = order + width * (height - 1) - 2 * width * (order // width)
         raw = (position[::-1].reshape(-1, 4), normal[::-1].reshape(-1, 4))  # views of the read-back
         x = np.empty((len(order), 6), dtype=np.float32)
-        x[:, 0:3] = np.take(raw[0], gl_rows, axis=0)[:, 0:3]  # whole-row take: far faster than [rows, 0:3]
-        x[:, 3:6] = np.take(raw[1], gl_rows, axis=0)[:, 0:3]
+        # Whole-row takes (far faster than [rows, 0:3]), then xyz moved as one 12-byte item per row (a
+        # 3-float column copy goes float by float); no temporary outlives its line (malloc reuses it).
+        xyz = x.view("V12")  # (M, 2): pos.xyz, n.xyz
+        xyz[:, 0] = np.take(raw[0], gl_rows, axis=0).view(np.uint8)[:, :12].view("V12")[:, 0]
+        xyz[:, 1] = np.take(raw[1], gl_rows, axis=0).view(np.uint8)[:, :12].view("V12")[:, 0]
         t2 = time.perf_counter()
         transfer = self.engine.infer_sorted(x, offsets)
         self.timings = {"readback": 1e3 * (t1 - t0), "pack": 1e3 * (t2 - t1), **self.engine.timings}

@@ -83,6 +83,8 @@ class TextureBackend(TransferBackend):
     def __init__(self, ctx, manifest, *, providers=None, threads: int | None = None):
         super().__init__(ctx, manifest)
         info = manifest.transfer_texture
+        if getattr(manifest, "interreflection", None) is not None:
+            raise InputError(f"{manifest.path}: the texture backend has no interreflected (RGB) transfer yet; use the onnx or glsl backend")
         if info is None or manifest.geometry.type != "mesh":
             raise InputError(f"{manifest.path}: the texture backend needs a mesh scene with a transfer_texture (prt-train --transfer-texture SIZE)")
         n_faces = len(load_mesh(manifest.geometry.path)["faces"])

@@ -131,6 +131,9 @@ SPECS = [
     ("glsl-layout-bad", _spec(glsl_layout="fast"), r"spec\.json: glsl_layout: expected 'auto'"),
     ("bf16-string", _spec(bf16="yes"), r"spec\.json: bf16: expected bool"),
     ("analytic-number", _spec(analytic=1), r"spec\.json: analytic: expected bool"),
+    ("bounces-float", _spec(bounces=2.5), r"spec\.json: bounces: expected int"),
+    ("bounces-true", _spec(bounces=True), r"spec\.json: bounces: expected int"),
+    ("bounces-huge", _spec(bounces=10**30), r"spec\.json: bounces: expected 0 \.\. 16"),
 ]
 
 
@@ -166,6 +169,10 @@ FLAGS = [
     ("train-time-budget-nan", "prt-train", ["--time-budget", "nan"], r"time_budget: expected a finite positive number"),
     ("train-time-budget-zero", "prt-train", ["--time-budget", "0"], r"time_budget: expected a finite positive number"),
     ("train-unknown-flag", "prt-train", ["--sampels", "10"], r"unrecognized arguments: --sampels"),
+    ("train-bounces-negative", "prt-train", ["--bounces", "-1"], r"bounces: expected 0 \.\. 16"),
+    ("train-bounces-huge", "prt-train", ["--bounces", str(10**9)], r"bounces: expected 0 \.\. 16"),
+    ("train-bounces-not-a-number", "prt-train", ["--bounces", "two"], r"argument --bounces: invalid int value"),
+    ("train-bounce-rays-zero", "prt-train", ["--bounces", "2", "--bounce-rays", "0"], r"bounce_rays: expected 1 \.\. 4096"),
     ("train-sdf-size-malformed", "prt-train", ["--neural-sdf", "--sdf-size", "64by4"], r"--sdf-size: expected KxL"),
     ("train-sdf-size-too-deep", "prt-train", ["--neural-sdf", "--sdf-size", "64x40"], r"--sdf-size: expected 1 <= K"),
     ("train-sdf-samples-few", "prt-train", ["--neural-sdf", "--sdf-samples", "10"], r"--sdf-samples >= 1000"),
