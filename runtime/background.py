@@ -6,6 +6,12 @@ before tone mapping, so both backends and every display path tone-map it the sam
 map follows the light: the same file and the same rotation as the lighting.  One full-screen
 pass (``shaders/background.frag``) draws it; it is redrawn only when the camera, the map or its
 rotation changes.
+
+Given the G-buffer's depth target, the pass shades only the pixels no geometry covers: its
+triangle lies on the far plane and a depth test ``<=`` against that target (1 where nothing was
+drawn; this pass writes no depth) lets only those through.  The pixels under geometry are left
+as they are (not even cleared): the renderer fills them with the shaded frame.  Without a depth
+target every pixel is drawn (the reference twin; the two agree exactly where nothing is covered).
 """
 
 from __future__ import annotations
@@ -17,7 +23,7 @@ import numpy as np
 
 from ..shaders import assemble
 from .envmap import read_envmap
-from .gl import compile_program, draw_fullscreen
+from .gl import bind_framebuffer, compile_program, draw_fullscreen
 
 __all__ = ["EnvmapBackground"]
 
@@ -27,21 +33,27 @@ class EnvmapBackground:
 
     def __init__(self, ctx: moderngl.Context, width: int, height: int) -> None:
         self.ctx, self.width, self.height = ctx, width, height
-        self.program = compile_program(ctx, assemble("background.frag"), "background.frag")
+        vertex = assemble("fullscreen.vert", defines={"PRT_FULLSCREEN_Z": 1.0})  # on the far plane
+        self.program = compile_program(ctx, assemble("background.frag"), "background.frag", vertex=vertex)
         self.vao = ctx.vertex_array(self.program, [])
         self.target = ctx.texture((width, height), 3, dtype="f4")
         self.fbo = ctx.framebuffer([self.target])
+        self._depth_fbo = None  # the target with a G-buffer's depth (built for the depth texture given)
+        self._depth = None
         self._envmap_key = None
         self._envmap: moderngl.Texture | None = None
         self._drawn_key = None
-        self._image = np.zeros((height, width, 3), dtype=np.float32)  # row 0 at the top
+        self._image = np.zeros((height, width, 3), dtype=np.float32)  # as GL reads it: row 0 at the bottom
 
     def set_envmap(self, path, key: str) -> None:
         """Use the equirectangular map at ``path`` (``key``: its identity; read once per key)."""
         if key == self._envmap_key:
             return
-        image = np.ascontiguousarray(read_envmap(path), dtype=np.float32)  # (H, W, 3), row 0 = +Y
-        texture = self.ctx.texture((image.shape[1], image.shape[0]), 3, image.tobytes(), dtype="f4")
+        image = np.asarray(read_envmap(path), dtype=np.float32)  # (H, W, 3), row 0 = +Y
+        # RGBA: llvmpipe filters four-channel float texels faster than three, to the same values.
+        texels = np.ones(image.shape[:2] + (4,), dtype=np.float32)
+        texels[..., :3] = image
+        texture = self.ctx.texture((image.shape[1], image.shape[0]), 4, texels.tobytes(), dtype="f4")
         texture.filter = (moderngl.LINEAR, moderngl.LINEAR)
         texture.repeat_x, texture.repeat_y = True, False
         if self._envmap is not None:
@@ -52,10 +64,16 @@ class EnvmapBackground:
     def has_envmap(self) -> bool:
         return self._envmap is not None
 
-    def image(self, camera, rotation) -> np.ndarray:
-        """(H, W, 3) float32 radiance of the map seen by ``camera``, row 0 at the top."""
+    def image(self, camera, rotation, depth: moderngl.Texture | None = None) -> np.ndarray:
+        """(H, W, 3) float32 radiance of the map seen by ``camera``, row 0 at the top.
+
+        ``depth``: the G-buffer's depth texture for this camera (same size); only the pixels
+        where it is 1 (nothing drawn) are drawn, the others keep whatever an earlier call left
+        there (the caller overwrites them: no clear).  None: every pixel.  The array is a view
+        of this object's buffer (rows flipped), overwritten by the next call that redraws.
+        """
         rotation = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
-        key = (id(camera), self._envmap_key, rotation.tobytes())
+        key = (id(camera), self._envmap_key, rotation.tobytes(), None if depth is None else id(depth))
         if key != self._drawn_key:
             half_y = math.tan(math.radians(camera.fov_y) / 2.0)
             p = self.program
@@ -66,14 +84,40 @@ class EnvmapBackground:
             p["u_half"].value = (half_y * self.width / self.height, half_y)
             p["u_size"].value = (float(self.width), float(self.height))
             p["u_envmap"].value = 0
-            draw_fullscreen(self.ctx, self.fbo, self.vao, [(self._envmap, 0)])
-            self.fbo.read_into(self._image, components=3, dtype="f4")
+            if depth is None:
+                draw_fullscreen(self.ctx, self.fbo, self.vao, [(self._envmap, 0)])
+                self.fbo.read_into(self._image, components=3, dtype="f4")
+            else:
+                fbo = self._fbo_with(depth)
+                previous = self.ctx.fbo
+                try:
+                    self._envmap.use(0)
+                    fbo.use()
+                    self.ctx.disable(moderngl.BLEND | moderngl.CULL_FACE)
+                    self.ctx.enable(moderngl.DEPTH_TEST)
+                    self.ctx.depth_func = "<="
+                    self.vao.render(moderngl.TRIANGLES, vertices=3)
+                finally:
+                    self.ctx.disable(moderngl.DEPTH_TEST)
+                    bind_framebuffer(self.ctx, previous)
+                fbo.read_into(self._image, components=3, dtype="f4")
             self._drawn_key = key
             self._camera = camera  # keeps id(camera) from being reused while the key holds it
-        return self._image
+        return self._image[::-1]
+
+    def _fbo_with(self, depth: moderngl.Texture):
+        """The colour target with ``depth`` attached, read-only (depth writes off)."""
+        if self._depth is not depth:
+            if self._depth_fbo is not None:
+                self._depth_fbo.release()
+            self._depth_fbo = None  # a failed creation leaves none behind
+            self._depth_fbo = self.ctx.framebuffer([self.target], depth)
+            self._depth_fbo.depth_mask = False
+            self._depth = depth
+        return self._depth_fbo
 
     def release(self) -> None:
-        for obj in (self._envmap, self.fbo, self.target, self.vao, self.program):
+        for obj in (self._envmap, self._depth_fbo, self.fbo, self.target, self.vao, self.program):
             if obj is not None:
                 obj.release()
-        self._envmap = None
+        self._envmap = self._depth_fbo = self._depth = None

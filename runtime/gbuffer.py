@@ -17,8 +17,11 @@ Render targets (RGBA32F, ``width x height``, plus a depth texture):
   ``[0, 1]`` (1 on background), written by both paths from the hit's clip-space depth.
 
 Faces: two-sided faces (open surfaces) show the side facing the camera, their normal
-flipped accordingly; back faces of closed surfaces are discarded in the fragment shader
-(not culled by GL, which would hide two-sided faces from behind too).
+flipped accordingly; back faces of closed surfaces are discarded in the fragment shader.  The
+vertex buffer lists closed faces first and two-sided faces after them, so the closed ones are
+drawn with GL's back-face culling on (the same fragments dropped before any runs) and the
+two-sided ones in a second draw without it (:attr:`GBufferPass.cull`; off, one draw without
+culling: the reference twin, tested to give the same targets).
 
 Segments are computed in the shader (``shaders/segment_lookup.glsl``) by the rule of
 :func:`prt.runtime.segmentation.segment_of`: descend the object's k-d tree, or, for an object
@@ -306,6 +309,9 @@ class GBufferPass:
         The UV target of a scene with a transfer texture (see the module docstring), else None.
     kind : str
         ``"mesh"`` or ``"sdf"``.
+    cull : bool
+        Mesh scenes: draw the closed faces with GL's back-face culling, apart from the two-sided
+        ones (default); False draws all faces at once without culling (the reference twin).
 
     Raises
     ------
@@ -346,7 +352,10 @@ class GBufferPass:
         self.width, self.height = width, height
         self.kind = manifest.geometry.type
         self._released = False
-        self._cull = False  # set by _build_mesh
+        # Mesh scenes: closed faces culled by GL in their own draw (False: one draw, no culling,
+        # the reference twin); _closed_vertices is how many of the buffer's vertices are closed.
+        self.cull = False
+        self._closed_vertices = 0
         self._vbo = None
         self._vao = self._program = None
         self._fbo = self._normal_fbo = None
@@ -401,21 +410,26 @@ class GBufferPass:
         vertex = assemble("gbuffer_mesh.vert", defines={**uv_define, **material_define})
         self._program = compile_program(self.ctx, fragment, "G-buffer pass", vertex=vertex)
         _set_tables(self._program, tables)
-        self._vbo = self.ctx.buffer(_mesh_vertices(mesh).tobytes())
+        n_faces = len(mesh["faces"])
+        # Closed faces first (in file order), then the two-sided ones: one culled draw, one not.
+        faces = np.argsort(mesh["two_sided"], kind="stable")
+        self._vbo = self.ctx.buffer(_mesh_vertices(mesh).reshape(n_faces, 3)[faces].tobytes())
         buffers = [(self._vbo, "3f 3f 3f 2i", "in_position", "in_normal", "in_face_normal", "in_info")]
         if self._with_uv:
-            self._uv_vbo = self.ctx.buffer(_uv_vertices(manifest, len(mesh["faces"])).tobytes())
+            uv = _uv_vertices(manifest, n_faces).reshape(n_faces, 3, 5)[faces]
+            self._uv_vbo = self.ctx.buffer(np.ascontiguousarray(uv).tobytes())
             buffers.append((self._uv_vbo, "4f 1f", "in_uv", "in_atlas"))
         if self._with_material:
             albedo_uv = mesh.get("albedo_uv")
-            corners = np.zeros((len(mesh["faces"]) * 3, 2), np.float32) if albedo_uv is None else albedo_uv.reshape(-1, 2)
+            corners = np.zeros((n_faces, 3, 2), np.float32) if albedo_uv is None else albedo_uv[faces]
             self._albedo_uv_vbo = self.ctx.buffer(np.ascontiguousarray(corners, dtype=np.float32).tobytes())
             buffers.append((self._albedo_uv_vbo, "2f", "in_albedo_uv"))
         self._vao = self.ctx.vertex_array(self._program, buffers)
-        self._vertices = 3 * len(mesh["faces"])
-        # Without two-sided faces GL's culling drops exactly what the shader would discard
-        # (gl_FrontFacing and culling read the same winding), before any fragment runs.
-        self._cull = not bool(mesh["two_sided"].any())
+        self._vertices = 3 * n_faces
+        # GL's culling drops exactly what the shader would discard on closed faces (gl_FrontFacing
+        # and culling read the same winding), before any fragment runs.
+        self._closed_vertices = 3 * int(np.count_nonzero(~mesh["two_sided"]))
+        self.cull = True
 
     def _build_sdf(self, manifest: Manifest, max_steps: int, hit_eps: float) -> None:
         if max_steps < 1 or not hit_eps > 0.0:
@@ -467,12 +481,7 @@ class GBufferPass:
             self._set("u_far", camera.far)
             self._set("u_pixel_angle", 2.0 * half_y / self.height)
         previous = self.ctx.fbo
-        # Back faces of closed surfaces are discarded in the shader; culled by GL as well where no
-        # face is two-sided (the same fragments, fewer of them run).
         self.ctx.disable(moderngl.BLEND | moderngl.CULL_FACE)
-        if self._cull:
-            self.ctx.front_face, self.ctx.cull_face = "ccw", "back"
-            self.ctx.enable(moderngl.CULL_FACE)
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.depth_func = "<"
         try:
@@ -485,10 +494,24 @@ class GBufferPass:
             self._fbo.clear(0.0, 0.0, 0.0, -1.0, depth=1.0)
             self._fbo.color_mask = everything
             self._fbo.use()
-            self._vao.render(moderngl.TRIANGLES, vertices=self._vertices)
+            self._draw()
         finally:
             self.ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
             bind_framebuffer(self.ctx, previous)
+
+    def _draw(self) -> None:
+        """The geometry: closed faces with GL's back-face culling, then two-sided faces without it
+        (:attr:`cull`); or everything in one draw without culling (the shader's discard alone)."""
+        closed = self._closed_vertices if self.cull else 0
+        if closed:
+            # Back faces of closed surfaces are discarded in the shader; culled by GL as well here
+            # (the same fragments, fewer of them run).
+            self.ctx.front_face, self.ctx.cull_face = "ccw", "back"
+            self.ctx.enable(moderngl.CULL_FACE)
+            self._vao.render(moderngl.TRIANGLES, vertices=closed)
+            self.ctx.disable(moderngl.CULL_FACE)
+        if self._vertices > closed:
+            self._vao.render(moderngl.TRIANGLES, vertices=self._vertices - closed, first=closed)
 
     # ----------------------------------------------------------------- read-back
 

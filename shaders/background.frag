@@ -13,8 +13,9 @@ out vec4 f_color;
 const float PI = 3.14159265358979;
 
 void main() {
-    // Framebuffer row 0 is the image's top row, so the read-back needs no flip.
-    vec2 ndc = vec2(gl_FragCoord.x / u_size.x * 2.0 - 1.0, 1.0 - gl_FragCoord.y / u_size.y * 2.0);
+    // GL's row order (row 0 at the bottom), as the G-buffer's depth this pass is tested against;
+    // the read-back is flipped.  u_size.y - gl_FragCoord.y is the image row from the top + 0.5.
+    vec2 ndc = vec2(gl_FragCoord.x / u_size.x * 2.0 - 1.0, 1.0 - (u_size.y - gl_FragCoord.y) / u_size.y * 2.0);
     vec3 d = normalize(u_to_map * (u_forward + ndc.x * u_half.x * u_right + ndc.y * u_half.y * u_up));
     float u = fract(atan(d.x, -d.z) / (2.0 * PI) + 0.5);
     float v = acos(clamp(d.y, -1.0, 1.0)) / PI;

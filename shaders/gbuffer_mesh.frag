@@ -3,8 +3,9 @@
 // segment_lookup.glsl, with that file's #defines).
 //   attachment 0: position.xyz, covered (1)
 //   attachment 1: unit normal facing the camera, segment id
-// Back faces of closed surfaces are discarded here rather than culled by GL, because
-// two-sided faces of the same draw must stay visible from both sides.
+// Back faces of closed surfaces are discarded here.  runtime/gbuffer.py also draws the closed
+// faces apart with GL's culling on (nothing reaches the discard) and the two-sided ones, which
+// must stay visible from both sides, in a second draw without it; one draw relies on this alone.
 
 uniform vec3 u_eye;  // camera position, scene space
 

@@ -7,7 +7,12 @@
 - a Renderer frame (targets read as they are, packed transfer, shaded rows scattered once) equals
   the frame built the old way (interleaved ``read_packed``, ``compute_reference``, pixel-ordered
   shading), bit for bit, diffuse and glossy;
-- back-face culling of a mesh without two-sided faces draws the same G-buffer as the shader's discard.
+- back-face culling of closed faces (their own draw, two-sided faces in a second one without
+  culling) draws the same G-buffer as one draw with the shader's discard alone, whatever the
+  order of the faces in the file;
+- the env-map background drawn only where the G-buffer's depth says no geometry is equals the
+  full-screen layer there, and a frame built on it equals the frame composited the old way;
+- ``all_finite`` and ``scatter_rows`` equal ``np.isfinite(...).all()`` and ``image[rows] = values``.
 """
 
 from __future__ import annotations
@@ -18,9 +23,10 @@ import numpy as np
 import pytest
 
 from prt.runtime import InputError
+from prt.runtime.camera import Camera
 from prt.runtime.backends.onnx import OnnxTransfer, segment_sort, segment_sort_reference
 from prt.runtime.gbuffer import PACKED_COLUMNS, PACKED_SEGMENT
-from prt.runtime.renderer import Renderer, Scene, demo_scene_path
+from prt.runtime.renderer import Renderer, Scene, all_finite, demo_scene_path, scatter_rows
 from prt.runtime.shading import shade
 
 SIZE = 80
@@ -119,22 +125,112 @@ def test_frames_equal_the_pre_issue_path(gl_ctx, demo, threads):
             assert np.array_equal(r._inputs, packed[r._covered][:, list(PACKED_COLUMNS)])
 
 
-def test_culling_draws_the_same_gbuffer(gl_ctx, demo, closed_spot):
-    with Renderer(demo, SIZE, SIZE, ctx=gl_ctx) as r:
-        assert not r.gbuffer._cull  # the demo's ground disc is two-sided: no culling
-    with Renderer(closed_spot, SIZE, SIZE, ctx=gl_ctx) as r:
+@pytest.fixture(scope="module")
+def shuffled_demo(tmp_path_factory):
+    """The demo with its faces shuffled: two-sided (ground) faces among and before the closed ones."""
+    folder = tmp_path_factory.mktemp("shuffled") / "demo"
+    shutil.copytree(demo_scene_path().parent, folder)
+    with np.load(folder / "geometry.npz") as g:
+        mesh = dict(g)
+    order = np.random.default_rng(3).permutation(len(mesh["faces"]))
+    assert mesh["two_sided"][order][:100].any()  # some two-sided face comes early
+    np.savez(folder / "geometry.npz", **{k: mesh[k][order] if k in ("faces", "object_ids", "two_sided") else mesh[k] for k in mesh})
+    return Scene.load(folder)
+
+
+def _targets(gpass, camera):
+    gpass.render(camera)
+    return gpass.read_packed().copy(), gpass.read(depth=True).depth
+
+
+@pytest.mark.parametrize("scene", ["demo", "closed_spot", "shuffled_demo"])
+def test_culling_draws_the_same_gbuffer(gl_ctx, scene, request):
+    with Renderer(request.getfixturevalue(scene), SIZE, SIZE + 5, ctx=gl_ctx) as r:
         gpass = r.gbuffer
-        assert gpass._cull  # Spot alone is closed
+        assert gpass.cull and gpass._closed_vertices == 3 * 5856  # Spot's faces, culled in their own draw
+        two_sided = gpass._vertices - gpass._closed_vertices
+        assert two_sided == (0 if scene == "closed_spot" else 3 * 48)
         for angle in (0.0, 2.0, 4.0):
-            camera = r.camera.orbit(angle)
-            gpass.render(camera)
-            culled = gpass.read_packed().copy()
-            gpass._cull = False
-            try:
-                gpass.render(camera)
-                assert np.array_equal(gpass.read_packed(), culled)
-            finally:
-                gpass._cull = True
+            # from above and from below the ground disc (its back side)
+            for camera in (r.camera.orbit(angle), Camera(eye=(2.5 * np.sin(angle), -1.2, 2.5 * np.cos(angle)), target=(0, 0, 0))):
+                culled, culled_depth = _targets(gpass, camera)
+                gpass.cull = False  # the reference twin: one draw, the shader's discard alone
+                try:
+                    plain, plain_depth = _targets(gpass, camera)
+                finally:
+                    gpass.cull = True
+                assert (culled[:, 3] > 0.5).sum() > 100
+                assert np.array_equal(culled, plain) and np.array_equal(culled_depth, plain_depth)
+
+
+def test_face_order_does_not_change_the_gbuffer(gl_ctx, demo, shuffled_demo):
+    with Renderer(demo, SIZE, SIZE, ctx=gl_ctx) as a, Renderer(shuffled_demo, SIZE, SIZE, ctx=gl_ctx) as b:
+        for angle in (0.5, 3.0):
+            camera = a.camera.orbit(angle)
+            assert np.array_equal(_targets(a.gbuffer, camera)[0], _targets(b.gbuffer, camera)[0])
+
+
+def test_background_drawn_only_where_nothing_is_covered(gl_ctx, demo):
+    with Renderer(demo, SIZE, SIZE + 3, ctx=gl_ctx) as r:
+        r.set_background(True)
+        for step in range(3):
+            r.set_camera_object(r.camera.orbit(1.3 * step))
+            r.render()
+            covered = r.gbuffer_image().covered
+            assert covered.any() and (~covered).any()
+            background = r._background
+            full = background.image(r.camera, r._envmap_rotation).copy()  # the reference: every pixel
+            assert full.min() > 0  # the map is positive everywhere
+            sentinel = np.full((r.height, r.width, 3), -1.0, dtype=np.float32)
+            background.target.write(sentinel.tobytes())
+            layer = background.image(r.camera, r._envmap_rotation, r.gbuffer.depth_texture)
+            assert np.array_equal(layer[~covered], full[~covered])
+            assert (layer[covered] == -1).all()  # nothing drawn (nor cleared) under geometry
+            assert np.array_equal(r._background_layer()[~covered], full[~covered])  # what the renderer uses
+
+
+@pytest.mark.parametrize("backend", ["onnx", "glsl"])
+def test_frame_with_background_equals_the_old_composite(gl_ctx, demo, backend):
+    with Renderer(demo, 40, 36, backend=backend, ctx=gl_ctx) as r:
+        for step in range(2):
+            r.set_camera_object(r.camera.orbit(2.1 * step))
+            r.set_background(False)
+            black = r.render()
+            r.set_background(True)
+            image = r.render()  # relit: the cached transfer, the background added
+            covered = r.gbuffer_image().covered
+            layer = r._background.image(r.camera, r._envmap_rotation)  # full-screen reference
+            want = black.copy()
+            np.copyto(want, layer, where=~covered[..., None])
+            assert np.array_equal(image, want)
+            assert "background" in r.timings
+
+
+def test_all_finite_equals_isfinite_all():
+    rng = np.random.default_rng(0)
+    for shape in [(0, 16), (1, 16), (1000, 16), (7, 3)]:
+        base = rng.standard_normal(shape).astype(np.float32)
+        assert all_finite(base) == bool(np.isfinite(base).all())
+        for bad in (np.nan, np.inf, -np.inf):
+            for _ in range(3):
+                if not base.size:
+                    continue
+                a = base.copy()
+                a.reshape(-1)[rng.integers(a.size)] = bad
+                assert all_finite(a) is False and not np.isfinite(a).all()
+    assert all_finite(np.array([3e38, -3e38], np.float32))
+
+
+def test_scatter_rows_equals_fancy_assignment():
+    rng = np.random.default_rng(1)
+    for pixels, m, c in [(1000, 300, 3), (64, 0, 3), (500, 500, 4), (100, 10, 16)]:
+        rows = rng.choice(pixels, m, replace=False)
+        values = rng.standard_normal((m, c)).astype(np.float32)
+        for vals in (values, values.astype(np.float64), np.asfortranarray(values)):
+            got, want = np.zeros((pixels, c), np.float32), np.zeros((pixels, c), np.float32)
+            scatter_rows(got, rows, vals)
+            want[rows] = vals
+            assert np.array_equal(got, want)
 
 
 def test_compute_refuses_unknown_segments(gl_ctx, demo):
