@@ -30,13 +30,14 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from prt.runtime.errors import InputError
 from prt.runtime.files import atomic_save_npz
 from prt.train import compute_transfer
 from prt.train.interreflection import NORMAL_WEIGHT, interreflect, trace_bounce_rays
 from prt.train.sampling import sample_surface
 from prt.train.transfer import cosine_directions, orthonormal_frames
 
-__all__ = ["face_albedo", "higher_bounce_samples", "indirect_transfer", "HIT_RAYS", "HIT_TRANSFER_RAYS", "HIGHER_SAMPLES"]
+__all__ = ["face_albedo", "higher_bounce_samples", "indirect_transfer", "cached_indirect", "direct_rgb", "HIT_RAYS", "HIT_TRANSFER_RAYS", "HIGHER_SAMPLES"]
 
 HIT_RAYS = 64  # bounce rays per pixel
 HIT_TRANSFER_RAYS = 128  # rays of the direct transfer at each hit point (averaged again over HIT_RAYS hits)
@@ -53,7 +54,7 @@ def face_albedo(albedos: dict, geometry) -> np.ndarray:
     names = list(geometry.object_names)
     missing = [n for n in names if n not in albedos]
     if missing:
-        raise ValueError(f"interreflection.albedos has no albedo for object(s) {', '.join(missing)}")
+        raise InputError(f"interreflection.albedos has no albedo for object(s) {', '.join(missing)}")
     table = np.array([np.asarray(albedos[n], dtype=np.float64) for n in names]).reshape(len(names), 3)
     return table[np.asarray(geometry.object_ids)]
 
@@ -130,7 +131,7 @@ def indirect_transfer(geometry, tracer, points, normals, albedo, bounces: int, *
     if bounces <= 0 or len(points) == 0:
         return out
     if bounces >= 2 and higher is None:
-        raise ValueError("indirect_transfer: bounces >= 2 needs the higher-bounce samples")
+        raise InputError("indirect_transfer: bounces >= 2 needs the higher-bounce samples")
     albedo = np.asarray(albedo, dtype=np.float64)
     tree = None
     if bounces >= 2:  # the nearest-sample rule of the bounce stage, on the independent samples
@@ -151,3 +152,26 @@ def indirect_transfer(geometry, tracer, points, normals, albedo, bounces: int, *
         n = len(points[rows])
         out[rows] = np.einsum("pmc,pmkc->pkc", weight.reshape(n, hit_rays, 3), t.reshape(n, hit_rays, 16, 3)) / hit_rays
     return out
+
+
+def cached_indirect(cache: Path, tag: str, geometry, tracer, points, normals, albedo, bounces: int, *, higher=None, seed: int = 0,
+                    geometry_id: str = "", hit_rays: int = HIT_RAYS, rays: int = HIT_TRANSFER_RAYS):
+    """:func:`indirect_transfer`, read from ``cache`` when computed before; (indirect, seconds computed)."""
+    points = np.ascontiguousarray(points, dtype=np.float32)
+    normals = np.ascontiguousarray(normals, dtype=np.float32)
+    key = _digest(points, normals, albedo, bounces, hit_rays, rays, seed, geometry_id, None if higher is None else higher[2], "v1")
+    path = Path(cache) / f"{tag}-indirect-b{bounces}-s{seed}-{key}.npz"
+    if path.is_file():
+        with np.load(path) as data:
+            return data["indirect"], 0.0
+    t0 = time.perf_counter()
+    indirect = indirect_transfer(geometry, tracer, points, normals, albedo, bounces, hit_rays=hit_rays, rays=rays, higher=higher, seed=seed)
+    seconds = time.perf_counter() - t0
+    atomic_save_npz(path, indirect=indirect)
+    return indirect, seconds
+
+
+def direct_rgb(direct, indirect) -> np.ndarray:
+    """The networks' ``direct+rgb`` layout: (P, 64) = direct (16), then indirect R, G, B (16 each)."""
+    indirect = np.asarray(indirect, dtype=np.float32)
+    return np.concatenate([np.asarray(direct, dtype=np.float32)] + [indirect[:, :, c] for c in range(3)], axis=1)

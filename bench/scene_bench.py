@@ -32,6 +32,7 @@ from threadpoolctl import threadpool_limits
 from prt.bench.machine import busy_seconds, cpu_name, machine_gemm, other_cpu_share
 from prt.bench.metrics import image_metrics, mark_pareto
 from prt.bench.packing import packing_baseline
+from prt.bench.bounce_reference import cached_indirect, direct_rgb, face_albedo, higher_bounce_samples
 from prt.bench.reference import View, cached_transfer, convergence, load_scene_geometry, noise_psnr, rays_for_margin, reference_images
 from prt.bench.report import error_figure, scene_checkpoint
 from prt.bench.texture_prt import texture_variants
@@ -243,8 +244,32 @@ class SceneBench:
                           "rays_by_size": {}, "convergence": {}},
             "packing": [], "vertex_baseline": vertex_info, "texture_baseline": texture_info, "error_images": [],
         }  # fmt: skip
+        self._interreflection()
         self.records: list[dict] = []
         self.images: dict = defaultdict(list)  # (resolution, material) -> [(label, view 0 image, its PSNR)]
+
+    def _interreflection(self) -> None:
+        """Scenes built with ``--bounces N``: the reference gets the same N bounces (:mod:`prt.bench.bounce_reference`)."""
+        record = (self.manifest.raw or {}).get("interreflection") or {}
+        self.bounces = int(record.get("bounces", 0))
+        self.bounce_albedo, self.higher = None, None
+        if self.bounces <= 0:
+            return
+        if self.geometry.sdf is not None:
+            raise InputError(f"{self.manifest.path}: interreflection in an SDF scene: the reference traces bounces on meshes only")
+        self.bounce_albedo = face_albedo(record.get("albedos") or {}, self.geometry)
+        self.higher = higher_bounce_samples(self.geometry, self.tracer, self.bounce_albedo, self.bounces, rays=self.settings.ref_rays,
+                                            seed=self.settings.seed, cache=self.transfer_cache, geometry_id=self.geometry_id, log=self.log)  # fmt: skip
+        self.entry["reference"]["interreflection"] = {"bounces": self.bounces, "gi_off_psnr": {},
+                                                      "note": "PSNR of the direct-only reference against the N-bounce one at view 0: what GI changes"}  # fmt: skip
+
+    def _with_bounces(self, transfer, tag, points, normals, seed):
+        """The reference's transfer in the networks' layout: direct (16) or direct + indirect RGB (64); seconds computed."""
+        if self.bounces <= 0:
+            return transfer, 0.0
+        indirect, spent = cached_indirect(self.transfer_cache, tag, self.geometry, self.tracer, points, normals, self.bounce_albedo,
+                                          self.bounces, higher=self.higher, seed=seed, geometry_id=self.geometry_id)  # fmt: skip
+        return direct_rgb(transfer, indirect), spent
 
     def run(self) -> tuple[dict, list]:
         """Measure every size; returns the ``scenes[]`` entry and the ``records[]`` of this scene."""
@@ -305,8 +330,14 @@ class SceneBench:
                         executor=self.executor,
                     )
                     seconds += spent
+                    if self.bounces and v == 0 and seed == settings.seed:  # GI on against off
+                        direct_only = reference_images(transfer, gbuffer, camera.eye, renderer.lighting, self.materials)
+                    transfer, spent = self._with_bounces(transfer, tag, points, normals, seed)
+                    seconds += spent
                     images[seed] = reference_images(transfer, gbuffer, camera.eye, renderer.lighting, self.materials)
                 references = images[settings.seed]
+                if self.bounces and v == 0:
+                    self.entry["reference"]["interreflection"]["gi_off_psnr"][resolution] = noise_psnr(direct_only, references, gbuffer.covered)
                 if v != 0:
                     break
                 noise = self.entry["reference"]["noise_psnr"][resolution] = noise_psnr(images[settings.seed + 1], references, gbuffer.covered)
