@@ -32,11 +32,9 @@ vec2 prt_ray_box(vec3 o, vec3 d, float b) {
     return vec2(max(max(lo.x, lo.y), lo.z), min(min(hi.x, hi.y), hi.z));
 }
 
-// Outward gradient direction by the tetrahedral difference (4 taps), not normalised.
-vec3 prt_sdf_gradient(vec3 p, float h) {
-    const vec2 k = vec2(1.0, -1.0);
-    return k.xyy * scene_sdf(p + k.xyy * h) + k.yyx * scene_sdf(p + k.yyx * h)
-         + k.yxy * scene_sdf(p + k.yxy * h) + k.xxx * scene_sdf(p + k.xxx * h);
+// Tap k of the tetrahedral difference (the gradient is the sum of tap * scene_sdf(p + tap * h)).
+vec3 prt_tap(int k) {
+    return k == 0 ? vec3(1.0, -1.0, -1.0) : k == 1 ? vec3(-1.0, -1.0, 1.0) : k == 2 ? vec3(-1.0, 1.0, -1.0) : vec3(1.0);
 }
 
 void main() {
@@ -51,38 +49,59 @@ void main() {
         discard;
     }
 
-    // A ray starting inside the solid (camera inside it) passes through to its exit, as
-    // the mesh pass discards the back faces of closed surfaces.
-    bool inside = scene_sdf(u_eye + t * rd) < 0.0;
+    // scene_sdf has ONE call site (compilers inline every call, and a neural SDF is large): the
+    // loop marches the ray, then evaluates the 4 taps of the gradient at the hit.  A ray starting
+    // inside the solid (camera inside it) passes through to its exit, as the mesh pass discards
+    // the back faces of closed surfaces.  The loop runs at most PRT_MAX_STEPS + 4 times, far
+    // below llvmpipe's cap on the loop iterations of an invocation (65535, all loops together).
+    bool inside = false;
     bool hit = false;
     float dist = 0.0;
-    for (int i = 0; i < PRT_MAX_STEPS; ++i) {
-        dist = scene_sdf(u_eye + t * rd);
+    int tap = -1;  // >= 0: evaluating gradient tap `tap` at p
+    vec3 p = vec3(0.0);
+    vec3 n = vec3(0.0);
+    float h = 2e-4;
+    for (int i = 0; i < PRT_MAX_STEPS + 4; ++i) {
+        vec3 s = prt_tap(tap);
+        float d = scene_sdf(tap < 0 ? u_eye + t * rd : p + s * h);
+        if (tap >= 0) {
+            n += s * d;
+            if (++tap == 4) {
+                break;
+            }
+            continue;
+        }
+        if (i == 0) {
+            inside = d < 0.0;
+        }
+        dist = d;
         float eps = PRT_HIT_EPS * t;
         if (inside) {
             inside = dist <= eps;
             t += max(abs(dist), eps);
         } else if (dist < eps) {
             hit = true;
-            break;
         } else {
             t += dist;
         }
-        if (t > t_end) {
-            break;
+        if (!hit && (t > t_end || i == PRT_MAX_STEPS - 1)) {
+            // Out of steps (grazing rays creep along a surface): a hit if within the pixel's cone.
+            if (t > t_end || inside || !(dist < u_pixel_angle * t)) {
+                break;
+            }
+            hit = true;
         }
-    }
-    // Out of steps (grazing rays creep along a surface): a hit if within the pixel's cone.
-    if (!hit && !inside && t <= t_end && dist < u_pixel_angle * t) {
-        hit = true;
+        if (hit) {
+            p = u_eye + t * rd;
+            h = max(2e-4, PRT_HIT_EPS * t);
+            tap = 0;
+        }
     }
     if (!hit) {
         discard;
     }
 
-    vec3 p = u_eye + t * rd;
     vec3 to_eye = -rd;
-    vec3 n = prt_sdf_gradient(p, max(2e-4, PRT_HIT_EPS * t));
     if (!(dot(n, n) > 1e-30)) {
         n = to_eye;  // flat spot of the field: any unit vector facing the camera
     }

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -72,6 +73,21 @@ def test_onnx_runtime_numpy_and_glsl_agree(sphere, gl_ctx):
     np.testing.assert_allclose(glsl, onnx, atol=1e-4)
 
 
+def test_glsl_with_position_frequencies_and_odd_width_agrees(tmp_path, gl_ctx):
+    """The loop-free writer's other paths: sin/cos features and a width that is not a multiple of 4."""
+    ort = pytest.importorskip("onnxruntime")
+    path = tmp_path / "freq.sdf.onnx"
+    mesh = trimesh.creation.icosphere(subdivisions=2, radius=RADIUS)
+    fit_neural_sdf(mesh, path, size=(10, 3), pos_freqs=2, samples=5000, steps=50, batch=512, log=lambda *a: None)
+    sdf = load_neural_sdf(path)
+    p = np.random.default_rng(5).uniform(-1.5, 1.5, (2000, 3)).astype(np.float32)
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    onnx = session.run(None, {"x": np.concatenate([p, np.zeros_like(p)], axis=1)})[0][:, 0]
+    glsl = run_fragment_program(gl_ctx, sdf.glsl() + _EVAL_MAIN, p, components=1)[:, 0]
+    np.testing.assert_allclose(sdf.evaluate(p), onnx, atol=1e-5)
+    np.testing.assert_allclose(glsl, onnx, atol=1e-5)
+
+
 def test_sphere_tracing_misses_and_grazing_rays_stay_finite(sphere):
     sdf, _, _ = sphere
     origins = np.array([[0, 0, 3], [0, 0, 3], [RADIUS, 0, 3], [3, 3, 3], [0, 2, 0], [0, 0, -2.5], [2.5, 0, 0]], dtype=np.float32)
@@ -95,6 +111,70 @@ def test_thin_slab_is_not_tunnelled(tmp_path):
     dirs = np.tile(np.array([0.0, 0.0, -1.0], dtype=np.float32), (len(xy), 1))
     assert sdf.sphere_trace(origins, dirs).all()
     assert not sdf.sphere_trace(origins, -dirs).any()
+
+
+def test_network_glsl_has_no_loop(sphere):
+    """llvmpipe ends every loop of an invocation after 65535 iterations in total; a network with
+    layer loops inside the sphere tracer's loop ran out of them (18 % of the bunny's pixels)."""
+    sdf, _, _ = sphere
+    source = re.sub(r"//[^\n]*", "", sdf.glsl())  # code only
+    assert not re.search(r"\b(for|while|do)\b", source), "the SDF network's GLSL must be loop-free"
+
+
+def test_gbuffer_sphere_traces_one_call_site_and_few_loop_iterations():
+    from prt.shaders import source
+
+    text = re.sub(r"//[^\n]*", "", source("gbuffer_sdf.frag"))  # code only
+    assert text.count("scene_sdf(") == 1  # one call site: the network is inlined once
+    assert len(re.findall(r"\bfor\b", text)) == 1 and "PRT_MAX_STEPS + 4" in text
+
+
+def _surface_rays(sdf, count, rays, seed=0):
+    """Cosine rays from projected surface points, offset along the normal as the precompute does."""
+    from prt.train.transfer import SDF_RAY_OFFSET, cosine_directions, orthonormal_frames
+
+    rng = np.random.default_rng(seed)
+    m = sdf.to_mesh(resolution=48)
+    p = sdf.project_to_surface(m.vertices[rng.integers(0, len(m.vertices), count)])
+    n = sdf.normals(p)
+    frames = orthonormal_frames(n, rng.uniform(0.0, 2.0 * np.pi, count))
+    dirs = np.matmul(cosine_directions(rays)[None], frames.transpose(0, 2, 1)).reshape(-1, 3)
+    origins = np.repeat(p + SDF_RAY_OFFSET * n, rays, axis=0)
+    return origins.astype(np.float32), dirs.astype(np.float32), p, n
+
+
+def test_self_occlusion_of_a_fitted_sphere_is_rare(sphere):
+    """A convex shape does not shadow itself: shadow rays from its fitted surface see the sky.
+
+    The fitted field is piecewise linear (ReLU), so a few grazing rays may clip a neighbouring
+    facet; a point whose rays start inside the solid would lose half its sky or more."""
+    sdf, _, _ = sphere
+    origins, dirs, p, n = _surface_rays(sdf, 400, 64)
+    assert (sdf.evaluate(origins[::64]) > 0).all()  # every origin outside the solid
+    with np.errstate(over="raise", invalid="raise"):
+        hit = sdf.sphere_trace(origins, dirs).reshape(400, 64)
+    assert hit.mean() < 0.005, hit.mean()  # rays (measured: 0.0)
+    assert hit.mean(axis=1).max() < 0.2  # no point loses a fifth of its sky
+
+
+def test_gbuffer_points_of_a_neural_sdf_lie_on_it_with_its_normals(gl_ctx, neural_scene):
+    """The G-buffer's sphere tracer agrees with numpy: hits on the zero set, normals = gradient,
+    and shadow rays from its points start outside the solid (the reference traces from there)."""
+    from prt.runtime.renderer import Renderer, Scene
+    from prt.train.transfer import SDF_RAY_OFFSET
+
+    scene = Scene.load(neural_scene / "scene.json")
+    sdf = load_neural_sdf(neural_scene / "ball.sdf.onnx")
+    with Renderer(scene, 64, 64, backend="onnx", ctx=gl_ctx) as r:
+        g = r.gbuffer_image()
+    p, n = g.position[g.covered], g.normal[g.covered]
+    assert len(p) > 500 and np.isfinite(p).all() and np.isfinite(n).all()
+    f = np.abs(sdf.evaluate(p))
+    # within the hit threshold (1e-4 * t), but for grazing rays out of steps within the pixel's cone
+    assert np.mean(f < 1e-3) > 0.98 and f.max() < 0.04, np.percentile(f, [50, 99, 100])
+    cos = np.einsum("ij,ij->i", n, sdf.normals(p.astype(np.float64)))
+    assert np.mean(cos > 0.99) > 0.97 and cos.min() > 0.0
+    assert np.mean(sdf.evaluate(p + SDF_RAY_OFFSET * n) < 0) < 0.002
 
 
 def test_sdf_size_parsing():

@@ -1,10 +1,11 @@
 """Neural SDFs: a small MLP fitted to the signed distance of a mesh (Davies et al. 2021).
 
 The network is the transfer network of :mod:`prt.train.network` with one output and no
-normal input (``Architecture(bands=1, normal_freqs=0)``), so the ONNX exporter and the GLSL
-generator of the transfer networks export it unchanged: the file is an ordinary
-``prt-transfer-mlp/1`` ONNX model whose single output is the distance.  Its ``normal`` input
-is ignored (its weights are zero and it is fed 0).
+normal input (``Architecture(bands=1, normal_freqs=0)``), so the ONNX exporter of the
+transfer networks exports it unchanged: the file is an ordinary ``prt-transfer-mlp/1`` ONNX
+model whose single output is the distance.  Its ``normal`` input is ignored (its weights are
+zero and it is fed 0).  Its GLSL is written loop-free by :mod:`.neural_glsl` (a sphere tracer
+calls it inside its own loop, and llvmpipe caps the loop iterations of a shader invocation).
 
     f(p) = tanh(MLP(clip(p, -2, 2))) * out_scale          (scene units, negative inside)
 
@@ -15,7 +16,7 @@ bound (|grad| <= 1 where measured) and sphere tracing it with unit steps neither
 nor needs step clamping anywhere else.  The zero set is unchanged.
 
 :class:`NeuralNode` is a :class:`~prt.train.sdf.nodes.Node` (numpy evaluation of the same
-arrays, GLSL from :func:`prt.export.glsl.generate_glsl`), so :class:`~prt.train.sdf.SDF`
+arrays, GLSL from :func:`.neural_glsl.network_glsl`), so :class:`~prt.train.sdf.SDF`
 wraps it and everything the analytic SDF path does (sampling, projection, marching cubes,
 the numpy sphere tracer of the ground truth, ``scene_sdf.glsl`` for the G-buffer) applies.
 
@@ -108,15 +109,15 @@ class NeuralNode(Node):
         return out
 
     def emit_glsl(self, w, p):
-        from ...export.glsl import generate_glsl
+        # Loop-free, unlike the transfer networks' generator: a sphere tracer calls this inside
+        # its own loop, and llvmpipe caps the loop iterations of a whole invocation (neural_glsl).
+        from .neural_glsl import network_glsl
 
         key = w.unique_key("net")
         name = f"{w.prefix}_{key}"
         # the generated text goes in as a value, never parsed as a template
-        w.add_helper(key, "${body}", body=generate_glsl(self.path, name, layout="const"))
-        w.body.append(f"    vec4 {key}_t[1];")
-        w.body.append(f"    {name}({p}, vec3(0.0), {key}_t);")
-        return w.let("float", f"{key}_t[0].x")
+        w.add_helper(key, "${body}", body=network_glsl(self.arrays, self.arch, name))
+        return w.let("float", f"{name}({p})")
 
     def bounds(self, level: float = 0.0) -> np.ndarray:
         b = BOX + float(level)
