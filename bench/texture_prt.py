@@ -7,6 +7,12 @@ texture is cached in the bench cache (``<cache>/<scene>/transfer_texture-<size>-
 with its stats beside it; the ray-traced chunks in ``<cache>/transfer/texture-chunks``), and a
 variant of the manifest naming it is rendered by the runtime's ``texture`` backend, so frames
 are timed and compared exactly as the networks' are.  Mesh scenes only.
+
+A scene built with ``--bounces N`` gets interreflection textures ("direct+rgb", 64 values per
+texel; :func:`prt.train.transfer_texture.scene_bounces`): their texels' bounce rays gather the
+build's own precompute samples, as the networks' training data did, so the texture and the
+networks are compared against the same bounce-aware reference.  Cached as
+``transfer_texture-<size>-r<rays>-b<N>.npz``.
 """
 
 from __future__ import annotations
@@ -17,7 +23,7 @@ from pathlib import Path
 
 from prt.runtime.files import atomic_write_json
 from prt.runtime.transfer_texture import TransferTextureInfo
-from prt.train.transfer_texture import bake_transfer_texture, save_transfer_texture
+from prt.train.transfer_texture import bake_transfer_texture, save_transfer_texture, scene_bounces
 
 __all__ = ["texture_variants"]
 
@@ -41,15 +47,20 @@ def texture_variants(manifest, geometry, tracer, sizes, rays: int, cache: Path, 
         source = json.loads(build.read_text()).get("source")
     variants, info = {}, {"sizes": {}}
     folder = Path(cache) / manifest.name
+    record = getattr(manifest, "interreflection", None)
+    bounces, suffix = None, f"-b{record.bounces}" if record is not None else ""
     for size in sizes:
-        path = folder / f"transfer_texture-{size}-r{rays}.npz"
+        path = folder / f"transfer_texture-{size}-r{rays}{suffix}.npz"
         stats_path = path.with_suffix(".json")
         cached = path.is_file() and stats_path.is_file()
         if cached:
             stats = json.loads(stats_path.read_text())
         else:
-            texture = bake_transfer_texture(geometry, size, rays=rays, tracer=tracer, ctx=ctx, source_path=source,
-                                            cache_dir=Path(cache) / "transfer" / "texture-chunks", log=lambda line: log(f"  {line}"))  # fmt: skip
+            chunks = Path(cache) / "transfer" / "texture-chunks"
+            if record is not None and bounces is None:
+                bounces = scene_bounces(manifest, geometry, cache_dir=chunks, log=lambda line: log(f"  {line}"))
+            texture = bake_transfer_texture(geometry, size, rays=rays, tracer=tracer, ctx=ctx, source_path=source, cache_dir=chunks,
+                                            bounces=bounces, log=lambda line: log(f"  {line}"))  # fmt: skip
             save_transfer_texture(path, texture)
             stats = {**texture.stats, "timings_s": {k: round(v, 3) for k, v in texture.timings.items()}}
             atomic_write_json(stats_path, stats)

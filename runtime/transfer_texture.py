@@ -3,10 +3,13 @@
 ``transfer_texture.npz`` (written by :func:`prt.train.transfer_texture.save_transfer_texture`):
 
 - ``transfer`` (A, S, S, n) float16: transfer per texel of each of A atlases (texture sets),
-  row 0 at ``v`` near 0 (GL's texture row order), dilated into the gutters between charts;
+  row 0 at ``v`` near 0 (GL's texture row order), dilated into the gutters between charts; n is
+  ``sh_bands**2``, or 4 times that for a scene with ``interreflection`` (the networks' "direct+rgb"
+  layout: direct, then indirect R, G, B);
 - ``corner_uv`` (F, 2, 3, 2) float32: UV of each corner of each face in ``geometry.npz``, for
   its front ``[:, 0]`` and back ``[:, 1]`` side (open faces have a chart for each side);
-- ``atlas`` (F,) int32: the atlas of each face.
+- ``atlas`` (F,) int32: the atlas of each face;
+- ``bounces`` () int, interreflection textures only: the N they were baked with.
 """
 
 from __future__ import annotations
@@ -90,6 +93,9 @@ def load_transfer_texture(info: TransferTextureInfo, n_faces: int, coefficients:
     corner_uv, atlas = arrays["corner_uv"], arrays["atlas"]
     if transfer:
         values, expected = arrays["transfer"], (info.atlases, info.size, info.size, coefficients)
+        if values.ndim == 4 and values.shape[:3] == expected[:3] and values.shape[3] * 4 == coefficients:
+            raise GeometryError(f"{path}: holds direct transfer only ({values.shape[3]} values per texel) but the scene has interreflection "
+                                f"({coefficients}); bake it again (prt-train --transfer-texture with the scene's --bounces)")  # fmt: skip
         if values.shape != expected or values.dtype.kind != "f":
             raise GeometryError(f"{path}: transfer must be {expected} floats (scene.json's transfer_texture), got {values.shape} {values.dtype}")
         if not np.all(np.isfinite(values)):

@@ -232,11 +232,12 @@ def test_backends_agree_bleed_colour_and_relight_without_networks(cornell_rgb):
     assert ratio[0] > 1.2 and ratio[0] > 1.2 * ratio[1], ratio
 
 
-def test_texture_backend_refuses_rgb_transfer(cornell_rgb):
+def test_texture_backend_needs_a_transfer_texture(cornell_rgb):
+    # RGB transfer textures themselves: tests/test_texture_bounces.py
     from prt.runtime.backends.texture import TextureBackend
     from prt.runtime.gl import create_context
 
-    with pytest.raises(InputError, match="texture backend has no interreflected"):
+    with pytest.raises(InputError, match="needs a mesh scene with a transfer_texture"):
         TextureBackend(create_context(), load_manifest(cornell_rgb))
 
 

@@ -21,6 +21,17 @@
 5. Stored as float16 (:func:`save_transfer_texture`, ``transfer_texture.npz``), read by the
    runtime's ``texture`` backend (:mod:`prt.runtime.backends.texture`).
 
+Interreflection (a scene built with ``prt-train --bounces N``, :class:`TextureBounces`): each
+texel then holds the "direct+rgb" layout of the networks, 64 values: its direct transfer (step 3),
+then the indirect transfer of R, G and B.  The indirect part is the estimator of the build's bounce
+stage (:mod:`prt.train.interreflection`) applied to the texel's point: ``bounce_rays`` cosine rays
+from the texel, at each hit the nearest precompute sample of the side the ray sees, gathering that
+sample's ``T_0 + ... + T_{N-1}`` (the bounce stage run on the build's own samples, N - 1 bounces)
+times the hit's albedo (the manifest's ``interreflection.albedos``).  So texture and networks
+represent the same transfer.  The texels' rays are traced in chunks cached beside the direct ones
+(resumable, deterministic; their own seed stream); dilation, float16 and buried texels (judged by
+the direct part) as above.
+
 Mesh scenes only (as the vertex baseline).
 """
 
@@ -36,10 +47,11 @@ import numpy as np
 from ..runtime.files import atomic_save_npz
 from ..runtime.gl import bind_framebuffer
 from ..runtime.normals import corner_normals
-from .transfer import DEFAULT_CHUNK, compute_transfer, make_tracer
+from .transfer import DEFAULT_CHUNK, _fingerprint, compute_transfer, make_tracer
 from .uv_atlas import UVAtlas, build_atlas
 
-__all__ = ["TransferTexture", "uv_gbuffer", "dilate", "bake_transfer_texture", "save_transfer_texture", "DILATE_RINGS", "FORMAT"]
+__all__ = ["TransferTexture", "TextureBounces", "scene_bounces", "texel_indirect", "uv_gbuffer", "dilate", "bake_transfer_texture",
+           "save_transfer_texture", "DILATE_RINGS", "FORMAT"]
 
 FORMAT = 1  # transfer_texture.npz layout version
 # Rings of empty texels filled around the charts (>= 1 keeps bilinear fetches off empty texels;
@@ -85,15 +97,18 @@ class TransferTexture:
 
     Attributes
     ----------
-    transfer : (A, S, S, 16) float16
-        Transfer per texel of each atlas; row 0 is ``v`` near 0 (GL's texture row order).
+    transfer : (A, S, S, n) float16
+        Transfer per texel of each atlas; row 0 is ``v`` near 0 (GL's texture row order).  n = 16,
+        or 64 with interreflection (direct, then indirect R, G, B).
     atlas : UVAtlas
     covered : (A, S, S) bool
         Texels holding a surface sample (inside a chart or one texel around it), before dilation.
     timings : dict
-        Seconds: ``atlas_s``, ``gbuffer_s``, ``transfer_s``, ``dilate_s``, ``total_s``.
+        Seconds: ``atlas_s``, ``gbuffer_s``, ``transfer_s``, (``bounce_s``), ``dilate_s``, ``total_s``.
     stats : dict
         Texel counts, the float16 error against float32, bytes.
+    bounces : int
+        N of the interreflected part (0: direct transfer only).
     """
 
     transfer: np.ndarray
@@ -101,6 +116,7 @@ class TransferTexture:
     covered: np.ndarray
     timings: dict = field(default_factory=dict)
     stats: dict = field(default_factory=dict)
+    bounces: int = 0
 
     @property
     def size(self) -> int:
@@ -273,6 +289,133 @@ def dilate(values: np.ndarray, valid: np.ndarray, rings: int = DILATE_RINGS) -> 
     return values, valid
 
 
+@dataclass
+class TextureBounces:
+    """What a texel's bounce rays gather (the build's bounce stage, :mod:`prt.train.interreflection`).
+
+    Attributes
+    ----------
+    points, normals : (S, 3) float
+        The build's precompute (training) samples: what the hit points search.
+    gathered : (S, n, 3) float
+        ``T_0 + ... + T_{N-1}`` of those samples (RGB): what a hit on them contributes, times its albedo.
+    face_albedo : (F, 3) float
+        Albedo of every triangle (the manifest's ``interreflection.albedos``).
+    bounces : int
+        N >= 1.
+    rays : int
+        Bounce rays per texel (the build's ``bounce_rays``).
+    seed : int
+    """
+
+    points: np.ndarray
+    normals: np.ndarray
+    gathered: np.ndarray
+    face_albedo: np.ndarray
+    bounces: int
+    rays: int
+    seed: int = 0
+
+
+def scene_bounces(manifest, geometry, *, cache_dir=None, threads: int | None = None, progress: bool = False,
+                  log=print) -> TextureBounces | None:  # fmt: skip
+    """The :class:`TextureBounces` of a built scene with ``interreflection`` (None without).
+
+    Reads the build's precompute samples (``<scene>/precompute``), the albedos and N from the
+    manifest, seed and chunk size from ``build.json``'s spec, and runs the bounce stage's N - 1
+    bounces on the samples (:func:`prt.train.interreflection.bounce_stage`, its rays chunked and
+    cached in ``cache_dir``; the same rays as the build's: same seed, stream and chunks).
+    """
+    import json
+
+    from .interreflection import bounce_stage
+    from .precompute import load_precompute
+
+    info = getattr(manifest, "interreflection", None)
+    if info is None:
+        return None
+    spec = {}
+    if (manifest.root / "build.json").is_file():
+        spec = json.loads((manifest.root / "build.json").read_text()).get("spec") or {}
+    seed, chunk_size = int(spec.get("seed", 0)), int(spec.get("chunk_size", DEFAULT_CHUNK))  # prt-train keeps the default chunk
+    try:
+        samples = load_precompute(manifest.root / "precompute")["samples"]
+    except FileNotFoundError as exc:
+        raise ValueError(f"{manifest.path}: interreflection textures need the build's precompute samples ({exc.filename})") from None
+    missing = [n for n in geometry.object_names if n not in info.albedos]
+    if missing:
+        raise ValueError(f"{manifest.path}: interreflection.albedos has no albedo for object(s) {', '.join(missing)}")
+    table = np.asarray([info.albedos[n] for n in geometry.object_names], dtype=np.float64).reshape(-1, 3)
+    face_albedo = table[np.asarray(geometry.object_ids)]
+    direct = np.asarray(samples["transfer"], dtype=np.float64)
+    gathered = np.repeat(direct[:, :, None], 3, axis=2)
+    if info.bounces > 1:  # T_1 + ... + T_{N-1} of the samples, as the bounce stage found them
+        n = direct.shape[1]
+        empty = {"points": np.zeros((0, 3)), "normals": np.zeros((0, 3)), "transfer": np.zeros((0, n))}
+        key = _fingerprint(samples["points"], samples["normals"], info.bounce_rays, seed, chunk_size, "v1")
+        folder = Path(cache_dir) if cache_dir is not None else manifest.root / "cache" / "transfer_texture"
+        indirect, _ = bounce_stage(geometry.mesh, folder, samples, empty, face_albedo, info.bounces - 1, rays=info.bounce_rays,
+                                   seed=seed, chunk_size=chunk_size, key=key, threads=threads, progress=progress, log=log)  # fmt: skip
+        gathered += indirect
+    return TextureBounces(np.asarray(samples["points"], np.float64), np.asarray(samples["normals"], np.float64), gathered,
+                          face_albedo, int(info.bounces), int(info.bounce_rays), seed)  # fmt: skip
+
+
+def texel_indirect(tracer, points, normals, bounces: TextureBounces, *, chunk_size: int = DEFAULT_CHUNK, cache_dir=None,
+                   threads: int | None = None, progress: bool = False) -> np.ndarray:  # fmt: skip
+    """Indirect RGB transfer ``T_1 + ... + T_N`` at arbitrary surface points (the texels): (P, n, 3) float32.
+
+    ``bounces.rays`` cosine rays per point (:class:`prt.train.interreflection.BounceJob`, seed
+    stream 2: apart from the build's training and validation rays), the nearest sample at each
+    hit, ``mean_j a(hit_j) gathered[nearest_j]``.  Chunked through a local executor; with
+    ``cache_dir`` the chunks' ray indices (not the albedos) are kept, so a bake resumes.
+    """
+    from contextlib import closing
+
+    from .executor import LocalExecutor
+    from .interreflection import BounceJob, BounceRays, _IndexStore, bounce_chunk, bounce_matrices
+
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    normals = np.ascontiguousarray(normals, dtype=np.float64)
+    count, rays = len(points), int(bounces.rays)
+    n_chunks = (count + chunk_size - 1) // chunk_size
+    out = np.full((count, 2, rays), -1, dtype=np.int32)
+    store, todo = None, list(range(n_chunks))
+    if cache_dir is not None:
+        key = _fingerprint(points, normals, bounces.points, bounces.normals, rays, bounces.seed, chunk_size, tracer.identity, "v1")
+        store = _IndexStore(Path(cache_dir) / f"bounce-texels-{key}", n_chunks)
+        todo = []
+        for k in range(n_chunks):
+            shape = (min(chunk_size, count - k * chunk_size), 2, rays)
+            cached = store.load(k, shape) if store.has(k) else None  # damaged: traced again
+            if cached is not None:
+                out[k * chunk_size : (k + 1) * chunk_size] = cached
+            else:
+                todo.append(k)
+    job = BounceJob(tracer, bounces.points, bounces.normals, rays=rays, seed=bounces.seed, stream=2, workers=1)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=count * rays, unit="ray", unit_scale=True, desc="texel bounce rays", mininterval=0.5)
+    items = [(k, points[k * chunk_size : (k + 1) * chunk_size], normals[k * chunk_size : (k + 1) * chunk_size]) for k in todo]
+    try:
+        with closing(LocalExecutor(threads).map(bounce_chunk, job, items, task_threads=1)) as finished:
+            for (k, chunk_points, _), value in finished:
+                if store is not None:
+                    store.save(k, value)
+                out[k * chunk_size : (k + 1) * chunk_size] = value
+                if bar is not None:
+                    bar.update(len(chunk_points) * rays)
+    finally:
+        if bar is not None:
+            bar.close()
+    found = BounceRays(out[:, 0].astype(np.int64), out[:, 1].astype(np.int64))
+    matrices = bounce_matrices(found, bounces.face_albedo, targets=len(bounces.points))
+    gathered = np.asarray(bounces.gathered, dtype=np.float64)
+    return np.stack([matrices[c] @ gathered[:, :, c] for c in range(3)], axis=2).astype(np.float32)
+
+
 def bake_transfer_texture(
     geometry,
     size: int,
@@ -286,6 +429,7 @@ def bake_transfer_texture(
     ctx: moderngl.Context | None = None,
     atlas: UVAtlas | None = None,
     source_path=None,
+    bounces: TextureBounces | None = None,
     progress: bool = False,
     log=print,
 ) -> TransferTexture:
@@ -307,6 +451,8 @@ def bake_transfer_texture(
         Reuse an atlas (default: :func:`build_atlas`).
     source_path : path, optional
         The mesh file, for its own UVs (default: ``geometry.source``).
+    bounces : TextureBounces, optional
+        Bake the interreflected "direct+rgb" layout (64 values per texel; :func:`scene_bounces`).
     log : callable
         Progress lines and the warning about overlapping UVs.
     """
@@ -340,6 +486,13 @@ def bake_transfer_texture(
         geometry, points, normals, rays=rays, seed=seed, chunk_size=chunk_size, cache_dir=cache_dir, tracer=tracer, progress=progress
     )
     timings["transfer_s"] = time.perf_counter() - t0
+    direct_width = transfer.shape[1]
+    if bounces is not None:  # [direct, indirect R, G, B], as the networks' "direct+rgb"
+        t0 = time.perf_counter()
+        log(f"transfer texture: {bounces.bounces} bounce(s), {len(points):,} texels x {bounces.rays} bounce rays")
+        indirect = texel_indirect(tracer, points, normals, bounces, chunk_size=chunk_size, cache_dir=cache_dir, progress=progress)
+        transfer = np.concatenate([transfer, indirect.transpose(0, 2, 1).reshape(len(indirect), -1)], axis=1)
+        timings["bounce_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     texture = np.zeros((atlas.n_atlases, size, size, transfer.shape[1]), dtype=np.float16)
     full = np.zeros((size, size, transfer.shape[1]), dtype=np.float32)
@@ -347,7 +500,7 @@ def bake_transfer_texture(
     start = 0
     # Texels whose every ray is blocked lie inside a solid (a floor under a box resting on it):
     # no view sees them, and fetches at the contact must not blend them in.  Dilation refills them.
-    buried = ~np.any(transfer != 0.0, axis=1)
+    buried = ~np.any(transfer[:, :direct_width] != 0.0, axis=1)
     for index in range(atlas.n_atlases):
         mask = covered[index].copy()
         count = int(mask.sum())
@@ -377,7 +530,9 @@ def bake_transfer_texture(
         "float16_max_abs_error": float(np.abs(error).max()) if len(error) else 0.0,
         "float16_rms_error_relative": float(np.sqrt(np.mean(error.astype(np.float64) ** 2)) / max(scale, 1e-30)) if len(error) else 0.0,
     }
-    result = TransferTexture(texture, atlas, covered, timings, stats)
+    if bounces is not None:
+        stats |= {"bounces": bounces.bounces, "bounce_rays": bounces.rays, "channels": int(transfer.shape[1])}
+    result = TransferTexture(texture, atlas, covered, timings, stats, bounces.bounces if bounces is not None else 0)
     stats["bytes"] = result.nbytes
     return result
 
@@ -385,8 +540,9 @@ def bake_transfer_texture(
 def save_transfer_texture(path, texture: TransferTexture) -> Path:
     """Write ``transfer_texture.npz`` (read by :func:`prt.runtime.backends.texture.load_transfer_texture`).
 
-    Arrays: ``transfer`` (A, S, S, 16) float16 (row 0 at ``v`` near 0), ``corner_uv`` (F, 2, 3, 2)
-    float32 (front and back side), ``atlas`` (F,) int32, ``format`` () int.
+    Arrays: ``transfer`` (A, S, S, n) float16 (row 0 at ``v`` near 0; n = 16, or 64 with
+    interreflection), ``corner_uv`` (F, 2, 3, 2) float32 (front and back side), ``atlas`` (F,)
+    int32, ``format`` () int; with interreflection also ``bounces`` () int.
     """
     path = Path(path)
     atomic_save_npz(
@@ -395,6 +551,7 @@ def save_transfer_texture(path, texture: TransferTexture) -> Path:
         corner_uv=texture.atlas.corner_uv,
         atlas=texture.atlas.atlas,
         format=np.int64(FORMAT),
+        **({"bounces": np.int64(texture.bounces)} if texture.bounces else {}),
     )
     return path
 
@@ -425,6 +582,8 @@ def add_transfer_texture(scene, size: int, *, layout: str = "shared", rays: int 
     ``transfer_texture`` entry (both atomically).  ``source_path`` (default: the ``source`` in
     the scene's ``build.json``) lends the mesh file's own UVs; ``cache_dir`` (default:
     ``<scene>/cache/transfer_texture``) keeps finished chunks, so an interrupted bake resumes.
+    A scene built with ``--bounces N`` gets the interreflected "direct+rgb" texture (64 values per
+    texel, :func:`scene_bounces`), which the texture backend then shades as the networks' transfer.
     """
     import json
 
@@ -439,8 +598,9 @@ def add_transfer_texture(scene, size: int, *, layout: str = "shared", rays: int 
         source_path = json.loads((manifest.root / "build.json").read_text()).get("source")
     geometry = scene_geometry(manifest)
     cache_dir = manifest.root / "cache" / "transfer_texture" if cache_dir is None else cache_dir
+    bounces = scene_bounces(manifest, geometry, cache_dir=cache_dir, progress=progress, log=log)
     texture = bake_transfer_texture(geometry, size, layout=layout, rays=rays, seed=seed, cache_dir=cache_dir,
-                                    ctx=ctx, source_path=source_path, progress=progress, log=log)  # fmt: skip
+                                    ctx=ctx, source_path=source_path, bounces=bounces, progress=progress, log=log)  # fmt: skip
     path = save_transfer_texture(manifest.root / "transfer_texture.npz", texture)
     stats = texture.stats
     extra = {"layout": layout, "uv_source": stats["uv_source"], "rays": rays, "bytes": stats["bytes"]}

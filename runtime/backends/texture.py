@@ -2,12 +2,19 @@
 
 The scene's ``transfer_texture`` (:mod:`prt.runtime.transfer_texture`, baked by
 :func:`prt.train.transfer_texture.bake_transfer_texture`) is uploaded once as an RGBA16F
-texture array (layer ``4 * atlas + k`` holds coefficients ``4k .. 4k+3``), filtered bilinearly
-and clamped to the edge.  Per frame, a full-screen pass (``shaders/texture_transfer.frag``)
-reads each pixel's UV from the G-buffer (attachment 2, drawn only for scenes that have a
-transfer texture) and writes the fetched transfer to the renderer's four RGBA32F targets; the
-renderer shades it with the same pass as every other GPU backend.  Its plain reference twin is
-:func:`bilinear_lookup` (numpy).  Mesh scenes only.
+texture array (layer ``B * atlas + k`` holds coefficients ``4k .. 4k+3``, B = 4 blocks per texel),
+filtered bilinearly and clamped to the edge.  Per frame, a full-screen pass
+(``shaders/texture_transfer.frag``) reads each pixel's UV from the G-buffer (attachment 2, drawn
+only for scenes that have a transfer texture) and writes the fetched transfer to the renderer's
+four RGBA32F targets; the renderer shades it with the same pass as every other GPU backend.  Its
+plain reference twin is :func:`bilinear_lookup` (numpy).  Mesh scenes only.
+
+Interreflection (a scene built with ``--bounces N``, its texture baked in the "direct+rgb"
+layout): B = 16 blocks per texel (direct, indirect R, G, B), and the renderer's target is a pair
+of framebuffers of 8 RGBA32F targets each (OpenGL 3.3 guarantees 8 draw buffers), so the pass
+draws twice (``u_part`` 0: blocks 0..7, 1: blocks 8..15), as the GLSL backend does; the shade
+pass reads the indirect blocks as it does for the networks.  GL guarantees 256 array layers:
+16 atlases of 64-value transfer.
 """
 
 from __future__ import annotations
@@ -28,7 +35,7 @@ __all__ = ["TextureBackend", "bilinear_lookup", "texture_layers"]
 
 
 def texture_layers(transfer: np.ndarray) -> np.ndarray:
-    """(A, S, S, 16) transfer as (4A, S, S, 4) texture-array layers: layer ``4a + k`` holds
+    """(A, S, S, n) transfer as (nA/4, S, S, 4) texture-array layers: layer ``(n/4) a + k`` holds
     coefficients ``4k .. 4k+3`` of atlas ``a``."""
     atlases, height, width, n = transfer.shape
     return np.ascontiguousarray(transfer.reshape(atlases, height, width, n // 4, 4).transpose(0, 3, 1, 2, 4)).reshape(-1, height, width, 4)
@@ -83,19 +90,20 @@ class TextureBackend(TransferBackend):
     def __init__(self, ctx, manifest, *, providers=None, threads: int | None = None):
         super().__init__(ctx, manifest)
         info = manifest.transfer_texture
-        if getattr(manifest, "interreflection", None) is not None:
-            raise InputError(f"{manifest.path}: the texture backend has no interreflected (RGB) transfer yet; use the onnx or glsl backend")
         if info is None or manifest.geometry.type != "mesh":
             raise InputError(f"{manifest.path}: the texture backend needs a mesh scene with a transfer_texture (prt-train --transfer-texture SIZE)")
         n_faces = len(load_mesh(manifest.geometry.path)["faces"])
         t0 = time.perf_counter()
-        arrays = load_transfer_texture(info, n_faces, manifest.sh_bands**2)
+        width = manifest.transfer_width  # 16, or 64 with interreflection
+        arrays = load_transfer_texture(info, n_faces, width)
         layers = texture_layers(arrays["transfer"])
+        self.blocks = width // 4
         self.texture = ctx.texture_array((info.size, info.size, len(layers)), 4, data=layers.tobytes(), dtype="f2")
         self.texture.filter = (moderngl.LINEAR, moderngl.LINEAR)
         self.texture.repeat_x = self.texture.repeat_y = False  # clamp to edge
         self.upload_s = time.perf_counter() - t0
-        self.program = compile_program(ctx, assemble("texture_transfer.frag"), "texture_transfer.frag")
+        defines = {"PRT_TRANSFER_BLOCKS": self.blocks} if self.blocks != 4 else None
+        self.program = compile_program(ctx, assemble("texture_transfer.frag", defines=defines), "texture_transfer.frag")
         self.program["u_uv"].value = 0
         self.program["u_transfer"].value = 1
         self.vao = ctx.vertex_array(self.program, [])
@@ -104,7 +112,13 @@ class TextureBackend(TransferBackend):
         if gbuffer.uv_texture is None:
             raise InputError(f"{self.manifest.path}: the G-buffer has no UV target (built for a scene without a transfer texture)")
         t0 = time.perf_counter()
-        draw_fullscreen(self.ctx, target, self.vao, ((gbuffer.uv_texture, 0), (self.texture, 1)))
+        textures = ((gbuffer.uv_texture, 0), (self.texture, 1))
+        if isinstance(target, (tuple, list)):  # interreflection: 16 blocks, 8 targets per draw
+            for part, fbo in enumerate(target):
+                self.program["u_part"].value = part
+                draw_fullscreen(self.ctx, fbo, self.vao, textures)
+        else:
+            draw_fullscreen(self.ctx, target, self.vao, textures)
         self.ctx.finish()
         self.timings = {"texture": 1e3 * (time.perf_counter() - t0)}
         return None
