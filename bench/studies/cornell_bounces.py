@@ -35,7 +35,7 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 
-from prt.bench.bounce_reference import face_albedo, higher_bounce_samples, indirect_transfer
+from prt.bench.bounce_reference import cached_indirect, face_albedo, higher_bounce_samples
 from prt.bench.metrics import image_metrics
 from prt.bench.reference import cached_transfer, load_scene_geometry
 from prt.runtime.camera import Camera, orbit_views
@@ -168,8 +168,8 @@ def main(argv=None) -> int:
                 _, direct, objects, rec_albedo = pixels[v]
                 lighting = r.lighting.sh.astype(np.float64)  # (16, 3)
                 for m in {0, n, top} - {k for (w, k) in refs if w == v}:
-                    indirect = indirect_transfer(geometry, tracer, pts, nrm, albedo, m, higher=higher if m >= 2 else None,
-                                                 rays=min(args.ref_rays, 128)) if m > 0 else 0.0  # fmt: skip
+                    indirect = cached_indirect(cache, f"v{v}-{args.size}", geometry, tracer, pts, nrm, albedo, m, geometry_id=info["checksum"],
+                                               higher=higher if m >= 2 else None, rays=min(args.ref_rays, 128))[0] if m > 0 else 0.0  # fmt: skip
                     t = direct.astype(np.float64)[:, :, None] + indirect
                     ref = np.zeros(cov.shape + (3,), np.float32)
                     ref[cov] = np.maximum(rec_albedo * np.einsum("pkc,kc->pc", t, lighting), 0)
