@@ -109,7 +109,7 @@ def build_grid_model(arrays: dict[str, np.ndarray], architecture: dict | None = 
     }
     nodes = []
     inits = [numpy_helper.from_array(v, k) for k, v in consts.items()]
-    weights = {k: np.asarray(v, dtype=np.float32) for k, v in arrays.items() if k.startswith(("enc_", "layer", "out_"))}
+    weights = {k: np.asarray(v, dtype=np.float32) for k, v in arrays.items() if k.startswith(("enc_", "layer", "out_")) and np.size(v)}
     inits += [numpy_helper.from_array(v, k) for k, v in sorted(weights.items())]
     add = lambda op, ins, outs, **kw: nodes.append(helper.make_node(op, ins, outs, **kw))  # noqa: E731
     if table_dtype not in ("float32", "float16"):
@@ -216,6 +216,7 @@ def read_arrays(path) -> tuple[dict[str, np.ndarray], dict]:
         raise ValueError(f"{path}: not a {FORMAT} model (prt.format = {meta.get('prt.format')!r})")
     inits = {t.name: numpy_helper.to_array(t) for t in model.graph.initializer}
     arrays = {k: v for k, v in inits.items() if k.startswith(("enc_", "layer", "out_"))}
+    arrays.setdefault("enc_normal_freq", np.zeros((3, 0), np.float32))  # no normal frequencies: not in the graph
     grid = json.loads(meta["prt.grid"])
     columns = [inits.get(f"grid_table{f}", inits.get(f"grid_table{f}_fp16")) for f in range(int(grid["features"]))]
     arrays["grid_table"] = np.stack(columns, axis=1).astype(np.float32)
@@ -267,8 +268,8 @@ def _vec3(values) -> str:
     return f"vec3({_floats(values)})"
 
 
-def glsl_function(arrays: dict[str, np.ndarray], name: str = "grid_transfer") -> str:
-    """GLSL 3.30 source defining ``uniform sampler2D <name>_table`` (bind :func:`table_texture`)
+def glsl_function(arrays: dict[str, np.ndarray], name: str = "grid_transfer", sampler: str | None = None) -> str:
+    """GLSL 3.30 source defining ``uniform sampler2D <sampler>`` (default ``<name>_table``; bind :func:`table_texture`)
     and ``void <name>(vec3 p, vec3 n, out vec4 t[K])``: the transfer (K = outputs / 4 vec4s), the
     same evaluation as the ONNX graph; the hash in 32-bit ``uint`` arithmetic (wrap-around), which
     gives the int64 rows since T is a power of two.  The source depends on the architecture and
@@ -287,15 +288,16 @@ def glsl_function(arrays: dict[str, np.ndarray], name: str = "grid_transfer") ->
     use_pos = bool(int(arrays["mlp_position"]))
     ints = lambda v: ", ".join(str(int(x)) for x in v)  # noqa: E731
     f = name
+    table = sampler or f"{name}_table"
     width = max(max(din, dout) for _, _, din, dout in layout)
     body = [
-        f"uniform sampler2D {f}_table;",
+        f"uniform sampler2D {table};",
         f"const int {f}_RES[{levels}] = int[]({ints(res)});",
         f"const int {f}_HASHED[{levels}] = int[]({ints(hashed)});",
         f"const int {f}_OFFSET[{levels}] = int[]({ints(offsets)});",
         f"const float {f}_SCALE[{outputs}] = float[]({_floats(arrays['out_scale'])});",
         f"const float {f}_SHIFT[{outputs}] = float[]({_floats(arrays['out_offset'])});",
-        f"vec4 {f}_texel(int i) {{ return texelFetch({f}_table, ivec2(i % {TABLE_WIDTH}, i / {TABLE_WIDTH}), 0); }}",
+        f"vec4 {f}_texel(int i) {{ return texelFetch({table}, ivec2(i % {TABLE_WIDTH}, i / {TABLE_WIDTH}), 0); }}",
         f"void {f}(vec3 p, vec3 n_raw, out vec4 t[{outputs // 4}]) {{",
         f"    vec3 x = clamp((p - {_vec3(arrays['enc_centre'])}) * {_vec3(arrays['enc_inv_half'])}, -1.0, 1.0);",
         "    vec3 u = x * 0.5 + 0.5;",

@@ -5,7 +5,8 @@ files of a scene folder:
 
     OUTDIR/segments/segNNN.onnx         one network per network segment
     OUTDIR/segments/segNNN.glsl         GLSL generated from it
-    OUTDIR/segments/segNNN_weights.npy  its weight texture (texture layout only)
+    OUTDIR/segments/segNNN_weights.npy  its weight texture (texture layout only; a grid segment's
+                                        tables and MLP, prt.export.grid_onnx.table_texture)
     OUTDIR/geometry.npz                 the normalised mesh (or scene_sdf.glsl for an SDF scene)
     OUTDIR/scene.json                   the manifest the runtime loads
 """
@@ -35,6 +36,7 @@ from ..runtime.manifest import (
     validate_manifest_field,
 )
 from .glsl import choose_layout, generate_glsl, weight_texture
+from .grid_onnx import build_grid_model, glsl_function, save_grid_model, table_texture
 from .manifest import write_manifest
 from .onnx_model import build_model, save_model
 
@@ -42,6 +44,10 @@ __all__ = ["TrainedSegment", "export_segment", "export_geometry", "export_scene"
 
 # Architecture fields the manifest records (the ONNX metadata also has ``bands``).
 _ARCHITECTURE_FIELDS = ("hidden", "layers", "pos_freqs", "normal_freqs", "input_dim")
+# A grid segment's (``encoding: "grid"``; the training record's ``kind``).
+_GRID_FIELDS = ("levels", "features", "log2_table", "base_resolution", "max_resolution", "hidden", "layers", "normal_freqs", "position",
+                "input_dim")  # fmt: skip
+GRID_TABLE_DTYPE = "float16"  # the tables as stored (the study: fp16 tables cost nothing measurable)
 
 
 @dataclass
@@ -97,6 +103,8 @@ def export_segment(out: Path, segment: TrainedSegment, glsl_layout: str = "auto"
     if not segment.is_network:
         return info
     arch = segment.architecture
+    if arch.get("kind") == "grid" or arch.get("encoding") == "grid":
+        return _export_grid_segment(out, segment, info)
     info.model = out / f"segments/seg{s:03d}.onnx"
     info.glsl = out / f"segments/seg{s:03d}.glsl"
     save_model(build_model(segment.arrays, arch, name=f"segment{s}"), info.model)
@@ -107,6 +115,28 @@ def export_segment(out: Path, segment: TrainedSegment, glsl_layout: str = "auto"
         info.glsl_weights = out / f"segments/seg{s:03d}_weights.npy"
         atomic_save_npy(info.glsl_weights, weight_texture(info.model)[0])
     info.architecture = {k: arch[k] for k in _ARCHITECTURE_FIELDS}
+    info.flops_per_fragment = segment.flops_per_fragment
+    info.weight_bytes = segment.weight_bytes
+    return info
+
+
+def _export_grid_segment(out: Path, segment: TrainedSegment, info: SegmentInfo) -> SegmentInfo:
+    """A grid-encoded segment (:mod:`prt.export.grid_onnx`): the ONNX file (opset 18, the tables in
+    fp16), the GLSL function and its texture ``segNNN_weights.npy`` (tables and MLP weights,
+    :func:`~prt.export.grid_onnx.table_texture`'s layout; the tables rounded to fp16 as in the ONNX
+    file, so both backends compute with the same numbers).  The GLSL samples the texture through
+    ``uniform sampler2D segS_transfer_weights``, as a texture-layout frequency network does."""
+    s, arch = segment.id, segment.architecture
+    arrays = dict(segment.arrays)
+    arrays["grid_table"] = np.asarray(arrays["grid_table"], dtype=np.float32).astype(GRID_TABLE_DTYPE).astype(np.float32)
+    name = f"seg{s}_transfer"
+    info.model = out / f"segments/seg{s:03d}.onnx"
+    info.glsl = out / f"segments/seg{s:03d}.glsl"
+    info.glsl_weights = out / f"segments/seg{s:03d}_weights.npy"
+    save_grid_model(build_grid_model(arrays, arch, name=f"segment{s}", table_dtype=GRID_TABLE_DTYPE), info.model)
+    atomic_write_bytes(info.glsl, glsl_function(arrays, name=name, sampler=f"{name}_weights").encode())
+    atomic_save_npy(info.glsl_weights, table_texture(arrays)[0])
+    info.architecture = {"encoding": "grid", **{k: arch[k] for k in _GRID_FIELDS}}
     info.flops_per_fragment = segment.flops_per_fragment
     info.weight_bytes = segment.weight_bytes
     return info

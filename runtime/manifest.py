@@ -163,8 +163,11 @@ class SegmentInfo:
     bounds : ndarray, shape (2, 3)
         ``[min, max]`` corners of the box the network's input encoding normalises to.
     architecture : dict or None
-        ``hidden``, ``layers``, ``pos_freqs``, ``normal_freqs``, ``input_dim``; None when
-        analytic.
+        ``hidden``, ``layers``, ``pos_freqs``, ``normal_freqs``, ``input_dim`` (the frequency
+        encoding); a grid-encoded network (:attr:`encoding` ``"grid"``) has ``encoding``,
+        ``levels``, ``features``, ``log2_table``, ``base_resolution``, ``max_resolution``,
+        ``hidden``, ``layers``, ``normal_freqs``, ``position``, ``input_dim`` (its GLSL reads the
+        tables and weights from ``glsl_weights``); None when analytic.
     flops_per_fragment, weight_bytes : int
         Cost of evaluating the network per fragment and size of its weights (0 when absent).
     samples : int
@@ -188,6 +191,11 @@ class SegmentInfo:
     @property
     def is_network(self) -> bool:
         return self.kind == "network"
+
+    @property
+    def encoding(self) -> str | None:
+        """``"freq"`` (the frequency-encoded MLP; manifests without ``encoding``) or ``"grid"``; None when analytic."""
+        return None if self.architecture is None else self.architecture.get("encoding", "freq")
 
     @classmethod
     def from_dict(cls, data: dict, files: dict[str, Path | None]) -> SegmentInfo:

@@ -36,6 +36,7 @@ from .fit import DEFAULT_LADDER, DEFAULT_STEPS, FitResult, FitSettings, fit_segm
 from .geometry import load_geometry
 from .materials import mesh_materials, textured_geometry
 from .executor import LocalExecutor
+from .grid_encoding import DEFAULT_GRID, GridArchitecture, fit_grid_segment, parse_grid
 from .network import Architecture
 from .outdir import check_output_folder, mark_output_folder
 from .interreflection import BOUNCE_RAYS, bounce_stage
@@ -78,6 +79,11 @@ class BuildSpec:
     match: dict | None = None  # right-size to this size's accuracy ({hidden, layers, ...}) instead of ``target``
     match_tolerance: float = 0.05  # with ``match``: validation MAE may exceed the reference's by this share
     analytic: bool = True  # let unshadowed segments skip the network
+    # the networks' encoding of position: "freq" (the paper's frequency-encoded MLP) or "grid" (a
+    # multiresolution feature grid feeding a small MLP, prt.train.grid_encoding; ``grid`` spells its
+    # levels, e.g. "L6-F2-T12-N4-32", None: DEFAULT_GRID); ``fixed``/``ladder`` then size its MLP
+    encoding: str = "freq"
+    grid: str | None = None
     # interreflection (prt.train.interreflection): N diffuse bounces (0: direct transfer only, the
     # paper's); N > 0 fits "direct+rgb" networks (direct + indirect R, G, B transfer)
     bounces: int = 0
@@ -111,8 +117,10 @@ class BuildSpec:
         return FitSettings(epochs=self.epochs, batch=self.batch, lr=self.lr, patience=self.patience, seed=self.seed, bf16=self.bf16,
                            steps=self.steps, max_seconds=self.time_budget)  # fmt: skip
 
-    def architectures(self) -> list[Architecture]:
+    def architectures(self) -> list[Architecture] | list[GridArchitecture]:
         """The sizes to try, smallest first (one when ``fixed``)."""
+        if self.encoding == "grid":
+            return _grid_architectures(self)
         if self.fixed is not None:
             return [_architecture(self.fixed, self.bands, "fixed", self.layout)]
         if self.ladder is not None:
@@ -151,6 +159,39 @@ def _architecture(d: dict, bands: int, where: str, layout: str = "direct") -> Ar
         bands=bands,
         layout=layout,
     )
+
+
+# The MLP sizes a grid build right-sizes over by default (the study's, docs/benchmarks/grid_encoding.md).
+GRID_LADDER = ({"hidden": 16, "layers": 1}, {"hidden": 32, "layers": 2}, {"hidden": 64, "layers": 2}, {"hidden": 64, "layers": 3})
+
+
+def _grid_architectures(spec: BuildSpec) -> list[GridArchitecture]:
+    """``encoding: "grid"``: the grid ``spec.grid`` with the MLP sizes of ``fixed``, ``ladder`` or GRID_LADDER."""
+    try:
+        grid = parse_grid(DEFAULT_GRID if spec.grid is None else spec.grid)
+    except ValueError as exc:
+        raise SpecError(f"grid: {exc}") from None
+    if spec.fixed is not None:
+        sizes = [("fixed", spec.fixed)]
+    elif spec.ladder is not None:
+        sizes = [(f"ladder[{i}]", a) for i, a in enumerate(spec.ladder)]
+    else:
+        sizes = [(f"grid ladder[{i}]", a) for i, a in enumerate(GRID_LADDER)]
+    out = []
+    for where, d in sizes:
+        if isinstance(d, dict) and "pos_freqs" in d:
+            raise SpecError(f"{where}.pos_freqs: not used by the grid encoding (the grid encodes position); leave it out")
+        a = _architecture(d, spec.bands, where, spec.layout)
+        if a.hidden % 4:
+            raise SpecError(f"{where}.hidden: the grid's GLSL reads its MLP in vec4s: expected a multiple of 4, got {a.hidden}")
+        out.append(GridArchitecture(**grid, hidden=a.hidden, layers=a.layers, normal_freqs=d.get("normal_freqs", 0), bands=spec.bands,
+                                    layout=spec.layout))  # fmt: skip
+    return out
+
+
+def _weight_bytes(arch) -> int:
+    """Stored bytes of a network: fp32 weights; a grid's tables in fp16 (as exported)."""
+    return arch.bytes() if isinstance(arch, GridArchitecture) else arch.weight_count() * 4
 
 
 # Flat spec field -> its annotation (the precompute fields come from PrecomputeSettings).
@@ -206,6 +247,7 @@ def spec_from_dict(data: dict) -> BuildSpec:
         kind = _TYPES[key]
         ok = {
             "str": isinstance(value, str),
+            "str | None": value is None or isinstance(value, str),
             "int": isinstance(value, int) and not isinstance(value, bool),
             "int | None": value is None or (isinstance(value, int) and not isinstance(value, bool)),
             "float | None": value is None or (isinstance(value, (int, float)) and not isinstance(value, bool)),
@@ -239,6 +281,17 @@ def spec_from_dict(data: dict) -> BuildSpec:
             raise SpecError(f"{key}: expected a finite {'positive' if positive else 'non-negative'} number, got {value!r}")
     if spec.glsl_layout not in ("auto", "const", "texture"):
         raise SpecError(f"glsl_layout: expected 'auto', 'const' or 'texture', got {spec.glsl_layout!r}")
+    if spec.encoding not in ("freq", "grid"):
+        raise SpecError(f"encoding: expected 'freq' (the paper's frequency-encoded MLP) or 'grid' (a multiresolution feature grid), got {spec.encoding!r}")
+    if spec.encoding != "grid":
+        if spec.grid is not None:
+            raise SpecError(f"grid: only with encoding 'grid' (got encoding {spec.encoding!r})")
+    else:
+        for key, value, why in (("glsl_layout", spec.glsl_layout == "const", "a grid's tables are always a texture"),
+                                ("time_budget", spec.time_budget is not None, "grids train by steps only"),
+                                ("bf16", bool(spec.bf16) or spec.bf16 is None, "grids train in fp32")):  # fmt: skip
+            if value:
+                raise SpecError(f"{key}: {getattr(spec, key)!r} is not supported with encoding 'grid' ({why})")
     if spec.ladder is not None and not spec.ladder:
         raise SpecError("ladder: empty (list at least one size, or leave it out for the default ladder)")
     spec.architectures()  # validates ladder / fixed
@@ -648,6 +701,8 @@ def _train_segment(spec, s, seg, samples, valid, member_idx, archs, fit_settings
                 bar.set_postfix(val_mae=f"{val_mae:.5f}", refresh=False)
 
         try:
+            if isinstance(arch, GridArchitecture):
+                return fit_grid_segment(p, n, t, vp, vn, vt, arch, bounds, fit_settings, lights=lights, progress=on_epoch)
             return fit_segment(p, n, t, vp, vn, vt, arch, bounds, fit_settings, lights=lights, progress=on_epoch)
         finally:
             if bar is not None:
@@ -677,7 +732,7 @@ def _train_segment(spec, s, seg, samples, valid, member_idx, archs, fit_settings
         "met_target": met,
         "bar": bar,
         "flops_per_fragment": arch.flops_per_fragment(),
-        "weight_bytes": arch.weight_count() * 4,
+        "weight_bytes": _weight_bytes(arch),
         "arrays": result.model.arrays(),
         "history": result.history,
     }

@@ -38,7 +38,7 @@ from torch import nn
 
 from ..export.onnx_model import LEAKY_SLOPE, NORMAL_EPS
 from .fit import FitResult, FitSettings, shaded_error, transfer_error
-from .network import target_scaling
+from .network import layout_width, target_scaling
 
 __all__ = [
     "GridArchitecture",
@@ -49,6 +49,9 @@ __all__ = [
     "level_indices",
     "evaluate_numpy",
     "fit_grid_segment",
+    "DEFAULT_GRID",
+    "GRID_LIMITS",
+    "parse_grid",
 ]
 
 PRIMES = (1, 2654435761, 805459861)  # per axis, as in instant-ngp
@@ -80,6 +83,7 @@ class GridArchitecture:
     normal_freqs: int = 0  # 0: the raw unit normal only
     position: bool = True  # also feed the normalised position x to the MLP
     bands: int = 4
+    layout: str = "direct"  # as prt.train.network.Architecture.layout ("direct+rgb": interreflection)
 
     kind = "grid"
 
@@ -106,7 +110,7 @@ class GridArchitecture:
 
     @property
     def outputs(self) -> int:
-        return self.bands * self.bands
+        return layout_width(self.layout, self.bands)
 
     def mlp_weight_count(self) -> int:
         k, d, o = self.hidden, self.input_dim, self.outputs
@@ -152,12 +156,70 @@ class GridArchitecture:
         return b["position"] + b["grid"] + b["normal"] + b["mlp"]
 
     def as_dict(self) -> dict:
-        return {**asdict(self), "kind": self.kind, "input_dim": self.input_dim, "resolutions": self.resolutions(), "hashed": self.hashed()}
+        """Fields (``layout`` only when not "direct"), ``kind`` "grid", ``input_dim``, the levels'
+        resolutions and whether each is hashed (fit-cache keys and training records)."""
+        out = {**asdict(self), "kind": self.kind, "input_dim": self.input_dim, "resolutions": self.resolutions(), "hashed": self.hashed()}
+        if self.layout == "direct":
+            del out["layout"]
+        else:
+            out["outputs"] = self.outputs
+        return out
+
+    def grid_label(self) -> str:
+        """The grid alone, as ``--grid`` spells it: ``L6-F2-T12-N4-32``."""
+        return f"L{self.levels}-F{self.features}-T{self.log2_table}-N{self.base_resolution}-{self.max_resolution}"
 
     def label(self) -> str:
         n = f"-nf{self.normal_freqs}" if self.normal_freqs else ""
         p = "" if self.position else "-nopos"
-        return f"grid-L{self.levels}-F{self.features}-T{self.log2_table}-N{self.base_resolution}-{self.max_resolution}-k{self.hidden}-l{self.layers}{n}{p}"
+        lay = "" if self.layout == "direct" else f"-{self.layout}"
+        return f"grid-{self.grid_label()}-k{self.hidden}-l{self.layers}{n}{p}{lay}"
+
+
+# The grid of the measured Pareto front (docs/benchmarks/grid_encoding.md): 6 levels, 2 features,
+# T = 2^12, resolutions 4 -> 32; with a k = 64, l = 2 MLP it is 13.7k FLOPs per fragment.
+DEFAULT_GRID = "L6-F2-T12-N4-32"
+
+
+@dataclass(frozen=True)
+class GridLimits:
+    """What ``--grid`` accepts (the GLSL texture holds F <= 4 features in a texel; the biggest
+    tables, 16 levels of 2^20 rows, fit a 1024 x 16384 texture)."""
+
+    levels: int = 16
+    features: int = 4
+    log2_table: tuple[int, int] = (4, 20)
+    resolution: int = 4096
+
+
+GRID_LIMITS = GridLimits()
+_GRID_RE = r"L(\d{1,3})-F(\d{1,2})-T(\d{1,2})-N(\d{1,5})-(\d{1,5})"
+
+
+def parse_grid(text) -> dict:
+    """``"L6-F2-T12-N4-32"`` -> ``{levels, features, log2_table, base_resolution, max_resolution}``:
+    L levels of F features, at most 2^T rows per level, N_min -> N_max cells per axis.  Raises
+    ValueError with a one-line message on anything else."""
+    import re
+
+    if not isinstance(text, str) or not text.isprintable() or len(text) > 40:
+        raise ValueError(f"expected L<levels>-F<features>-T<log2 table>-N<min>-<max> such as {DEFAULT_GRID}, got {str(text)[:40]!r}")
+    m = re.fullmatch(_GRID_RE, text.strip(), flags=re.IGNORECASE)
+    if m is None:
+        raise ValueError(f"expected L<levels>-F<features>-T<log2 table>-N<min>-<max> such as {DEFAULT_GRID}, got {text!r}")
+    levels, features, log2, base, finest = (int(g) for g in m.groups())
+    lim = GRID_LIMITS
+    if not 1 <= levels <= lim.levels:
+        raise ValueError(f"levels L: expected 1 .. {lim.levels}, got {levels}")
+    if not 1 <= features <= lim.features:
+        raise ValueError(f"features F: expected 1 .. {lim.features} (a texel holds 4), got {features}")
+    if not lim.log2_table[0] <= log2 <= lim.log2_table[1]:
+        raise ValueError(f"table T: expected log2 of the rows per level, {lim.log2_table[0]} .. {lim.log2_table[1]}, got {log2}")
+    if not 1 <= base <= finest <= lim.resolution:
+        raise ValueError(f"resolutions N<min>-<max>: expected 1 <= min <= max <= {lim.resolution}, got {base} and {finest}")
+    if levels == 1 and base != finest:
+        raise ValueError(f"one level has one resolution: expected N{base}-{base}, got N{base}-{finest}")
+    return {"levels": levels, "features": features, "log2_table": log2, "base_resolution": base, "max_resolution": finest}
 
 
 def _normal_freq_matrix(freqs: int) -> np.ndarray:
@@ -389,6 +451,7 @@ def fit_grid_segment(
         raise ValueError("a segment needs at least one training and one validation sample")
     if np.shape(transfer)[1] != arch.outputs:
         raise ValueError(f"transfer has {np.shape(transfer)[1]} columns, the network {arch.outputs} outputs")
+    n_coeffs = arch.bands * arch.bands  # per channel; the "direct+rgb" layout outputs 4 sets
     torch.manual_seed(settings.seed)
     gen = torch.Generator().manual_seed(settings.seed)
     scale, offset = target_scaling(transfer)
@@ -432,7 +495,7 @@ def fit_grid_segment(
             continue
         evaluation += 1
         model.eval()
-        val_mae = transfer_error(_predict(model, xv), yv, arch.outputs)
+        val_mae = transfer_error(_predict(model, xv), yv, n_coeffs)
         model.train()
         history.append({"epoch": evaluation, "step": step, "train_l1": total / counted, "val_mae": val_mae})
         if progress is not None:
@@ -450,8 +513,8 @@ def fit_grid_segment(
     return FitResult(
         model=model,
         arch=arch,
-        val_mae=transfer_error(pred, yv, arch.outputs),
-        shaded=shaded_error(pred, yv, lights or {}, arch.outputs),
+        val_mae=transfer_error(pred, yv, n_coeffs),
+        shaded=shaded_error(pred, yv, lights or {}, n_coeffs),
         epochs=evaluation,
         seconds=time.perf_counter() - t0,
         history=history,

@@ -11,6 +11,10 @@ With interreflection (the manifest's ``interreflection``, "direct+rgb" layout) e
 of 8 RGBA32F targets each, and the pass draws twice (``u_part`` 0 and 1), each draw evaluating
 the networks and writing its 8 blocks: OpenGL 3.3 guarantees only 8 draw buffers.  So a
 transfer pass costs two network evaluations per fragment there; relighting runs none.
+
+Textures: units 0 and 1 are the G-buffer; each segment with a ``glsl_weights`` file (a frequency
+network generated with the texture layout, or a grid-encoded network: its tables and MLP weights,
+``prt.export.grid_onnx.table_texture``) gets the next unit, bound to ``seg<id>_transfer_weights``.
 """
 
 from __future__ import annotations
@@ -50,8 +54,14 @@ class GlslBackend(TransferBackend):
                 raise InputError(f"{manifest.path}: segments[{seg.id}] has no generated GLSL (needed by the glsl backend)")
             networks += [Source.from_file(f"// ---- {seg.glsl.name}", "transfer pass"), Source.from_file(read_text(seg.glsl, "GLSL"), str(seg.glsl))]
             cases.append(f"            case {seg.id}: seg{seg.id}_transfer(p.xyz, ns.xyz, t); break;")
+            if seg.glsl_weights is None and seg.encoding == "grid":
+                raise InputError(f"{manifest.path}: segments[{seg.id}] is grid-encoded but has no glsl_weights (its tables, needed by the glsl backend)")
             if seg.glsl_weights is not None:
                 self._weights.append((f"seg{seg.id}_transfer_weights", _load_weights(seg.glsl_weights)))
+        units = int(ctx.info.get("GL_MAX_TEXTURE_IMAGE_UNITS", 16))
+        if 2 + len(self._weights) > units:
+            raise InputError(f"{manifest.path}: {len(self._weights)} segments read weight textures, this GL has {units} texture units "
+                             f"(2 for the G-buffer); render with the onnx backend")  # fmt: skip
         self.blocks = manifest.transfer_width // 4  # vec4 blocks per fragment: 4, or 16 with interreflection
         source = assemble(
             "sh_basis.glsl", "transfer_pass.frag", fills={"networks": Source.join(networks), "dispatch": "\n".join(cases)},
