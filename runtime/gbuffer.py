@@ -34,6 +34,7 @@ Read-backs are (H, W, ...) arrays with row 0 at the top of the image.
 
 from __future__ import annotations
 
+import re
 import zipfile
 import zlib
 from dataclasses import dataclass
@@ -266,6 +267,29 @@ def _uv_vertices(manifest: Manifest, n_faces: int) -> np.ndarray:
     return records.reshape(-1, 5)
 
 
+# A layer function of the transfer networks' GLSL generator (``void <net>_layer<k>(...)`` or
+# ``void <net>_out(...)``): neural-SDF scenes built before the loop-free writer
+# (``prt.train.sdf.neural_glsl``) have their network written so, with loops.
+_NETWORK_LAYER = re.compile(r"^void\s+\w+_(?:layer\d+|out)\s*\([^)]*\)\s*\{", re.M)
+
+
+def _refuse_looped_network(glsl: str, name) -> None:
+    """GeometryError when an SDF scene's GLSL evaluates a network with loops.
+
+    llvmpipe ends every loop of a shader invocation after 65535 iterations in total, and the
+    sphere tracer calls the network inside its own loop: such a network returns a constant
+    part-way through a march, so the scene renders wrongly (and slowly).  Analytic SDFs'
+    loops (polylines) are not in layer functions and pass.
+    """
+    for match in _NETWORK_LAYER.finditer(glsl):
+        end = glsl.find("\n}", match.end())
+        if re.search(r"\bfor\s*\(", glsl[match.end() : len(glsl) if end < 0 else end]):
+            raise GeometryError(
+                f"{name}: neural-SDF GLSL from before the loop-free network writer (its network loops, which "
+                f"llvmpipe cuts short mid-march): rebuild the scene with prt-train MESH -o OUT --neural-sdf"
+            )
+
+
 def _strip_version(glsl: str, name: str = "<sdf>") -> Source:
     """``glsl`` (the file ``name``) without a leading ``#version`` line (an included file must
     not repeat it), remembering the file's own line numbers."""
@@ -440,6 +464,7 @@ class GBufferPass:
             scene_glsl = read_text(path, "SDF GLSL")
         except InputError as exc:
             raise GeometryError(str(exc)) from None
+        _refuse_looped_network(scene_glsl, path)
         tables = segment_tables(manifest, np.zeros(1, dtype=np.int32))
         _check_uniform_budget(self.ctx, tables, str(manifest.path))
         defines = {"PRT_MAX_STEPS": max_steps, "PRT_HIT_EPS": hit_eps, "PRT_SCENE_BOX": SCENE_BOX, **_lookup_defines(tables)}
