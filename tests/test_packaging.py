@@ -96,3 +96,33 @@ def test_wheel_holds_only_the_prt_package_with_shaders(wheel):
                  "prt/runtime/data/demo/geometry.npz", "prt/runtime/data/envmaps/studio_small_03_256.hdr"):
         assert data in names, data
     assert any(n.startswith("prt/runtime/data/demo/segments/") and n.endswith(".onnx") for n in names)
+
+
+TRAIN_WITHOUT_EXTRA = """
+import importlib.abc, sys
+BLOCKED = {blocked!r}
+class Block(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in BLOCKED:
+            raise ModuleNotFoundError("No module named " + repr(name), name=name)
+sys.meta_path.insert(0, Block())
+from prt.train.entry import {entry}
+sys.exit({entry}(["mesh.obj", "-o", "out"]))
+"""
+
+
+@pytest.mark.parametrize("blocked", [("torch",), ("torch", "trimesh", "embreex", "scipy")])
+@pytest.mark.parametrize("entry", ["train_main", "precompute_main"])
+def test_build_commands_without_the_train_extra_say_what_to_install(tmp_path, blocked, entry):
+    code = TRAIN_WITHOUT_EXTRA.format(blocked=blocked, entry=entry)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)
+    if entry == "precompute_main" and blocked == ("torch",):  # the precompute needs no torch: it runs (and rejects the mesh)
+        assert "prt-runtime[train]" not in out.stderr
+        assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+        return
+    assert out.returncode == 2, out.stderr
+    assert "Traceback" not in out.stderr
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and 'pip install "prt-runtime[train]"' in lines[0], lines
+    assert any(f"module {name!r} is not installed" in lines[0] for name in blocked), lines[0]
+    assert not (tmp_path / "out").exists()

@@ -12,11 +12,27 @@ May use torch, trimesh and embreex; install with ``pip install "prt-runtime[trai
                             :mod:`prt.train.train_cli`); imports torch, so not loaded here
 """
 
-from .geometry import Geometry, load_geometry
-from .precompute import PrecomputeSettings, load_precompute, run_precompute
-from .sampling import SurfaceSamples, sample_surface
-from .segments import Segmentation, segment_samples
-from .transfer import compute_transfer
+import importlib
+
+# Loaded on first use (PEP 562), so that ``prt.train.entry`` can report a missing [train] extra
+# in one line before anything imports trimesh, embreex or torch.
+_LAZY = {
+    "Geometry": ".geometry", "load_geometry": ".geometry",
+    "PrecomputeSettings": ".precompute", "load_precompute": ".precompute", "run_precompute": ".precompute",
+    "SurfaceSamples": ".sampling", "sample_surface": ".sampling",
+    "Segmentation": ".segments", "segment_samples": ".segments",
+    "compute_transfer": ".transfer",
+}  # fmt: skip
+
+
+def __getattr__(name: str):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(module, __name__), name)
+    globals()[name] = value
+    return value
+
 
 __all__ = [
     "Geometry",
