@@ -183,6 +183,18 @@ class _IndexStore:
             return None
         return value if value.shape == tuple(shape) and value.dtype == np.int32 else None
 
+    def load_into(self, out: np.ndarray, chunk_size: int) -> list[int]:
+        """Copy every sound cached chunk into its rows of ``out`` (count, ...); the chunks still to trace."""
+        todo = []
+        for k in range(self.store.n_chunks):
+            rows = slice(k * chunk_size, (k + 1) * chunk_size)
+            cached = self.load(k, out[rows].shape) if self.has(k) else None  # damaged: traced again
+            if cached is None:
+                todo.append(k)
+            else:
+                out[rows] = cached
+        return todo
+
 
 def interreflect(direct, bounce_rays: BounceRays, face_albedo, bounces: int, transfer_at=None, chunk: int = 1024) -> np.ndarray:
     """Interreflected transfer ``T_0 + ... + T_N`` (see the module docstring).
@@ -286,14 +298,7 @@ def bounce_stage(mesh, folder, train: dict, valid: dict, face_albedo, bounces: i
         n_chunks = (count + chunk_size - 1) // chunk_size
         store = _IndexStore(Path(folder) / f"bounce-{name}-{key}", n_chunks)
         out = np.empty((count, 2, rays), dtype=np.int32)
-        todo = []
-        for k in range(n_chunks):
-            shape = (min(chunk_size, count - k * chunk_size), 2, rays)
-            cached = store.load(k, shape) if store.has(k) else None  # damaged: traced again
-            if cached is not None:
-                out[k * chunk_size : (k + 1) * chunk_size] = cached
-            else:
-                todo.append(k)
+        todo = store.load_into(out, chunk_size)
         job = BounceJob(tracer, train["points"], train["normals"], rays=rays, seed=seed, stream=stream, workers=1)
         bar = None
         if progress:

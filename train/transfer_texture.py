@@ -384,14 +384,7 @@ def texel_indirect(tracer, points, normals, bounces: TextureBounces, *, chunk_si
     if cache_dir is not None:
         key = _fingerprint(points, normals, bounces.points, bounces.normals, rays, bounces.seed, chunk_size, tracer.identity, "v1")
         store = _IndexStore(Path(cache_dir) / f"bounce-texels-{key}", n_chunks)
-        todo = []
-        for k in range(n_chunks):
-            shape = (min(chunk_size, count - k * chunk_size), 2, rays)
-            cached = store.load(k, shape) if store.has(k) else None  # damaged: traced again
-            if cached is not None:
-                out[k * chunk_size : (k + 1) * chunk_size] = cached
-            else:
-                todo.append(k)
+        todo = store.load_into(out, chunk_size)
     job = BounceJob(tracer, bounces.points, bounces.normals, rays=rays, seed=bounces.seed, stream=2, workers=1)
     bar = None
     if progress:

@@ -25,7 +25,7 @@ import numpy as np
 from ..gbuffer import GBufferPass
 from ..manifest import Manifest
 
-__all__ = ["TransferBackend", "CpuTransfer"]
+__all__ = ["TransferBackend", "CpuTransfer", "draw_transfer"]
 
 
 @dataclass(frozen=True)
@@ -89,3 +89,16 @@ class TransferBackend(ABC):
 
     def release(self) -> None:
         """Free the backend's resources (sessions, programs, textures); it is not used again."""
+
+
+def draw_transfer(ctx, program, vao, target, textures) -> None:
+    """One full-screen transfer pass into ``target``: a framebuffer, or with interreflection's 64
+    values a pair of 8-target framebuffers drawn in turn (``u_part`` selects the half)."""
+    from ..gl import draw_fullscreen
+
+    if isinstance(target, (tuple, list)):
+        for part, fbo in enumerate(target):
+            program["u_part"].value = part
+            draw_fullscreen(ctx, fbo, vao, textures)
+    else:
+        draw_fullscreen(ctx, target, vao, textures)

@@ -28,8 +28,8 @@ from ...shaders import Source, assemble
 from .. import sh
 from ..checks import count_nonfinite, read_text
 from ..errors import InputError
-from ..gl import compile_program, draw_fullscreen
-from .base import TransferBackend
+from ..gl import compile_program
+from .base import TransferBackend, draw_transfer
 
 __all__ = ["GlslBackend"]
 
@@ -86,12 +86,7 @@ class GlslBackend(TransferBackend):
     def run(self, gbuffer, target) -> None:
         t0 = time.perf_counter()
         textures = ((gbuffer.position_texture, 0), (gbuffer.normal_texture, 1), *self._textures)
-        if isinstance(target, (tuple, list)):  # interreflection: 16 blocks, 8 targets per draw
-            for part, fbo in enumerate(target):
-                self.program["u_part"].value = part
-                draw_fullscreen(self.ctx, fbo, self.vao, textures)
-        else:
-            draw_fullscreen(self.ctx, target, self.vao, textures)
+        draw_transfer(self.ctx, self.program, self.vao, target, textures)
         self.ctx.finish()
         self.timings = {"network": 1e3 * (time.perf_counter() - t0)}
         return None

@@ -27,9 +27,9 @@ import numpy as np
 from ...shaders import assemble
 from ..errors import InputError
 from ..gbuffer import load_mesh
-from ..gl import compile_program, draw_fullscreen
+from ..gl import compile_program
 from ..transfer_texture import load_transfer_texture
-from .base import TransferBackend
+from .base import TransferBackend, draw_transfer
 
 __all__ = ["TextureBackend", "bilinear_lookup", "texture_layers"]
 
@@ -113,12 +113,7 @@ class TextureBackend(TransferBackend):
             raise InputError(f"{self.manifest.path}: the G-buffer has no UV target (built for a scene without a transfer texture)")
         t0 = time.perf_counter()
         textures = ((gbuffer.uv_texture, 0), (self.texture, 1))
-        if isinstance(target, (tuple, list)):  # interreflection: 16 blocks, 8 targets per draw
-            for part, fbo in enumerate(target):
-                self.program["u_part"].value = part
-                draw_fullscreen(self.ctx, fbo, self.vao, textures)
-        else:
-            draw_fullscreen(self.ctx, target, self.vao, textures)
+        draw_transfer(self.ctx, self.program, self.vao, target, textures)
         self.ctx.finish()
         self.timings = {"texture": 1e3 * (time.perf_counter() - t0)}
         return None
