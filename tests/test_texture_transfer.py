@@ -266,3 +266,35 @@ def test_a_broken_texture_file_is_one_geometry_error(gl_ctx, textured_scene, tmp
     with Renderer(Scene.load(folder), 8, 8, backend="texture", ctx=gl_ctx) as r:  # the backend starts on first use
         with pytest.raises(GeometryError, match="transfer must be"):
             r.render()
+
+
+def test_a_texture_beyond_the_contexts_array_layers_is_refused_in_one_line(gl_ctx, textured_scene):
+    from types import SimpleNamespace
+
+    from prt.runtime.backends.texture import check_texture_limits
+
+    scene, _ = textured_scene
+    manifest = scene.manifest
+    real = gl_ctx.info["GL_MAX_ARRAY_TEXTURE_LAYERS"]
+    check_texture_limits(gl_ctx, manifest, SIZE, real)  # what this context holds passes
+    with pytest.raises(InputError, match=r"scene\.json: transfer_texture needs 257 texture-array layers .* allows 256") as info:
+        # a driver at GL 3.3's guaranteed minimum: 17 atlases of 64-value transfer do not fit
+        check_texture_limits(SimpleNamespace(info={"GL_MAX_ARRAY_TEXTURE_LAYERS": 256, "GL_MAX_TEXTURE_SIZE": 16384}), manifest, SIZE, 257)
+    assert "\n" not in str(info.value)
+    with pytest.raises(InputError, match="GL_MAX_TEXTURE_SIZE 1024"):
+        check_texture_limits(SimpleNamespace(info={"GL_MAX_ARRAY_TEXTURE_LAYERS": 256, "GL_MAX_TEXTURE_SIZE": 1024}), manifest, 2048, 4)
+
+
+def test_a_bake_beyond_the_guaranteed_array_layers_warns_in_one_line(gl_ctx, tmp_path, monkeypatch):
+    import prt.train.transfer_texture as baking
+    from prt.train.transfer_texture import bake_transfer_texture
+
+    geometry = load_geometry(_two_objects(tmp_path / "scene.obj"))
+    lines = []
+    bake_transfer_texture(geometry, 16, layout="per_object", rays=8, ctx=gl_ctx, log=lines.append)
+    assert not [line for line in lines if "texture-array layers" in line]  # 2 atlases x 4 layers fit in 256
+    monkeypatch.setattr(baking, "GL_GUARANTEED_LAYERS", 7)  # a driver at a lower limit: 8 layers do not fit
+    lines.clear()
+    bake_transfer_texture(geometry, 16, layout="per_object", rays=8, ctx=gl_ctx, log=lines.append)
+    warnings = [line for line in lines if "texture-array layers" in line]
+    assert len(warnings) == 1 and warnings[0].startswith("warning: 8 texture-array layers (2 atlases)")

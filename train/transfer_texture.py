@@ -53,6 +53,9 @@ from .uv_atlas import UVAtlas, build_atlas
 __all__ = ["TransferTexture", "TextureBounces", "scene_bounces", "texel_indirect", "uv_gbuffer", "dilate", "bake_transfer_texture",
            "save_transfer_texture", "DILATE_RINGS", "FORMAT"]
 
+# Array layers every OpenGL 3.3 driver holds (GL_MAX_ARRAY_TEXTURE_LAYERS >= 256).
+GL_GUARANTEED_LAYERS = 256
+
 FORMAT = 1  # transfer_texture.npz layout version
 # Rings of empty texels filled around the charts (>= 1 keeps bilinear fetches off empty texels;
 # more keeps lower-resolution reads of the same file, e.g. mipmaps, clean too).
@@ -475,6 +478,10 @@ def bake_transfer_texture(
     tracer = tracer if tracer is not None else make_tracer(geometry)
     points, normals = position[covered], normal[covered]
     log(f"transfer texture: {atlas.n_atlases} x {size}x{size}, {len(points):,} texels x {rays} rays ({atlas.note})")
+    layers = atlas.n_atlases * (16 if bounces is not None else 4)  # RGBA array layers at run time
+    if layers > GL_GUARANTEED_LAYERS:
+        log(f"warning: {layers} texture-array layers ({atlas.n_atlases} atlases): OpenGL 3.3 guarantees {GL_GUARANTEED_LAYERS}, "
+            f"so the texture backend loads this scene only where the driver allows more (--texture-layout shared makes one atlas)")
     transfer = compute_transfer(
         geometry, points, normals, rays=rays, seed=seed, chunk_size=chunk_size, cache_dir=cache_dir, tracer=tracer, progress=progress
     )

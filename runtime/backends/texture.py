@@ -14,7 +14,8 @@ layout): B = 16 blocks per texel (direct, indirect R, G, B), and the renderer's 
 of framebuffers of 8 RGBA32F targets each (OpenGL 3.3 guarantees 8 draw buffers), so the pass
 draws twice (``u_part`` 0: blocks 0..7, 1: blocks 8..15), as the GLSL backend does; the shade
 pass reads the indirect blocks as it does for the networks.  GL guarantees 256 array layers:
-16 atlases of 64-value transfer.
+16 atlases of 64-value transfer; :func:`check_texture_limits` refuses more than the context
+allows, in one line, before the upload.
 """
 
 from __future__ import annotations
@@ -31,7 +32,25 @@ from ..gl import compile_program
 from ..transfer_texture import load_transfer_texture
 from .base import TransferBackend, draw_transfer
 
-__all__ = ["TextureBackend", "bilinear_lookup", "texture_layers"]
+__all__ = ["TextureBackend", "bilinear_lookup", "check_texture_limits", "texture_layers"]
+
+
+def check_texture_limits(ctx, manifest, size: int, layers: int) -> None:
+    """Refuse, in one line naming the scene, a transfer texture this GL cannot hold: more array
+    layers than ``GL_MAX_ARRAY_TEXTURE_LAYERS`` (at least 256 in GL 3.3: 64 atlases of 16 values,
+    16 of 64) or texels per side beyond ``GL_MAX_TEXTURE_SIZE``.  A driver would otherwise fail
+    the upload with a bare GL error, or some drivers silently sample garbage."""
+    info = ctx.info
+    max_layers = int(info.get("GL_MAX_ARRAY_TEXTURE_LAYERS") or 256)
+    max_size = int(info.get("GL_MAX_TEXTURE_SIZE") or 1024)
+    if layers > max_layers:
+        raise InputError(
+            f"{manifest.path}: transfer_texture needs {layers} texture-array layers "
+            f"(atlases x {manifest.transfer_width // 4} blocks) but this OpenGL allows {max_layers}: rebake with fewer atlases "
+            f"(prt-train --texture-layout shared) or render with the onnx/glsl backends"
+        )
+    if size > max_size:
+        raise InputError(f"{manifest.path}: transfer_texture.size {size} exceeds this OpenGL's GL_MAX_TEXTURE_SIZE {max_size}")
 
 
 def texture_layers(transfer: np.ndarray) -> np.ndarray:
@@ -95,6 +114,7 @@ class TextureBackend(TransferBackend):
         n_faces = len(load_mesh(manifest.geometry.path)["faces"])
         t0 = time.perf_counter()
         width = manifest.transfer_width  # 16, or 64 with interreflection
+        check_texture_limits(ctx, manifest, info.size, info.atlases * (width // 4))
         arrays = load_transfer_texture(info, n_faces, width)
         layers = texture_layers(arrays["transfer"])
         self.blocks = width // 4
