@@ -1,4 +1,11 @@
-"""GLSL for a segment network, generated from the weights in its ONNX file.
+"""GLSL for a segment network, generated from the weights in its ONNX file: a function per segment.
+
+Scenes are exported in the compact form of :mod:`prt.export.glsl_compact` (one function per
+architecture, every segment's values in one texture; ``prt-train --glsl-layout auto``), whose
+scene programs compile on llvmpipe in seconds where these per-segment functions took minutes
+(``docs/benchmarks/glsl_compile.md``); the layouts here remain for ``--glsl-layout const`` /
+``texture``, for older scenes (the ``glsl`` backend still runs their files), and as the
+compact form's building blocks (its tensors are :func:`weight_texture`'s).
 
 The runtime evaluates ``sigma(position, normal)`` in a fragment shader, as in the paper
 (Dhawal, KT, Narayanan 2022).  :func:`generate_glsl` reads the initialisers back from the

@@ -17,7 +17,9 @@ one input and one output, dynamic batch ``N``:
     then ``layers`` x (Gemm, LeakyRelu), Gemm, Tanh, Mul, Add.
 
 :func:`glsl_function` writes the same network as GLSL 3.30 (the table and the MLP weights in one texture
-read with ``texelFetch``, :func:`table_texture`; the hash in ``uint``).
+read with ``texelFetch``, :func:`table_texture`; the hash in ``uint``), a function per segment; scenes
+are exported in the compact form built on it (:func:`prt.export.glsl_compact.grid_source`: one function
+per architecture, the box and output scaling in the texture too).
 
 The table can be stored as float16 (``table_dtype="float16"``, a Cast to float32 in the graph).
 The level constants are recorded in the metadata (``prt.grid``), so :func:`read_arrays` gives back

@@ -83,7 +83,7 @@ def main(argv=None) -> int:
             "--steps", "2000",
             "--hidden", "64",
             "--layers", "3",
-            "--glsl-layout", "texture",
+            "--glsl-layout", "auto",  # the compact GLSL (prt.export.glsl_compact)
             "--no-progress",
         ]
     )  # fmt: skip

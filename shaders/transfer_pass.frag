@@ -1,8 +1,10 @@
 // GLSL backend transfer pass: one fragment per pixel evaluates its segment's network (the
 // paper's way) and writes the 16 coefficients to four RGBA32F targets.  Assembled by
 // prt.runtime.backends.glsl with prt.shaders.assemble: sh_basis.glsl, then this file with its
-// placeholders filled in: networks (each segment's generated network function) and dispatch
-// (a switch over segment ids).
+// placeholders filled in: networks (the generated network functions: one per architecture in
+// the compact form, after transfer_weights.glsl; one per segment in the older per-segment
+// layouts) and dispatch (the statements choosing a segment's network: compact segments through
+// u_segment_net / u_segment_base, per-segment ones through a switch over segment ids).
 
 // With interreflection ("direct+rgb") the networks give 16 vec4 blocks (direct, indirect R, G,
 // B): PRT_TRANSFER_BLOCKS 16, written in two draws of 8 targets (u_part 0: blocks 0..7, 1:
@@ -25,6 +27,10 @@ layout(location = 6) out vec4 o_t6;
 layout(location = 7) out vec4 o_t7;
 uniform int u_part;
 #endif
+#ifdef PRT_SEGMENTS
+uniform int u_segment_net[PRT_SEGMENTS];   // per segment id: its network function, -1 analytic, -2 per-segment GLSL
+uniform int u_segment_base[PRT_SEGMENTS];  // its first texel in prt_weights
+#endif
 uniform vec4 u_analytic_scale[4];  // clamped-cosine band factor / pi of each coefficient
 
 // Unshadowed transfer: the clamped cosine / pi turned to the normal (analytic segments; no
@@ -44,9 +50,7 @@ void main() {
     for (int k = 0; k < PRT_TRANSFER_BLOCKS; ++k) t[k] = vec4(0.0);
     if (p.w >= 0.5) {
         int segment = int(ns.w + 0.5);
-        switch (segment) {
 ${dispatch}
-        }
     }
 #if PRT_TRANSFER_BLOCKS > 4
     if (u_part == 0) {  // constant indices: a dynamic one makes Mesa spill t[] (minutes of compile)

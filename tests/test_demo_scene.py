@@ -1,6 +1,6 @@
 """The bundled demo scene's generated files are what the generator makes of its ONNX files.
 
-``runtime/data/demo/segments/*.glsl`` is generated (``prt.export.glsl``) and committed so the
+``runtime/data/demo/segments/*.glsl`` is generated (``prt.export.glsl_compact``) and committed so the
 runtime needs no ONNX parser; these tests regenerate each file from its ONNX model and compare,
 so a change of the generator or of a model cannot leave the shipped GLSL behind.
 Rebuild the demo with ``python scripts/build_demo_scene.py``.
@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from prt.export.glsl import generate_glsl, weight_texture
+from prt.export.glsl_compact import FORMAT_LINE, freq_source, freq_texels, weights_array
 from prt.runtime import Scene
 
 DEMO = Scene.load().manifest
@@ -23,6 +24,11 @@ def test_demo_has_networks():
 
 @pytest.mark.parametrize("seg", NETWORKS, ids=lambda s: f"seg{s.id:03d}")
 def test_committed_glsl_is_regenerated_exactly(seg):
+    committed = seg.glsl.read_text(encoding="utf-8")
+    if FORMAT_LINE in committed:  # the compact form (prt.export.glsl_compact): one function per architecture
+        assert committed == freq_source(seg.model), f"{seg.glsl} is stale: rerun python scripts/build_demo_scene.py"
+        np.testing.assert_array_equal(np.load(seg.glsl_weights), weights_array(freq_texels(seg.model)))
+        return
     layout = "texture" if seg.glsl_weights is not None else "const"
     source = generate_glsl(seg.model, function_name=f"seg{seg.id}_transfer", layout=layout)
     committed = seg.glsl.read_text(encoding="utf-8")
