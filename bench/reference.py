@@ -71,6 +71,8 @@ def load_scene_geometry(manifest):
         ``type``, ``source``, ``checksum``, ``matches_build_source`` (bool, or None when the
         check could not be made).
     """
+    if manifest.geometry.type == "mixed":
+        return _mixed_geometry(manifest)
     if manifest.geometry.type == "sdf":
         name = manifest.geometry.name
         network = manifest.root / name  # a neural SDF travels in the scene folder as <name>.sdf.onnx
@@ -180,3 +182,31 @@ def convergence(noise: dict, best: dict, rays: int, margin: float = REFERENCE_MA
     gap = {m: round(noise[m] - best[m], 2) for m in noise if m in best}
     return {"rays": rays, "noise_psnr": dict(noise), "best_psnr": {m: round(best[m], 2) for m in gap}, "margin_db": gap,
             "required_db": margin, "floor": any(g < margin for g in gap.values())}  # fmt: skip
+
+
+def _mixed_geometry(manifest):
+    """A mixed scene's geometry for tracing: its mesh objects from ``geometry.npz``, its SDF objects
+    rebuilt from ``mixed.json`` (their placements in scene units; neural networks in the folder)."""
+    from prt.runtime.errors import GeometryError
+    from prt.train.mixed import MixedParts, sdfs_from_record
+
+    record_path = manifest.root / "mixed.json"
+    try:
+        record = json.loads(record_path.read_text())
+        sdfs = sdfs_from_record(record, manifest.root)
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise GeometryError(f"{record_path}: cannot rebuild the mixed scene's SDF objects ({' '.join(str(exc).split())})") from None
+    path = Path(manifest.geometry.path)
+    with np.load(path) as data:
+        vertices, faces, object_ids, two_sided = data["vertices"], data["faces"], data["object_ids"], data["two_sided"]
+    names = list(manifest.geometry.objects)
+    geometry = Geometry(
+        mesh=trimesh.Trimesh(vertices=vertices.astype(np.float64), faces=faces.astype(np.int64), process=False),
+        object_ids=object_ids.astype(np.int64), object_names=names, two_sided=two_sided.astype(bool),
+        to_source=np.asarray(manifest.geometry.to_source, dtype=np.float64), source=str(path), sdf=None,
+    )  # fmt: skip
+    kinds = list(manifest.geometry.kinds)
+    geometry.mixed = MixedParts([], kinds, np.zeros(len(faces), dtype=bool), sdfs, [])
+    digest = hashlib.sha1(mesh_checksum(vertices, faces).encode())
+    digest.update(geometry.mixed.glsl().encode())
+    return geometry, {"type": "mixed", "source": str(path), "checksum": digest.hexdigest(), "matches_build_source": None}

@@ -232,7 +232,9 @@ class SceneBench:
         self.weights = {p: model_weight_bytes(m) for p, m in self.variants.items()}
         self.vertex_data, vertex_info = self._vertex_transfer()
         self.textures, texture_info = {}, {"note": "skipped (--backends)"}
-        if "texture" in settings.backends:
+        if "texture" in settings.backends and self.geometry.kind == "mixed":
+            texture_info = {"note": "skipped: mixed scene (SDF objects have no UV atlas)"}
+        elif "texture" in settings.backends:
             self.textures, texture_info = texture_variants(manifest, self.geometry, self.tracer, settings.texture_sizes,
                                                            settings.ref_rays, settings.cache, ctx, log)  # fmt: skip
         self.entry = {
@@ -255,7 +257,7 @@ class SceneBench:
         self.bounce_albedo, self.higher = None, None
         if self.bounces <= 0:
             return
-        if self.geometry.sdf is not None:
+        if self.geometry.kind != "mesh":
             raise InputError(f"{self.manifest.path}: interreflection in an SDF scene: the reference traces bounces on meshes only")
         self.bounce_albedo = face_albedo(record.get("albedos") or {}, self.geometry)
         self.higher = higher_bounce_samples(self.geometry, self.tracer, self.bounce_albedo, self.bounces, rays=self.settings.ref_rays,
@@ -297,8 +299,8 @@ class SceneBench:
 
     def _vertex_transfer(self):
         """Per-vertex transfer of the vertex baseline and its ``vertex_baseline`` entry."""
-        if self.geometry.sdf is not None:
-            return None, {"note": "skipped: SDF scene (no vertices)"}
+        if self.geometry.kind != "mesh":
+            return None, {"note": f"skipped: {self.geometry.kind} scene (no vertices for the SDF objects)"}
         if "vertex" not in self.settings.backends:
             return None, {"note": "skipped (--backends)"}
         front, back, back_vertices = vertex_transfer(self.geometry, self.tracer, self.settings.ref_rays, self.transfer_cache, self.geometry_id)

@@ -34,7 +34,7 @@ __all__ = ["write_manifest", "relative_to_scene"]
 _KEY_ORDER = [
     "format", "version", "id", "kind", "type", "name", "generator", "sh_bands",
     "geometry", "segmentation", "segments", "lighting", "material", "materials", "camera", "memory",
-    "file", "model", "glsl", "glsl_weights", "to_source", "triangles", "objects",
+    "file", "model", "glsl", "glsl_weights", "to_source", "triangles", "objects", "kinds",
     "roots", "nodes", "leaf_segment", "axis", "split", "left", "right", "leaf",
     "bounds", "architecture", "flops_per_fragment", "weight_bytes", "samples", "validation",
     "hidden", "layers", "pos_freqs", "normal_freqs", "input_dim", "coeff_mae", "shaded_mae",

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from ..runtime.camera import DEFAULT_CAMERA
-from ..runtime.files import atomic_save_npy, atomic_save_npz, atomic_write_bytes
+from ..runtime.files import atomic_save_npz, atomic_write_bytes, atomic_write_json
 from ..runtime.materials import materials_to_dicts
 from ..runtime.manifest import (
     GENERATOR,
@@ -35,8 +35,8 @@ from ..runtime.manifest import (
     SegmentInfo,
     validate_manifest_field,
 )
-from .glsl import choose_layout, generate_glsl, weight_texture
-from .grid_onnx import build_grid_model, glsl_function, save_grid_model, table_texture
+from .glsl_compact import write_segment_glsl
+from .grid_onnx import build_grid_model, save_grid_model
 from .manifest import write_manifest
 from .onnx_model import build_model, save_model
 
@@ -91,7 +91,8 @@ class TrainedSegment:
 def export_segment(out: Path, segment: TrainedSegment, glsl_layout: str = "auto") -> SegmentInfo:
     """Write a network segment's ONNX model and GLSL into ``out/segments``; its manifest entry.
 
-    ``glsl_layout`` is ``"auto"``, ``"const"`` or ``"texture"`` (see :func:`prt.export.glsl.choose_layout`).
+    ``glsl_layout`` is ``"auto"`` (the compact form, :mod:`prt.export.glsl_compact`), ``"const"`` or
+    ``"texture"`` (a function per segment, :func:`prt.export.glsl.generate_glsl`).
     An analytic segment writes nothing.
     """
     s = segment.id
@@ -108,12 +109,7 @@ def export_segment(out: Path, segment: TrainedSegment, glsl_layout: str = "auto"
     info.model = out / f"segments/seg{s:03d}.onnx"
     info.glsl = out / f"segments/seg{s:03d}.glsl"
     save_model(build_model(segment.arrays, arch, name=f"segment{s}"), info.model)
-    layout = choose_layout(arch) if glsl_layout == "auto" else glsl_layout
-    source = generate_glsl(info.model, function_name=f"seg{s}_transfer", layout=layout)
-    atomic_write_bytes(info.glsl, source.encode())
-    if layout == "texture":  # the runtime uploads these weights; it cannot read ONNX initialisers
-        info.glsl_weights = out / f"segments/seg{s:03d}_weights.npy"
-        atomic_save_npy(info.glsl_weights, weight_texture(info.model)[0])
+    write_segment_glsl(info, glsl_layout)  # the runtime uploads the weights; it cannot read ONNX initialisers
     info.architecture = {k: arch[k] for k in _ARCHITECTURE_FIELDS}
     info.flops_per_fragment = segment.flops_per_fragment
     info.weight_bytes = segment.weight_bytes
@@ -122,20 +118,17 @@ def export_segment(out: Path, segment: TrainedSegment, glsl_layout: str = "auto"
 
 def _export_grid_segment(out: Path, segment: TrainedSegment, info: SegmentInfo) -> SegmentInfo:
     """A grid-encoded segment (:mod:`prt.export.grid_onnx`): the ONNX file (opset 18, the tables in
-    fp16), the GLSL function and its texture ``segNNN_weights.npy`` (tables and MLP weights,
-    :func:`~prt.export.grid_onnx.table_texture`'s layout; the tables rounded to fp16 as in the ONNX
-    file, so both backends compute with the same numbers).  The GLSL samples the texture through
-    ``uniform sampler2D segS_transfer_weights``, as a texture-layout frequency network does."""
+    fp16), the compact GLSL function and its texels ``segNNN_weights.npy`` (box, output scaling,
+    tables and MLP weights, :func:`~prt.export.glsl_compact.grid_texels`; the tables rounded to fp16
+    as in the ONNX file, so both backends compute with the same numbers)."""
     s, arch = segment.id, segment.architecture
     arrays = dict(segment.arrays)
     arrays["grid_table"] = np.asarray(arrays["grid_table"], dtype=np.float32).astype(GRID_TABLE_DTYPE).astype(np.float32)
-    name = f"seg{s}_transfer"
     info.model = out / f"segments/seg{s:03d}.onnx"
     info.glsl = out / f"segments/seg{s:03d}.glsl"
     info.glsl_weights = out / f"segments/seg{s:03d}_weights.npy"
     save_grid_model(build_grid_model(arrays, arch, name=f"segment{s}", table_dtype=GRID_TABLE_DTYPE), info.model)
-    atomic_write_bytes(info.glsl, glsl_function(arrays, name=name, sampler=f"{name}_weights").encode())
-    atomic_save_npy(info.glsl_weights, table_texture(arrays)[0])
+    write_segment_glsl(info, "auto", grid_arrays=arrays)
     info.architecture = {"encoding": "grid", **{k: arch[k] for k in _GRID_FIELDS}}
     info.flops_per_fragment = segment.flops_per_fragment
     info.weight_bytes = segment.weight_bytes
@@ -162,14 +155,23 @@ def export_geometry(geometry, out: Path, albedo_uv: np.ndarray | None = None) ->
         return GeometryInfo(type="sdf", path=path, to_source=to_source, name=geometry.sdf.name)
     mesh = geometry.mesh
     path = out / "geometry.npz"
+    mixed = getattr(geometry, "kind", "mesh") == "mixed"
+    # A mixed scene rasterises its mesh objects only: its SDF objects' proxy faces stay out.
+    keep = ~np.asarray(geometry.mixed.proxy_faces) if mixed else np.ones(len(mesh.faces), dtype=bool)
     atomic_save_npz(
         path,
         vertices=np.asarray(mesh.vertices, dtype=np.float32),
-        faces=np.asarray(mesh.faces, dtype=np.uint32),
-        object_ids=np.asarray(geometry.object_ids, dtype=np.int32),
-        two_sided=np.asarray(geometry.two_sided, dtype=bool),
-        **({} if albedo_uv is None else {"albedo_uv": np.asarray(albedo_uv, dtype=np.float32)}),
+        faces=np.asarray(mesh.faces, dtype=np.uint32)[keep],
+        object_ids=np.asarray(geometry.object_ids, dtype=np.int32)[keep],
+        two_sided=np.asarray(geometry.two_sided, dtype=bool)[keep],
+        **({} if albedo_uv is None else {"albedo_uv": np.asarray(albedo_uv, dtype=np.float32)[keep]}),
     )
+    if mixed:
+        glsl = out / "scene_sdf.glsl"
+        atomic_write_bytes(glsl, geometry.mixed.glsl("scene_sdf").encode())
+        atomic_write_json(out / "mixed.json", geometry.mixed.record(out))
+        return GeometryInfo(type="mixed", path=path, to_source=to_source, triangles=int(np.count_nonzero(keep)),
+                            objects=list(geometry.object_names), glsl=glsl, kinds=list(geometry.mixed.kinds))  # fmt: skip
     return GeometryInfo(
         type="mesh", path=path, to_source=to_source, triangles=int(len(mesh.faces)), objects=list(geometry.object_names)
     )

@@ -1,7 +1,12 @@
 """The G-buffer pass: per pixel scene-space position, normal, segment id and depth.
 
 The first pass of a frame.  Mesh scenes are rasterised; SDF scenes are sphere traced in one
-full-screen pass writing the same targets, so the later passes never know which it was.
+full-screen pass writing the same targets, so the later passes never know which it was.  Mixed
+scenes (geometry type ``"mixed"``) do both into one framebuffer: the mesh objects are drawn
+first, then the SDF pass writes ``gl_FragDepth`` of its hits (the same view-projection) under
+the depth test, so the nearer surface wins per pixel; an SDF hit takes the object id the scene's
+GLSL recorded (``prt_scene_object``, the nearest SDF object at the hit) for its segment and
+material.
 
 Render targets (RGBA32F, ``width x height``, plus a depth texture):
 
@@ -11,7 +16,7 @@ Render targets (RGBA32F, ``width x height``, plus a depth texture):
   normal facing the camera (``dot(n, eye - p) >= 0``) and the segment id as a float;
 - attachment 2 (:attr:`GBufferPass.uv_texture`), only for scenes with a transfer texture:
   ``u, v, atlas, covered``, the UV of the visible side (open faces have one chart per side);
-- the next attachment (:attr:`GBufferPass.material_texture`), only for mesh scenes shaded with
+- the next attachment (:attr:`GBufferPass.material_texture`), only for mesh and mixed scenes shaded with
   per-object materials (:mod:`prt.runtime.materials`): ``u, v, object id, covered``;
 - background is ``(0, 0, 0, 0)`` and ``(0, 0, 0, -1)`` (and ``(0, 0, 0, 0)``); depth is GL's window depth in
   ``[0, 1]`` (1 on background), written by both paths from the hit's clip-space depth.
@@ -27,7 +32,7 @@ Segments are computed in the shader (``shaders/segment_lookup.glsl``) by the rul
 :func:`prt.runtime.segmentation.segment_of`: descend the object's k-d tree, or, for an object
 without a root, take the segment whose box is nearest to the point.  Nearest-box is applied
 per fragment, exactly as ``segment_of`` does per point, so both agree everywhere.  SDF
-scenes are object id 0.
+scenes are object id 0; in mixed scenes an SDF hit has its object's id.
 
 Read-backs are (H, W, ...) arrays with row 0 at the top of the image.
 """
@@ -332,7 +337,7 @@ class GBufferPass:
     uv_texture : moderngl.Texture or None
         The UV target of a scene with a transfer texture (see the module docstring), else None.
     kind : str
-        ``"mesh"`` or ``"sdf"``.
+        ``"mesh"``, ``"sdf"`` or ``"mixed"``.
     cull : bool
         Mesh scenes: draw the closed faces with GL's back-face culling, apart from the two-sided
         ones (default); False draws all faces at once without culling (the reference twin).
@@ -390,12 +395,15 @@ class GBufferPass:
         # Per-object materials need each pixel's object id (None: when the manifest has materials).
         if object_materials is None:
             object_materials = bool((manifest.raw or {}).get("materials"))
-        self._with_material = self.kind == "mesh" and bool(object_materials)
+        self._with_material = self.kind in ("mesh", "mixed") and bool(object_materials)
+        self._sdf_program = self._sdf_vao = None  # mixed scenes: the SDF pass after the mesh draw
         self.material_texture = self._albedo_uv_vbo = None
         try:
             self._build_targets()
             if self.kind == "mesh":
                 self._build_mesh(manifest)
+            elif self.kind == "mixed":
+                self._build_mixed(manifest, int(max_steps), float(hit_eps))
             else:
                 self._build_sdf(manifest, int(max_steps), float(hit_eps))
         except BaseException:
@@ -423,9 +431,9 @@ class GBufferPass:
         texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
         return texture
 
-    def _build_mesh(self, manifest: Manifest) -> None:
+    def _build_mesh(self, manifest: Manifest, object_ids: np.ndarray | None = None) -> None:
         mesh = load_mesh(manifest.geometry.path)
-        tables = segment_tables(manifest, mesh["object_ids"])
+        tables = segment_tables(manifest, mesh["object_ids"] if object_ids is None else object_ids)
         _check_uniform_budget(self.ctx, tables, str(manifest.path))
         uv_define = {"PRT_GBUFFER_UV": 1} if self._with_uv else {}
         material_define = {"PRT_GBUFFER_MATERIAL": self.material_attachment} if self._with_material else {}
@@ -455,33 +463,47 @@ class GBufferPass:
         self._closed_vertices = 3 * int(np.count_nonzero(~mesh["two_sided"]))
         self.cull = True
 
+    def _build_mixed(self, manifest: Manifest, max_steps: int, hit_eps: float) -> None:
+        """Mesh objects (when there are any) as a mesh scene, then the SDF objects' pass."""
+        ids = np.arange(len(manifest.geometry.objects or [0]), dtype=np.int32)
+        if manifest.geometry.triangles:
+            self._build_mesh(manifest, ids)
+        self._sdf_program = self._sdf_program_for(manifest, Path(manifest.geometry.glsl), max_steps, hit_eps, ids)
+        self._sdf_vao = self.ctx.vertex_array(self._sdf_program, [])
+
     def _build_sdf(self, manifest: Manifest, max_steps: int, hit_eps: float) -> None:
+        self._program = self._sdf_program_for(manifest, Path(manifest.geometry.path), max_steps, hit_eps, np.zeros(1, dtype=np.int32))
+        self._vbo = None
+        self._vao = self.ctx.vertex_array(self._program, [])
+        self._vertices = 3
+
+    def _sdf_program_for(self, manifest: Manifest, path: Path, max_steps: int, hit_eps: float, object_ids: np.ndarray):
+        """The full-screen sphere-tracing program of the SDF GLSL file ``path``."""
         if max_steps < 1 or not hit_eps > 0.0:
             message = f"need max_steps >= 1 and hit_eps > 0, got {max_steps} and {hit_eps}"
             raise ValueError(f"GBufferPass: {message}")
-        path = Path(manifest.geometry.path)
         try:
             scene_glsl = read_text(path, "SDF GLSL")
         except InputError as exc:
             raise GeometryError(str(exc)) from None
         _refuse_looped_network(scene_glsl, path)
-        tables = segment_tables(manifest, np.zeros(1, dtype=np.int32))
+        tables = segment_tables(manifest, object_ids)
         _check_uniform_budget(self.ctx, tables, str(manifest.path))
         defines = {"PRT_MAX_STEPS": max_steps, "PRT_HIT_EPS": hit_eps, "PRT_SCENE_BOX": SCENE_BOX, **_lookup_defines(tables)}
+        defines |= {"PRT_SCENE_OBJECTS": 1} if self.kind == "mixed" else {}
+        defines |= {"PRT_GBUFFER_MATERIAL": self.material_attachment} if self._with_material else {}
         fragment = assemble(
             "segment_lookup.glsl", "gbuffer_sdf.frag", defines=defines, fills={"scene_sdf": _strip_version(scene_glsl, str(path))}
         )
-        vertex = assemble("fullscreen.vert")
-        self._program = compile_program(self.ctx, fragment, "G-buffer pass", vertex=vertex)
-        _set_tables(self._program, tables)
-        self._vbo = None
-        self._vao = self.ctx.vertex_array(self._program, [])
-        self._vertices = 3
+        program = compile_program(self.ctx, fragment, "G-buffer pass", vertex=assemble("fullscreen.vert"))
+        _set_tables(program, tables)
+        return program
 
     def _set(self, name: str, value) -> None:
-        """Set a uniform if the compiler kept it."""
-        if name in self._program:
-            self._program[name].write(np.ascontiguousarray(value, dtype=np.float32).tobytes())
+        """Set a uniform in every program of the pass, where the compiler kept it."""
+        for program in (self._program, self._sdf_program):
+            if program is not None and name in program:
+                program[name].write(np.ascontiguousarray(value, dtype=np.float32).tobytes())
 
     # ----------------------------------------------------------------- drawing
 
@@ -496,7 +518,7 @@ class GBufferPass:
         # GLSL matrices are column-major: upload the transpose of the row-major numpy matrix.
         self._set("u_view_projection", camera.view_projection(aspect).T)
         self._set("u_eye", camera.eye)
-        if self.kind == "sdf":
+        if self.kind != "mesh":
             half_y = np.tan(np.radians(camera.fov_y) / 2.0)
             self._set("u_forward", camera.forward)
             self._set("u_right", camera.right * half_y * aspect)
@@ -528,6 +550,8 @@ class GBufferPass:
         """The geometry: closed faces with GL's back-face culling, then two-sided faces without it
         (:attr:`cull`); or everything in one draw without culling (the shader's discard alone)."""
         closed = self._closed_vertices if self.cull else 0
+        if self._vao is None:  # a mixed scene without mesh objects
+            closed = self._vertices = 0
         if closed:
             # Back faces of closed surfaces are discarded in the shader; culled by GL as well here
             # (the same fragments, fewer of them run).
@@ -537,6 +561,8 @@ class GBufferPass:
             self.ctx.disable(moderngl.CULL_FACE)
         if self._vertices > closed:
             self._vao.render(moderngl.TRIANGLES, vertices=self._vertices - closed, first=closed)
+        if self._sdf_vao is not None:  # mixed: SDF hits behind the meshes fail the depth test
+            self._sdf_vao.render(moderngl.TRIANGLES, vertices=3)
 
     # ----------------------------------------------------------------- read-back
 
@@ -630,7 +656,7 @@ class GBufferPass:
             return
         self._released = True
         resources = [
-            self._vao, self._program, self._vbo, self._uv_vbo, self._albedo_uv_vbo,
+            self._vao, self._program, self._sdf_vao, self._sdf_program, self._vbo, self._uv_vbo, self._albedo_uv_vbo,
             self._normal_fbo, self._fbo, self.position_texture, self.normal_texture, self.depth_texture, self.uv_texture,
             self.material_texture,
         ]  # fmt: skip

@@ -69,7 +69,9 @@ __all__ = [
 ]
 
 FORMAT = "prt-scene"
-FORMAT_VERSION = 1  # the version runtime/schemas/scene.schema.json describes
+FORMAT_VERSION = 2  # the newest version runtime/schemas/scene.schema.json describes (2: "mixed" geometry)
+# Version 2 is the version of manifests with mixed geometry, every other manifest is version 1 (the
+# schema ties them), so scenes without mixed geometry stay readable by version-1 runtimes.  Both load.
 GENERATOR = "prt-train 0.1.0"  # what the build writes as ``generator``
 
 
@@ -92,15 +94,16 @@ def _relative(path: str | PurePath, root: Path) -> str:
 
 @dataclass
 class GeometryInfo:
-    """The scene's geometry: a triangle mesh (``geometry.npz``) or a built-in SDF scene.
+    """The scene's geometry: a triangle mesh (``geometry.npz``), a built-in SDF scene, or a mixed
+    scene (rasterised mesh objects + sphere-traced SDF objects, composited by depth).
 
     Attributes
     ----------
     type : str
-        ``"mesh"`` or ``"sdf"``.
+        ``"mesh"``, ``"sdf"`` or ``"mixed"`` (format version 2).
     path : Path
-        The mesh file (manifest field ``file``) or the SDF's GLSL (field ``glsl``); absolute
-        and resolved in a loaded manifest.
+        The mesh file (manifest field ``file``; mesh and mixed) or the SDF's GLSL (field ``glsl``);
+        absolute and resolved in a loaded manifest.
     to_source : ndarray, shape (4, 4)
         Row-major affine transform from scene space back to source units.
     name : str or None
@@ -108,7 +111,12 @@ class GeometryInfo:
     triangles : int or None
         Triangle count (mesh only).
     objects : list of str or None
-        Object names, indexed by object id (mesh only).
+        Object names, indexed by object id (mesh and mixed).
+    glsl : Path or None
+        Mixed scenes: the SDF objects' GLSL (field ``glsl``): ``float scene_sdf(vec3 p)``, their
+        union, setting ``int prt_scene_object`` to the nearest SDF object's id.
+    kinds : list of str or None
+        Mixed scenes: per object ``"mesh"`` (rasterised from :attr:`path`) or ``"sdf"`` (traced).
     """
 
     type: str
@@ -117,15 +125,18 @@ class GeometryInfo:
     name: str | None = None
     triangles: int | None = None
     objects: list[str] | None = None
+    glsl: Path | None = None
+    kinds: list[str] | None = None
 
     @property
     def path_field(self) -> str:
-        """The manifest field that holds :attr:`path`: ``"file"`` (mesh) or ``"glsl"`` (sdf)."""
-        return "file" if self.type == "mesh" else "glsl"
+        """The manifest field that holds :attr:`path`: ``"file"`` (mesh, mixed) or ``"glsl"`` (sdf)."""
+        return "glsl" if self.type == "sdf" else "file"
 
     @classmethod
-    def from_dict(cls, data: dict, path: Path) -> GeometryInfo:
-        """From the manifest's ``geometry`` object, with its file already resolved to ``path``."""
+    def from_dict(cls, data: dict, path: Path, glsl: Path | None = None) -> GeometryInfo:
+        """From the manifest's ``geometry`` object, with its file already resolved to ``path`` (and a
+        mixed scene's GLSL to ``glsl``)."""
         objects = data.get("objects")
         return cls(
             type=data["type"],
@@ -134,12 +145,16 @@ class GeometryInfo:
             name=data.get("name"),
             triangles=data.get("triangles"),
             objects=None if objects is None else list(objects),
+            glsl=glsl,
+            kinds=None if data.get("kinds") is None else list(data["kinds"]),
         )
 
     def to_dict(self, root: Path) -> dict:
         """The manifest's ``geometry`` object, :attr:`path` relative to the scene folder ``root``."""
         out = {"type": self.type, self.path_field: _relative(self.path, root), "to_source": _listed(self.to_source)}
         extra = {"name": self.name} if self.type == "sdf" else {"triangles": self.triangles, "objects": self.objects}
+        if self.type == "mixed":
+            extra |= {"glsl": _relative(self.glsl, root), "kinds": self.kinds}
         return out | extra
 
 
@@ -376,12 +391,16 @@ class InterreflectionInfo:
         the R, G and B channels (``4 sh_bands**2`` values).
     albedos : dict of str to list of 3 floats
         Diffuse albedo of each object as it bounced light (fixed at build time).
+    auto : dict or None
+        With ``prt-train --bounces auto``: what chose ``bounces`` (threshold, truncation PSNR and
+        relative MAE per env map and N, :func:`prt.train.bounce_depth.auto_bounces`).
     """
 
     bounces: int
     bounce_rays: int
     layout: str = "direct+rgb"
     albedos: dict = field(default_factory=dict)
+    auto: dict | None = None
 
     # Outputs of a network per SH coefficient of the direct transfer.
     WIDTHS = {"direct+rgb": 4}
@@ -389,11 +408,11 @@ class InterreflectionInfo:
     @classmethod
     def from_dict(cls, data: dict) -> InterreflectionInfo:
         return cls(bounces=data["bounces"], bounce_rays=data["bounce_rays"], layout=data["layout"],
-                   albedos={k: [float(x) for x in v] for k, v in data["albedos"].items()})  # fmt: skip
+                   albedos={k: [float(x) for x in v] for k, v in data["albedos"].items()}, auto=data.get("auto"))  # fmt: skip
 
     def to_dict(self) -> dict:
         return {"bounces": self.bounces, "bounce_rays": self.bounce_rays, "layout": self.layout,
-                "albedos": {k: [float(x) for x in v] for k, v in self.albedos.items()}}  # fmt: skip
+                "albedos": {k: [float(x) for x in v] for k, v in self.albedos.items()}, **({"auto": self.auto} if self.auto else {})}  # fmt: skip
 
 
 @dataclass
@@ -500,7 +519,7 @@ class Manifest:
             name=data["name"],
             generator=data.get("generator"),
             sh_bands=data["sh_bands"],
-            geometry=GeometryInfo.from_dict(geometry, files[f"geometry.{'file' if geometry['type'] == 'mesh' else 'glsl'}"]),
+            geometry=GeometryInfo.from_dict(geometry, files[f"geometry.{'glsl' if geometry['type'] == 'sdf' else 'file'}"], files.get("geometry.glsl")),
             segmentation=segmentation,
             segments=segments,
             lighting=LightingInfo.from_dict(data["lighting"], files.get("lighting.envmap")),
@@ -513,7 +532,8 @@ class Manifest:
         )
 
     def to_dict(self, root: str | Path | None = None) -> dict:
-        """The manifest as JSON types (format :data:`FORMAT`, version :data:`FORMAT_VERSION`).
+        """The manifest as JSON types (format :data:`FORMAT`; version :data:`FORMAT_VERSION` for mixed
+        geometry, else 1, the lowest version that holds the content).
 
         Parameters
         ----------
@@ -522,7 +542,8 @@ class Manifest:
         """
         root = Path(self.root if root is None else root)
         seg = self.segmentation
-        out: dict[str, Any] = {"format": FORMAT, "version": FORMAT_VERSION, "name": self.name}
+        version = FORMAT_VERSION if self.geometry.type == "mixed" else 1
+        out: dict[str, Any] = {"format": FORMAT, "version": version, "name": self.name}
         if self.generator is not None:
             out["generator"] = self.generator
         out |= {

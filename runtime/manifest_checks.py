@@ -154,6 +154,11 @@ def _check_semantics(data: dict, source: str) -> None:
             if name not in objects:
                 raise _fail(source, ["interreflection", "albedos", name], f"{name!r} is not an object of the geometry ({', '.join(objects) or 'none named'})")
 
+    geometry = data["geometry"]
+    if geometry["type"] == "mixed":  # (the schema ties version 2 to mixed geometry)
+        if len(geometry["kinds"]) != len(geometry["objects"]):
+            raise _fail(source, ["geometry", "kinds"], f"expected one kind per object ({len(geometry['objects'])}), got {len(geometry['kinds'])}")
+
     lighting = data["lighting"]
     bands = data["sh_bands"]
     if "sh" in lighting and len(lighting["sh"]) != bands**2:
@@ -229,8 +234,8 @@ def _check_tree(seg: dict, n_segments: int, source: str) -> None:
 def _path_fields(data: dict) -> list[tuple[list[str | int], str]]:
     """(field path, relative path) of every file the manifest references."""
     geometry = data["geometry"]
-    key = "file" if geometry["type"] == "mesh" else "glsl"
-    fields: list[tuple[list[str | int], str]] = [(["geometry", key], geometry[key])]
+    keys = {"mesh": ["file"], "sdf": ["glsl"], "mixed": ["file", "glsl"]}[geometry["type"]]
+    fields: list[tuple[list[str | int], str]] = [(["geometry", key], geometry[key]) for key in keys]
     for i, seg in enumerate(data["segments"]):
         fields += [(["segments", i, k], seg[k]) for k in ("model", "glsl", "glsl_weights") if k in seg]
     envmap = data["lighting"].get("envmap")

@@ -288,7 +288,7 @@ class Renderer:
         self.materials.set(object, material)
         if self.materials.uniform:
             self.material = self.materials[0]
-        elif self.gbuffer.material_texture is None and self.gbuffer.kind == "mesh":
+        elif self.gbuffer.material_texture is None and self.gbuffer.kind in ("mesh", "mixed"):
             # The first per-object material of a scene built without any: pixels need object ids.
             old = self.gbuffer
             self.gbuffer = self._resources.keep(GBufferPass(self.ctx, self.scene.manifest, self.width, self.height, object_materials=True))

@@ -4,7 +4,10 @@
 // runtime/gbuffer.py assembles it (prt.shaders.assemble) after segment_lookup.glsl, with the
 // #defines PRT_MAX_STEPS, PRT_HIT_EPS (hit threshold per unit of ray length), PRT_SCENE_BOX
 // (half size of the box holding the scene) and those of segment_lookup.glsl, and with
-// the placeholder scene_sdf filled with the scene's GLSL defining float scene_sdf(vec3 p).  The scene is object id 0.
+// the placeholder scene_sdf filled with the scene's GLSL defining float scene_sdf(vec3 p).  The scene is object id 0;
+// with PRT_SCENE_OBJECTS (mixed scenes) the GLSL also sets int prt_scene_object, the id of the nearest
+// SDF object, read at the hit.  Mixed scenes draw this pass after their meshes, under the depth test.
+// PRT_GBUFFER_MATERIAL (the material target's index): u, v (0), object id, covered.
 
 ${scene_sdf}
 
@@ -20,6 +23,9 @@ uniform mat4 u_view_projection;   // for gl_FragDepth
 
 layout(location = 0) out vec4 o_position;
 layout(location = 1) out vec4 o_normal;
+#ifdef PRT_GBUFFER_MATERIAL
+layout(location = PRT_GBUFFER_MATERIAL) out vec4 o_material;
+#endif
 
 // Parameters (t_in, t_out) where the ray o + t d enters and leaves the box [-b, b]^3.
 vec2 prt_ray_box(vec3 o, vec3 d, float b) {
@@ -61,9 +67,13 @@ void main() {
     vec3 p = vec3(0.0);
     vec3 n = vec3(0.0);
     float h = 2e-4;
+    int object_id = 0;
     for (int i = 0; i < PRT_MAX_STEPS + 4; ++i) {
         vec3 s = prt_tap(tap);
         float d = scene_sdf(tap < 0 ? u_eye + t * rd : p + s * h);
+#ifdef PRT_SCENE_OBJECTS
+        object_id = tap < 0 ? prt_scene_object : object_id;  // the object at the last march step
+#endif
         if (tap >= 0) {
             n += s * d;
             if (++tap == 4) {
@@ -115,5 +125,8 @@ void main() {
     vec4 clip = u_view_projection * vec4(p, 1.0);
     gl_FragDepth = clamp(0.5 * clip.z / clip.w + 0.5, 0.0, 1.0);
     o_position = vec4(p, 1.0);
-    o_normal = vec4(n, float(prt_segment(0, p)));
+    o_normal = vec4(n, float(prt_segment(object_id, p)));
+#ifdef PRT_GBUFFER_MATERIAL
+    o_material = vec4(0.0, 0.0, float(object_id), 1.0);
+#endif
 }

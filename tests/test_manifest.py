@@ -151,7 +151,8 @@ def test_schema_is_valid_draft_2020_12():
     assert SCENE_SCHEMA["$schema"] == "https://json-schema.org/draft/2020-12/schema"
     # the schema pins the format the model writes
     assert SCENE_SCHEMA["properties"]["format"]["const"] == FORMAT
-    assert SCENE_SCHEMA["properties"]["version"]["const"] == FORMAT_VERSION == 1
+    # version 2 adds mixed geometry; other scenes keep writing 1, so older runtimes read them
+    assert SCENE_SCHEMA["properties"]["version"]["enum"] == [1, FORMAT_VERSION] and FORMAT_VERSION == 2
 
 
 def test_round_trip(scene: Path):

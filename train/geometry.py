@@ -62,6 +62,9 @@ class Geometry:
         The :mod:`prt.train.sdf` object of an SDF scene, else None.
     dropped_nonfinite : int
         Faces of the file dropped because a vertex had a NaN or infinite coordinate.
+    mixed : prt.train.mixed.MixedParts or None
+        A scene composed from a spec's ``objects`` (:mod:`prt.train.mixed`): which faces are SDF
+        proxies, the SDF objects' fields, the objects' materials; else None.
     """
 
     mesh: trimesh.Trimesh
@@ -72,10 +75,14 @@ class Geometry:
     source: str
     sdf: object | None = None
     dropped_nonfinite: int = 0
+    mixed: object | None = None
 
     @property
     def kind(self) -> str:
-        """``"sdf"`` for an SDF scene, ``"mesh"`` for a mesh file."""
+        """``"sdf"`` for an SDF scene, ``"mixed"`` for composed objects with an SDF among them
+        (:mod:`prt.train.mixed`), else ``"mesh"``."""
+        if self.mixed is not None and self.mixed.sdfs:
+            return "mixed"
         return "sdf" if self.sdf is not None else "mesh"
 
     @property

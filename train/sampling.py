@@ -57,7 +57,9 @@ def sample_surface(geometry, count: int, *, seed: int = 0, stream: int = TRAIN_S
     G-buffer gives that point.  Faces of open components
     (``geometry.two_sided``) are surfaces on both sides: each sample takes one side at random.
     SDF scenes: samples on the marching-cubes mesh are projected onto the zero level set
-    along the gradient and take the normalised gradient as normal.
+    along the gradient and take the normalised gradient as normal.  Mixed scenes
+    (:mod:`prt.train.mixed`): samples on an SDF object's proxy faces so, onto that object's own
+    zero set; samples on mesh objects as on meshes.
 
     Parameters
     ----------
@@ -88,6 +90,8 @@ def sample_surface(geometry, count: int, *, seed: int = 0, stream: int = TRAIN_S
     if geometry.sdf is not None:
         points = geometry.sdf.project_to_surface(points)
         normals = geometry.sdf.normals(points)
+    elif geometry.kind == "mixed":
+        normals = _mixed_samples(geometry, points, faces, r1, r2, flip)
     else:
         # The normals the runtime's G-buffer interpolates (smooth, face normals at creases), so
         # the networks learn transfer for the normals they will be asked about.
@@ -103,6 +107,34 @@ def sample_surface(geometry, count: int, *, seed: int = 0, stream: int = TRAIN_S
         faces.astype(np.int64),
         np.asarray(geometry.object_ids, dtype=np.int64)[faces],
     )
+
+
+def _mesh_normals(geometry, faces, r1, r2, flip) -> np.ndarray:
+    """The G-buffer's interpolated normals at barycentric (r1, r2) samples of ``faces``."""
+    mesh = geometry.mesh
+    face_normal, corner = corner_normals(np.asarray(mesh.vertices), np.asarray(mesh.faces))
+    weights = np.stack([1.0 - r1, r1 * (1.0 - r2), r1 * r2], axis=1)
+    normals = interpolated_normals(corner, face_normal, faces, weights)
+    two_sided = np.asarray(geometry.two_sided, dtype=bool)[faces]
+    normals[two_sided & flip] *= -1.0
+    return normals
+
+
+def _mixed_samples(geometry, points, faces, r1, r2, flip) -> np.ndarray:
+    """Mixed scenes: project the SDF objects' samples (in place) onto their own zero sets; normals."""
+    parts = geometry.mixed
+    normals = np.zeros_like(points)
+    on_mesh = ~parts.proxy_faces[faces]
+    if on_mesh.any():
+        # corner normals of the whole mesh: proxy faces share no vertex with mesh objects
+        normals[on_mesh] = _mesh_normals(geometry, faces[on_mesh], r1[on_mesh], r2[on_mesh], flip[on_mesh])
+    objects = np.asarray(geometry.object_ids, dtype=np.int64)[faces]
+    for k, sdf in parts.sdfs.items():
+        mine = np.flatnonzero(~on_mesh & (objects == k))
+        if mine.size:
+            points[mine] = sdf.project_to_surface(points[mine])
+            normals[mine] = sdf.normals(points[mine])
+    return normals
 
 
 def _safe_normalise(v: np.ndarray) -> np.ndarray:

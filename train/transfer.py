@@ -14,7 +14,8 @@ computed once), then rotated into the world frame per sample with SH rotation ma
 sample's frame is spun about its normal by a random angle so the shared set does not print a
 pattern over the surface.
 
-Visibility: Embree (embreex) for meshes, batched sphere tracing for SDF scenes.  Work is split
+Visibility: Embree (embreex) for meshes, batched sphere tracing for SDF scenes, both for mixed
+scenes (a ray is blocked if either blocks it).  Work is split
 into deterministic chunks spread over a thread pool (Embree and numpy release the GIL) or the
 tasks of a Ray cluster (:mod:`prt.train.executor`) and, when a cache folder is given, each
 finished chunk is written atomically so an interrupted run resumes where it stopped with
@@ -39,6 +40,7 @@ __all__ = [
     "orthonormal_frames",
     "EmbreeTracer",
     "SDFTracer",
+    "MixedTracer",
     "make_tracer",
     "TransferIntegrator",
     "compute_transfer",
@@ -174,8 +176,41 @@ class SDFTracer:
         return self._sdf.sphere_trace(origins, dirs)  # t_max: across the whole scene
 
 
+class MixedTracer:
+    """Occlusion against every object: Embree for the mesh objects OR the sphere tracer for the SDFs."""
+
+    def __init__(self, geometry):
+        parts = geometry.mixed
+        keep = ~parts.proxy_faces
+        self.offset = SDF_RAY_OFFSET  # the sphere tracer's start offset; ample for Embree too
+        self.mesh = None
+        if keep.any():
+            import trimesh
+
+            faces = np.asarray(geometry.mesh.faces)[keep]
+            self.mesh = EmbreeTracer(trimesh.Trimesh(np.asarray(geometry.mesh.vertices), faces, process=False))
+        union = parts.union()
+        self.sdf = SDFTracer(union) if union is not None else None
+        ids = [t.identity for t in (self.mesh, self.sdf) if t is not None]
+        self.identity = "mixed:" + hashlib.sha1("|".join(ids).encode()).hexdigest()
+
+    def occluded(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """origins, dirs : (K, 3) float32 -> (K,) bool, True where a mesh or an SDF object blocks the ray."""
+        hit = np.zeros(len(origins), dtype=bool)
+        if self.mesh is not None:
+            hit |= self.mesh.occluded(origins, dirs)
+        if self.sdf is not None:
+            todo = np.flatnonzero(~hit)  # rays a mesh blocked need no sphere tracing
+            if todo.size:
+                hit[todo] = self.sdf.occluded(origins[todo], dirs[todo])
+        return hit
+
+
 def make_tracer(geometry):
-    """The visibility tracer for a geometry: sphere tracing for SDFs, Embree for meshes."""
+    """The visibility tracer for a geometry: sphere tracing for SDFs, Embree for meshes, both
+    for mixed scenes (:class:`prt.train.mixed.MixedTracer`)."""
+    if getattr(geometry, "kind", None) == "mixed":
+        return MixedTracer(geometry)
     if geometry.sdf is not None:
         return SDFTracer(geometry.sdf)
     return EmbreeTracer(geometry.mesh)
