@@ -29,7 +29,9 @@ term (:data:`BOUNCE_RAYS`).
 networks of the "direct+rgb" layout (:mod:`prt.train.network`) to ``[T_0, T_ind_R, T_ind_G,
 T_ind_B]``; the albedos of the bouncing surfaces are the diffuse albedos (``Kd``) of the mesh's
 own per-object materials, fixed at build time and recorded in the manifest's ``interreflection``.
-Bounces are diffuse: a glossy surface bounces its diffuse albedo only.
+Bounces are diffuse: a glossy surface bounces its diffuse albedo only.  ``--bounces auto``
+(:mod:`prt.train.bounce_depth`) measures the terms on the validation samples first and keeps the
+smallest N whose truncation error is small; the rays are traced once for both.
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ import numpy as np
 
 from .transfer import _unit, cosine_directions, orthonormal_frames
 
-__all__ = ["BounceRays", "BounceJob", "trace_bounce_rays", "bounce_chunk", "bounce_stage", "interreflect", "bounce_matrices",
+__all__ = ["BounceRays", "BounceJob", "trace_bounce_rays", "bounce_chunk", "trace_stage", "bounce_terms", "bounce_stage", "interreflect", "bounce_matrices",
            "BOUNCE_RAYS", "NORMAL_WEIGHT"]
 
 # Rays per sample of the bounce stage (the direct transfer keeps its own count).  32: on the
@@ -254,30 +256,12 @@ def bounce_matrices(bounce_rays: BounceRays, face_albedo, targets: int | None = 
     return [csr_matrix((albedo[:, c], (rows, landed)), shape=shape) for c in range(3)]
 
 
-def bounce_stage(mesh, folder, train: dict, valid: dict, face_albedo, bounces: int, *, rays: int = BOUNCE_RAYS, seed: int = 0,
-                 chunk_size: int = 2048, key: str = "", executor=None, threads: int | None = None, progress: bool = True,
-                 log=print) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-    """The build's bounce stage: indirect transfer ``T_1 + ... + T_N`` of the training and validation samples.
+def trace_stage(mesh, folder, train: dict, valid: dict, *, rays: int = BOUNCE_RAYS, seed: int = 0, chunk_size: int = 2048, key: str = "",
+                executor=None, threads: int | None = None, progress: bool = True, log=print) -> dict:  # fmt: skip
+    """The rays of the bounce stage, traced in chunks (cached in ``folder``): {"train", "validation"} -> :class:`BounceRays`.
 
-    Runs after the direct precompute and before fitting.  The rays (hit points and nearest
-    training samples, which do not depend on the albedos) are traced in deterministic chunks
-    through ``executor`` and stored in ``folder`` (:class:`prt.train.cache.ChunkStore`, keyed by
-    ``key``: the precompute's key, rays, seed, chunk size; int32 indices), so an interrupted stage resumes and a
-    change of albedo or bounce count retraces nothing.  The bounces are sparse products
-    (:func:`bounce_matrices`).  Validation samples shoot their own rays (another seed stream)
-    and gather the training samples' transfer of the previous bounce: the same estimator.
-
-    Parameters
-    ----------
-    mesh : trimesh.Trimesh
-    folder : path of the chunk stores
-    train, valid : dicts with ``points``, ``normals``, ``transfer`` (direct, (S, n))
-    face_albedo : (F, 3) diffuse albedo of every triangle
-    bounces : N >= 1
-
-    Returns
-    -------
-    (S, n, 3), (V, n, 3) float32: the indirect RGB transfer (without the direct term)
+    The hit points and nearest training samples do not depend on the albedos or the bounce count
+    (see :func:`bounce_stage`); validation samples shoot their own rays (another seed stream).
     """
     from contextlib import closing
     from pathlib import Path
@@ -318,21 +302,64 @@ def bounce_stage(mesh, folder, train: dict, valid: dict, face_albedo, bounces: i
             if bar is not None:
                 bar.close()
         found[name] = BounceRays(out[:, 0].astype(np.int64), out[:, 1].astype(np.int64))
-
     log(f"bounce rays: {sum(len(f.nearest) for f in found.values()):,} samples x {rays} rays in {time.perf_counter() - t0:.1f} s")
-    t0 = time.perf_counter()
+    return found
+
+
+def bounce_terms(found: dict, face_albedo, direct, bounces: int):
+    """Yield ``(b, T_b of the training samples, T_b of the validation samples)`` for b = 1 .. ``bounces``.
+
+    ``found``: :func:`trace_stage`'s rays; ``direct`` (S, n): the training samples' direct
+    transfer.  Training: ``T_b = W @ T_{b-1}`` (:func:`bounce_matrices`, per channel);
+    validation: its own rays gather the training samples' ``T_{b-1}`` (the same estimator).
+    Each term is (count, n, 3) float64; only the previous training term is kept.
+    """
     albedo = np.asarray(face_albedo, dtype=np.float64)
-    direct = np.repeat(np.asarray(train["transfer"], dtype=np.float64)[:, :, None], 3, axis=2)
     matrices = bounce_matrices(found["train"], albedo)
-    previous, indirect, before_last = direct, np.zeros_like(direct), direct.copy()
-    for b in range(1, int(bounces) + 1):
-        previous = np.stack([matrices[c] @ previous[:, :, c] for c in range(3)], axis=2)
-        indirect += previous
-        if b < bounces:
-            before_last += previous
-        log(f"bounce {b}/{bounces}: mean |T_{b}_0| {float(np.abs(previous[:, 0]).mean()):.5f} (direct {float(np.abs(direct[:, 0, 0]).mean()):.5f})")
-    # Validation rays gather T_0 + ... + T_{N-1} of the training samples at their hit points.
     valid_matrices = bounce_matrices(found["validation"], albedo, targets=len(direct))
-    valid_indirect = np.stack([valid_matrices[c] @ before_last[:, :, c] for c in range(3)], axis=2)
+    previous = np.repeat(np.asarray(direct, dtype=np.float64)[:, :, None], 3, axis=2)
+    for b in range(1, int(bounces) + 1):
+        valid_term = np.stack([valid_matrices[c] @ previous[:, :, c] for c in range(3)], axis=2)
+        previous = np.stack([matrices[c] @ previous[:, :, c] for c in range(3)], axis=2)
+        yield b, previous, valid_term
+
+
+def bounce_stage(mesh, folder, train: dict, valid: dict, face_albedo, bounces: int, *, rays: int = BOUNCE_RAYS, seed: int = 0,
+                 chunk_size: int = 2048, key: str = "", executor=None, threads: int | None = None, progress: bool = True,
+                 log=print) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The build's bounce stage: indirect transfer ``T_1 + ... + T_N`` of the training and validation samples.
+
+    Runs after the direct precompute and before fitting.  The rays (hit points and nearest
+    training samples, which do not depend on the albedos) are traced in deterministic chunks
+    through ``executor`` and stored in ``folder`` (:class:`prt.train.cache.ChunkStore`, keyed by
+    ``key``: the precompute's key, rays, seed, chunk size; int32 indices), so an interrupted stage resumes and a
+    change of albedo or bounce count retraces nothing (:func:`trace_stage`).  The bounces are
+    sparse products (:func:`bounce_terms`).  Validation samples shoot their own rays (another
+    seed stream) and gather the training samples' transfer of the previous bounce: the same estimator.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+    folder : path of the chunk stores
+    train, valid : dicts with ``points``, ``normals``, ``transfer`` (direct, (S, n))
+    face_albedo : (F, 3) diffuse albedo of every triangle
+    bounces : N >= 1
+
+    Returns
+    -------
+    (S, n, 3), (V, n, 3) float32: the indirect RGB transfer (without the direct term)
+    """
+    import time
+
+    found = trace_stage(mesh, folder, train, valid, rays=rays, seed=seed, chunk_size=chunk_size, key=key, executor=executor,
+                        threads=threads, progress=progress, log=log)  # fmt: skip
+    t0 = time.perf_counter()
+    direct = np.asarray(train["transfer"], dtype=np.float64)
+    indirect = np.zeros(direct.shape + (3,))
+    valid_indirect = np.zeros((len(found["validation"].nearest),) + direct.shape[1:] + (3,))
+    for b, term, valid_term in bounce_terms(found, face_albedo, direct, bounces):
+        indirect += term
+        valid_indirect += valid_term
+        log(f"bounce {b}/{bounces}: mean |T_{b}_0| {float(np.abs(term[:, 0]).mean()):.5f} (direct {float(np.abs(direct[:, 0]).mean()):.5f})")
     log(f"bounces: {bounces} in {time.perf_counter() - t0:.1f} s")
     return indirect.astype(np.float32), valid_indirect.astype(np.float32)

@@ -190,7 +190,7 @@ FLAGS = [
     ("train-grid-bf16", "prt-train", ["--encoding", "grid", "--bf16"], r"bf16: True is not supported with encoding 'grid'"),
     ("train-bounces-negative", "prt-train", ["--bounces", "-1"], r"bounces: expected 0 \.\. 16"),
     ("train-bounces-huge", "prt-train", ["--bounces", str(10**9)], r"bounces: expected 0 \.\. 16"),
-    ("train-bounces-not-a-number", "prt-train", ["--bounces", "two"], r"argument --bounces: invalid int value"),
+    ("train-bounces-not-a-number", "prt-train", ["--bounces", "two"], r"argument --bounces: expected a number of bounces or 'auto', got 'two'"),
     ("train-bounce-rays-zero", "prt-train", ["--bounces", "2", "--bounce-rays", "0"], r"bounce_rays: expected 1 \.\. 4096"),
     ("train-sdf-size-malformed", "prt-train", ["--neural-sdf", "--sdf-size", "64by4"], r"--sdf-size: expected KxL"),
     ("train-sdf-size-too-deep", "prt-train", ["--neural-sdf", "--sdf-size", "64x40"], r"--sdf-size: expected 1 <= K"),
