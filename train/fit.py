@@ -1,4 +1,5 @@
-"""Fitting one segment's network: L1 loss, Adam, warm-up + cosine learning rate, early stop
+"""Fitting one segment's network: L1 loss (or, ``loss="relative"``, L1 weighted by each sample's
+inverse brightness, :func:`loss_weights`), Adam, warm-up + cosine learning rate, early stop
 on the held-out validation samples, deterministic for a seed.  Right-sizing walks a ladder of
 sizes and keeps the smallest network that meets the error target.
 """
@@ -8,7 +9,7 @@ from __future__ import annotations
 import copy
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import torch
@@ -28,7 +29,23 @@ __all__ = [
     "total_transfer",
     "transfer_error",
     "bf16_supported",
+    "LOSSES",
+    "RELATIVE_FLOOR",
+    "loss_weights",
+    "weighted_l1_numpy",
+    "batch_loss",
+    "brightness",
 ]
+
+# Fitting losses: "l1" (the paper's: L1 on the coefficients, so a dim sample's error weighs as
+# little as its transfer is small) and "relative" (each sample's L1 divided by c + m, m its
+# brightness, so the loss follows the relative error that a tone-mapped image shows).
+LOSSES = ("l1", "relative")
+# c of "relative", in transfer units: an unoccluded surface's DC coefficient is 0.282 (Y_00), the
+# Cornell box's dim interior's about 0.04; below c a sample's weight stops growing.  0.02 let the
+# dark samples (DC ~ 0) outweigh the open ones so far that a k32 network of the Cornell floor fitted
+# its unoccluded side as black (docs/benchmarks/loss_weighting.md); 0.05 caps the weight ratio at 6.6.
+RELATIVE_FLOOR = 0.05
 
 # Smallest first.  Each rung is (hidden k, layers l, position frequencies F).
 DEFAULT_LADDER = (
@@ -75,6 +92,16 @@ class FitSettings:
     bf16: bool | None = False  # True: bf16 autocast (2x faster here, ~9 % higher error); None: where native
     max_seconds: float | None = None  # wall-clock budget per fit
     steps: int | None = None  # Adam steps per network (None: DEFAULT_STEPS unless ``epochs`` is set)
+    loss: str = "l1"  # see LOSSES; "relative" also picks the kept network by its weighted validation error
+    loss_floor: float = RELATIVE_FLOOR  # c of the "relative" loss
+
+    def cache_key(self) -> dict:
+        """The fields that key cached fits: every field, the loss's only where not the default "l1"
+        (so builds made before the loss option keep their keys and their cached fits)."""
+        keyed = asdict(self)
+        if self.loss == "l1":
+            del keyed["loss"], keyed["loss_floor"]
+        return keyed
 
     def plan(self, n: int) -> tuple[int, int, int, int]:
         """(batch, total steps, steps between validations, warm-up steps) for ``n`` training samples."""
@@ -143,6 +170,46 @@ def shaded_error(pred: np.ndarray, truth: np.ndarray, lights: dict[str, np.ndarr
     return out
 
 
+def brightness(transfer: np.ndarray, n: int) -> np.ndarray:
+    """Per-sample brightness proxy m: the DC coefficient of the total transfer, averaged over the
+    colour channels (direct layout: ``T_0``; "direct+rgb": ``T_0 + mean_c T_ind,c,0``), at least 0."""
+    total = total_transfer(np.asarray(transfer, dtype=np.float64), n)
+    dc = total[:, 0] if total.ndim == 2 else total[:, 0, :].mean(axis=1)
+    return np.maximum(dc, 0.0)
+
+
+def loss_weights(transfer: np.ndarray, n: int, loss: str = "relative", floor: float = RELATIVE_FLOOR) -> np.ndarray | None:
+    """Per-sample loss weights, shape (M,) float32, mean 1: ``1 / (floor + m)`` (m: :func:`brightness`)
+    normalised so the loss keeps the plain L1's scale; None for ``loss="l1"``.  Every output of a
+    sample (all 64 of "direct+rgb") gets its sample's weight."""
+    if loss not in LOSSES:
+        raise ValueError(f"loss must be one of {', '.join(LOSSES)}, got {loss!r}")
+    if loss == "l1":
+        return None
+    if not (math.isfinite(floor) and floor > 0):
+        raise ValueError(f"loss_floor must be finite and > 0, got {floor!r}")
+    w = 1.0 / (floor + brightness(transfer, n))
+    return (w / w.mean()).astype(np.float32)
+
+
+def weighted_l1_numpy(pred: np.ndarray, truth: np.ndarray, weights: np.ndarray | None = None) -> float:
+    """Plain reference of the fitting loss: mean over samples and outputs of ``w_i |pred - truth|``
+    (``weights`` None: plain L1)."""
+    err = np.abs(np.asarray(pred, np.float64) - np.asarray(truth, np.float64))
+    if weights is not None:
+        err = err * np.asarray(weights, np.float64)[:, None]
+    return float(err.mean())
+
+
+def batch_loss(out: torch.Tensor, target_scaled: torch.Tensor, scale: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
+    """The fitting loss of a batch: L1 on the transfer itself (``out`` and ``target_scaled`` are in the
+    network's scaled units, ``scale`` (outputs,) maps them back), each sample's row times its weight
+    ((B, 1), :func:`loss_weights`) where given.  :func:`weighted_l1_numpy` is its plain twin."""
+    if weights is None:
+        return ((out - target_scaled).abs() * scale).mean()
+    return ((out - target_scaled).abs() * scale * weights).mean()
+
+
 def _as_input(points: np.ndarray, normals: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(np.concatenate([points, normals], axis=1), dtype=np.float32))
 
@@ -197,6 +264,9 @@ def fit_segment(
     # L1 on the transfer itself, computed through the scaled tanh output
     inv_scale = torch.from_numpy(1.0 / scale)
     y_scaled = (y - torch.from_numpy(offset)) * inv_scale
+    weights = loss_weights(transfer, n_coeffs, settings.loss, settings.loss_floor)
+    w = None if weights is None else torch.from_numpy(weights)[:, None]
+    val_weights = loss_weights(yv, n_coeffs, settings.loss, settings.loss_floor)
 
     n = len(x)
     batch, total_steps, eval_every, warmup = settings.plan(n)
@@ -230,7 +300,7 @@ def fit_segment(
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=use_bf16):
             pre = model.trunk(features)
         out = torch.tanh(pre.float())
-        loss = ((out - y_scaled[idx]).abs() * scale_t).mean()
+        loss = batch_loss(out, y_scaled[idx], scale_t, None if w is None else w[idx])
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -242,16 +312,18 @@ def fit_segment(
             continue
         evaluation += 1
         model.eval()
-        val_mae = transfer_error(_predict(model, xv), yv, n_coeffs)
+        val_pred = _predict(model, xv)
+        val_mae = transfer_error(val_pred, yv, n_coeffs)
         model.train()
         history.append({"epoch": evaluation, "step": step, "train_l1": total / counted, "val_mae": val_mae})
         if progress is not None:
             progress(step, total_steps, total / counted, val_mae)
         total, counted = 0.0, 0
-        if val_mae < best[0] * (1 - 5e-3):
-            best = (val_mae, copy.deepcopy(model.state_dict()), evaluation)
-        elif val_mae < best[0]:
-            best = (val_mae, copy.deepcopy(model.state_dict()), best[2])
+        score = val_mae if val_weights is None else weighted_l1_numpy(val_pred, yv, val_weights)
+        if score < best[0] * (1 - 5e-3):
+            best = (score, copy.deepcopy(model.state_dict()), evaluation)
+        elif score < best[0]:
+            best = (score, copy.deepcopy(model.state_dict()), best[2])
         if evaluation - best[2] >= settings.patience and step >= settings.min_epochs_fraction * total_steps:
             break
         if out_of_time:

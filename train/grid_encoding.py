@@ -37,7 +37,7 @@ import torch
 from torch import nn
 
 from ..export.onnx_model import LEAKY_SLOPE, NORMAL_EPS
-from .fit import FitResult, FitSettings, shaded_error, transfer_error
+from .fit import FitResult, FitSettings, batch_loss, loss_weights, shaded_error, transfer_error, weighted_l1_numpy
 from .network import layout_width, target_scaling
 
 __all__ = [
@@ -462,6 +462,9 @@ def fit_grid_segment(
     yv = np.asarray(val_transfer, dtype=np.float32)
     y_scaled = (y - torch.from_numpy(offset)) * torch.from_numpy(1.0 / scale)
     scale_t = torch.from_numpy(scale)
+    weights = loss_weights(transfer, n_coeffs, settings.loss, settings.loss_floor)  # settings.loss, as fit_segment
+    w = None if weights is None else torch.from_numpy(weights)[:, None]
+    val_weights = loss_weights(yv, n_coeffs, settings.loss, settings.loss_floor)
     n = len(x)
     batch, total_steps, eval_every, warmup = settings.plan(n)
     mlp_params = [p for name, p in model.named_parameters() if name != "table"]
@@ -484,7 +487,7 @@ def fit_grid_segment(
         for group in opt.param_groups:
             group["lr"] = settings.lr * rate * group["lr_scale"]
         out = torch.tanh(model.trunk(model.encode(x[idx])))
-        loss = ((out - y_scaled[idx]).abs() * scale_t).mean()
+        loss = batch_loss(out, y_scaled[idx], scale_t, None if w is None else w[idx])
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -495,16 +498,18 @@ def fit_grid_segment(
             continue
         evaluation += 1
         model.eval()
-        val_mae = transfer_error(_predict(model, xv), yv, n_coeffs)
+        val_pred = _predict(model, xv)
+        val_mae = transfer_error(val_pred, yv, n_coeffs)
         model.train()
         history.append({"epoch": evaluation, "step": step, "train_l1": total / counted, "val_mae": val_mae})
         if progress is not None:
             progress(step, total_steps, total / counted, val_mae)
         total, counted = 0.0, 0
-        if val_mae < best[0] * (1 - 5e-3):
-            best = (val_mae, copy.deepcopy(model.state_dict()), evaluation)
-        elif val_mae < best[0]:
-            best = (val_mae, copy.deepcopy(model.state_dict()), best[2])
+        score = val_mae if val_weights is None else weighted_l1_numpy(val_pred, yv, val_weights)
+        if score < best[0] * (1 - 5e-3):
+            best = (score, copy.deepcopy(model.state_dict()), evaluation)
+        elif score < best[0]:
+            best = (score, copy.deepcopy(model.state_dict()), best[2])
         if evaluation - best[2] >= settings.patience and step >= settings.min_epochs_fraction * total_steps:
             break
     model.load_state_dict(best[1])

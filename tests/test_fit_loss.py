@@ -1,0 +1,119 @@
+"""The fitting loss option (``loss = "l1" | "relative"``, prt.train.fit): the weighted loss against its
+plain numpy twin, the default unchanged, and the relative loss fitting dim samples better."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from prt.runtime.errors import SpecError  # noqa: E402
+from prt.train.fit import (  # noqa: E402
+    RELATIVE_FLOOR,
+    FitSettings,
+    _as_input,
+    _predict,
+    batch_loss,
+    brightness,
+    fit_segment,
+    loss_weights,
+    weighted_l1_numpy,
+)
+from prt.train.network import Architecture, target_scaling  # noqa: E402
+
+
+def _transfer(rng, m, width):
+    t = rng.normal(scale=0.05, size=(m, width))
+    t[:, 0] = rng.uniform(0.0, 0.3, m)  # DC: the brightness proxy
+    return t.astype(np.float32)
+
+
+def test_weights_match_the_formula_and_layouts():
+    rng = np.random.default_rng(1)
+    t = _transfer(rng, 50, 16)
+    w = loss_weights(t, 16, "relative", 0.05)
+    raw = 1.0 / (0.05 + np.maximum(t[:, 0].astype(np.float64), 0))
+    np.testing.assert_allclose(w, raw / raw.mean(), rtol=1e-6)
+    assert loss_weights(t, 16, "l1") is None
+    # "direct+rgb": the DC of the total transfer, direct + indirect averaged over R, G, B
+    t4 = _transfer(rng, 50, 64)
+    expect = t4[:, 0] + (t4[:, 16] + t4[:, 32] + t4[:, 48]) / 3
+    np.testing.assert_allclose(brightness(t4, 16), np.maximum(expect, 0), rtol=1e-5, atol=1e-7)
+    # a brighter sample weighs less
+    assert w[np.argmax(t[:, 0])] == w.min() and w[np.argmin(t[:, 0])] == w.max()
+    for bad in ({"loss": "l2"}, {"floor": 0.0}, {"floor": float("nan")}):
+        with pytest.raises(ValueError, match="loss"):
+            loss_weights(t, 16, **({"loss": "relative"} | bad))
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+def test_batch_loss_matches_numpy_twin(weighted):
+    rng = np.random.default_rng(2)
+    truth = _transfer(rng, 64, 16)
+    pred = truth + rng.normal(scale=0.01, size=truth.shape).astype(np.float32)
+    scale, offset = target_scaling(truth)
+    out = torch.from_numpy((pred - offset) / scale)  # the network's scaled units
+    target = torch.from_numpy((truth - offset) / scale)
+    weights = loss_weights(truth, 16, "relative", RELATIVE_FLOOR) if weighted else None
+    got = batch_loss(out, target, torch.from_numpy(scale), None if weights is None else torch.from_numpy(weights)[:, None])
+    assert float(got) == pytest.approx(weighted_l1_numpy(pred, truth, weights), rel=1e-5)
+
+
+def _problem(seed=0, m=3000):
+    """Two groups on a plane: bright (normal +z) and 100x dimmer (normal -z), the same kind of detail."""
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(-1, 1, (m, 3)).astype(np.float32)
+    p[:, 2] = 0.0
+    dim = np.arange(m) % 2 == 1
+    n = np.zeros((m, 3), np.float32)
+    n[:, 2] = np.where(dim, -1.0, 1.0)
+    x, y = p[:, 0:1], p[:, 1:2]
+    k = np.arange(16)[None] + 1.0
+    base = 0.3 * (1.0 + 0.8 * np.sin(3.0 * x * k / 4 + y * k / 3)) / k  # DC ~0.3: an open surface
+    t = np.where(dim[:, None], 0.01, 1.0) * base
+    return p, n, t.astype(np.float32), dim
+
+
+def _fit(loss, steps=250):
+    p, n, t, _ = _problem(0)
+    vp, vn, vt, vdim = _problem(1, 600)
+    arch = Architecture(hidden=16, layers=2, pos_freqs=3)
+    bounds = np.array([[-1.0, -1.0, -0.1], [1.0, 1.0, 0.1]])
+    torch.set_num_threads(1)
+    result = fit_segment(p, n, t, vp, vn, vt, arch, bounds, FitSettings(steps=steps, batch=1024, lr=1e-2, seed=3, loss=loss))
+    pred = _predict(result.model, _as_input(vp, vn))
+    rel = np.abs(pred - vt).sum(1) / np.abs(vt).sum(1)  # relative error per sample
+    return result, rel[vdim].mean(), rel[~vdim].mean()
+
+
+def test_default_is_l1_and_deterministic():
+    assert FitSettings().loss == "l1"
+    a, _, _ = _fit("l1", steps=40)
+    b, _, _ = _fit("l1", steps=40)
+    for x, y in zip(a.model.state_dict().values(), b.model.state_dict().values()):
+        assert np.array_equal(x.numpy(), y.numpy())
+
+
+def test_relative_loss_fits_dim_samples_better():
+    _, l1_dim, l1_bright = _fit("l1")
+    _, rel_dim, rel_bright = _fit("relative")
+    # L1 leaves the dim group's relative error far above the bright group's; the relative loss lowers it
+    assert l1_dim > 2 * l1_bright
+    assert rel_dim < 0.7 * l1_dim
+
+
+def test_spec_and_cli_carry_the_loss():
+    from prt.train.build import BuildSpec, spec_from_dict
+    from prt.train.train_cli import _spec_from_args, build_parser
+
+    assert BuildSpec().loss == "l1" and BuildSpec().fit_settings().loss == "l1"
+    spec = spec_from_dict({"geometry": "bunny", "loss": "relative"})
+    assert spec.fit_settings().loss == "relative" and spec.to_dict()["loss"] == "relative"
+    # the default keys cached fits as before the option; the relative loss keys its own
+    assert "loss" not in BuildSpec().fit_settings().cache_key() and spec.fit_settings().cache_key()["loss"] == "relative"
+    with pytest.raises(SpecError, match="^loss: "):
+        spec_from_dict({"geometry": "bunny", "loss": "l2"})
+    args = build_parser().parse_args(["bunny", "-o", "/tmp/x", "--loss", "relative"])
+    assert _spec_from_args(args).loss == "relative"
+    assert _spec_from_args(build_parser().parse_args(["bunny", "-o", "/tmp/x"])).loss == "l1"
