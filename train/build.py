@@ -19,6 +19,7 @@ import time
 from contextlib import closing
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
@@ -32,14 +33,16 @@ from ..runtime.errors import SpecError
 from ..runtime.files import atomic_save_npz, atomic_write_json
 from ..runtime.manifest import validate_manifest_field
 from ..runtime.sh import unshadowed_transfer
-from .fit import DEFAULT_LADDER, DEFAULT_STEPS, FitResult, FitSettings, fit_segment, right_size, right_size_matching, shaded_error, transfer_error
+from .fit import DEFAULT_LADDER, DEFAULT_STEPS, LOSSES, FitResult, FitSettings, fit_segment, right_size, right_size_matching, shaded_error, transfer_error
 from .geometry import load_geometry
 from .materials import mesh_materials, textured_geometry
+from .mixed import load_scene_geometry, parse_objects, resolve_objects
 from .executor import LocalExecutor
 from .grid_encoding import DEFAULT_GRID, GridArchitecture, fit_grid_segment, parse_grid
 from .network import Architecture
 from .outdir import check_output_folder, mark_output_folder
 from .interreflection import BOUNCE_RAYS, bounce_stage
+from .bounce_depth import auto_bounces
 from .precompute import SPEC_LIMITS, DamagedPrecompute, PrecomputeSettings, SpecLimits, check_settings, load_precompute, run_precompute
 
 __all__ = ["BuildSpec", "SpecLimits", "SPEC_LIMITS", "load_spec", "spec_from_dict", "run_build", "ENV_LIGHTS"]
@@ -73,6 +76,7 @@ class BuildSpec:
     lr: float = 1e-2
     patience: int = 10
     bf16: bool | None = False  # bf16 autocast: about 2x faster on AVX512-BF16, about 9 % higher error
+    loss: str = "l1"  # fitting loss (prt.train.fit.LOSSES): L1 on the coefficients, or "relative" (over each sample's brightness)
     target: float = 0.0025  # validation coefficient MAE a right-sized network must reach
     ladder: list[dict] | None = None  # [{hidden, layers, pos_freqs, normal_freqs}], small to large
     fixed: dict | None = None  # force one size for every network segment
@@ -86,12 +90,13 @@ class BuildSpec:
     grid: str | None = None
     # interreflection (prt.train.interreflection): N diffuse bounces (0: direct transfer only, the
     # paper's); N > 0 fits "direct+rgb" networks (direct + indirect R, G, B transfer)
-    bounces: int = 0
+    bounces: int | Literal["auto"] = 0  # or "auto": the smallest N whose truncation error is small (prt.train.bounce_depth)
     bounce_rays: int = BOUNCE_RAYS
     # export
     glsl_layout: str = "auto"
     material: dict = field(default_factory=lambda: {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]})
     camera: dict = field(default_factory=lambda: {k: list(v) if isinstance(v, tuple) else v for k, v in DEFAULT_CAMERA.items()})
+    objects: list[dict] | None = None  # a mixed scene (prt.train.mixed): meshes, SDFs, neural SDFs; ``geometry`` is then its label
 
     @property
     def bands(self) -> int:
@@ -115,7 +120,7 @@ class BuildSpec:
 
     def fit_settings(self) -> FitSettings:
         return FitSettings(epochs=self.epochs, batch=self.batch, lr=self.lr, patience=self.patience, seed=self.seed, bf16=self.bf16,
-                           steps=self.steps, max_seconds=self.time_budget)  # fmt: skip
+                           steps=self.steps, max_seconds=self.time_budget, loss=self.loss)  # fmt: skip
 
     def architectures(self) -> list[Architecture] | list[GridArchitecture]:
         """The sizes to try, smallest first (one when ``fixed``)."""
@@ -229,6 +234,8 @@ def load_spec(path) -> BuildSpec:
     geometry = Path(spec.geometry)
     if not geometry.is_absolute() and (path.parent / geometry).exists():
         spec.geometry = str(path.parent / geometry)
+    if spec.objects:
+        spec.objects = resolve_objects(spec.objects, path)
     return spec
 
 
@@ -250,6 +257,7 @@ def spec_from_dict(data: dict) -> BuildSpec:
             "str | None": value is None or isinstance(value, str),
             "int": isinstance(value, int) and not isinstance(value, bool),
             "int | None": value is None or (isinstance(value, int) and not isinstance(value, bool)),
+            "int | Literal['auto']": value == "auto" or (isinstance(value, int) and not isinstance(value, bool)),
             "float | None": value is None or (isinstance(value, (int, float)) and not isinstance(value, bool)),
             "float": isinstance(value, (int, float)) and not isinstance(value, bool),
             "bool": isinstance(value, bool),
@@ -260,6 +268,8 @@ def spec_from_dict(data: dict) -> BuildSpec:
         }[kind]
         if not ok:
             raise SpecError(f"{key}: expected {kind}, got {type(value).__name__} {value!r}")
+    if data.get("objects") is not None:  # a mixed scene: objects checked, geometry is only a label
+        data = {"geometry": "mixed", **data, "objects": [o.to_dict() for o in parse_objects(data["objects"])]}
     if "geometry" not in data:
         raise SpecError("geometry: missing (a mesh file or a built-in SDF scene name)")
     if not data["geometry"].strip() or "\0" in data["geometry"]:
@@ -271,8 +281,8 @@ def spec_from_dict(data: dict) -> BuildSpec:
     for key in ("steps", "epochs", "batch", "patience", "bounce_rays"):
         if flat[key] is not None and not 1 <= flat[key] <= getattr(SPEC_LIMITS, key):
             raise SpecError(f"{key}: expected 1 .. {getattr(SPEC_LIMITS, key)}, got {flat[key]}")
-    if not 0 <= spec.bounces <= SPEC_LIMITS.bounces:
-        raise SpecError(f"bounces: expected 0 .. {SPEC_LIMITS.bounces} (0: direct light only), got {spec.bounces}")
+    if spec.bounces != "auto" and (isinstance(spec.bounces, str) or not 0 <= spec.bounces <= SPEC_LIMITS.bounces):
+        raise SpecError(f"bounces: expected 0 .. {SPEC_LIMITS.bounces} (0: direct light only) or 'auto', got {spec.bounces!r}")
     for key, positive in (("lr", True), ("target", False), ("time_budget", True)):
         value = flat[key]
         if value is None and key == "time_budget":
@@ -281,6 +291,8 @@ def spec_from_dict(data: dict) -> BuildSpec:
             raise SpecError(f"{key}: expected a finite {'positive' if positive else 'non-negative'} number, got {value!r}")
     if spec.glsl_layout not in ("auto", "const", "texture"):
         raise SpecError(f"glsl_layout: expected 'auto', 'const' or 'texture', got {spec.glsl_layout!r}")
+    if spec.loss not in LOSSES:
+        raise SpecError(f"loss: expected one of {', '.join(map(repr, LOSSES))}, got {spec.loss!r}")
     if spec.encoding not in ("freq", "grid"):
         raise SpecError(f"encoding: expected 'freq' (the paper's frequency-encoded MLP) or 'grid' (a multiresolution feature grid), got {spec.encoding!r}")
     if spec.encoding != "grid":
@@ -365,14 +377,15 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
     if threads:
         torch.set_num_threads(threads)
     executor = executor if executor is not None else LocalExecutor(threads)
-    geometry = load_geometry(spec.geometry)
+    geometry = load_scene_geometry(spec) if spec.objects else load_geometry(spec.geometry)
     name = spec.name or Path(spec.geometry).stem
     log(geometry.summary())
     # The mesh's own per-object materials (MTL, glTF); transfer does not depend on them.
     materials = mesh_materials(spec.geometry, geometry.object_names, spec.material, log) if geometry.sdf is None else []
+    materials = geometry.mixed.materials if geometry.mixed is not None else materials
     materials, albedo_uv = textured_geometry(spec.geometry, geometry, materials, log)
-    if spec.bounces and geometry.sdf is not None:
-        raise SpecError(f"bounces: interreflection needs a triangle mesh; {spec.geometry!r} is an SDF scene (use --bounces 0)")
+    if spec.bounces and geometry.kind != "mesh":
+        raise SpecError(f"bounces: interreflection needs a triangle mesh; {spec.geometry!r} is {'an SDF' if geometry.kind == 'sdf' else 'a mixed'} scene (use --bounces 0)")
     mark_output_folder(out, "scene")
 
     # -- stage 1: precompute
@@ -391,7 +404,13 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
     samples, valid, members = data["samples"], data["validation"], data["members"]
     # -- stage 1b: bounces (interreflection), before fitting; the fits' cache keys follow its settings
     t0 = time.perf_counter()
-    data_key, interreflection = pre_summary["key"], None
+    data_key, interreflection, auto = pre_summary["key"], None, None
+    bounce_key = _hash(pre_summary["key"], spec.bounce_rays, spec.seed, spec.precompute.chunk_size, "v1")
+    if spec.bounces == "auto":  # rays traced once (the cache bounce_stage then reads); N measured on the validation samples
+        auto_n, auto = auto_bounces(geometry, out / "precompute" / "cache", samples, valid, _object_albedos(geometry, materials, spec.material),
+                                    _env_lights(spec.bands), rays=spec.bounce_rays, seed=spec.seed, chunk_size=spec.precompute.chunk_size,
+                                    key=bounce_key, executor=executor, threads=threads, progress=progress, log=log)  # fmt: skip
+        spec = dataclasses.replace(spec, bounces=auto_n)
     if spec.bounces:
         albedos = _object_albedos(geometry, materials, spec.material)
         data_key = _hash(pre_summary["key"], spec.bounces, spec.bounce_rays, albedos)
@@ -400,12 +419,13 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
         face_albedo = np.asarray([albedos[n] for n in geometry.object_names], dtype=np.float64)[geometry.object_ids]
         indirect, valid_indirect = bounce_stage(
             geometry.mesh, out / "precompute" / "cache", samples, valid, face_albedo, spec.bounces, rays=spec.bounce_rays, seed=spec.seed,
-            chunk_size=spec.precompute.chunk_size, key=_hash(pre_summary["key"], spec.bounce_rays, spec.seed, spec.precompute.chunk_size, "v1"),
+            chunk_size=spec.precompute.chunk_size, key=bounce_key,
             executor=executor, threads=threads, progress=progress, log=log,
         )  # fmt: skip
         for part, extra in ((samples, indirect), (valid, valid_indirect)):  # [direct, indirect R, G, B]
             part["transfer"] = np.concatenate([part["transfer"], extra.transpose(0, 2, 1).reshape(len(extra), -1)], axis=1)
-        interreflection = {"bounces": spec.bounces, "bounce_rays": spec.bounce_rays, "layout": spec.layout, "albedos": albedos}
+        interreflection = {"bounces": spec.bounces, "bounce_rays": spec.bounce_rays, "layout": spec.layout, "albedos": albedos,
+                           **({"auto": auto} if auto else {})}  # fmt: skip
     bounce_s = time.perf_counter() - t0
     seg_json = data["segments"]
     lights = _env_lights(spec.bands)
@@ -417,7 +437,7 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
     records, todo = {}, []
     for seg in seg_json["segments"]:
         s = seg["id"]
-        key = _hash(data_key, s, asdict(fit_settings), [a.as_dict() for a in archs], spec.target, spec.analytic, TRAIN_FORMAT,
+        key = _hash(data_key, s, fit_settings.cache_key(), [a.as_dict() for a in archs], spec.target, spec.analytic, TRAIN_FORMAT,
                     *([spec.match, spec.match_tolerance] if spec.match is not None else []))  # fmt: skip
         record_path = out / "train" / f"seg{s:03d}.json"
         weights_path = out / "train" / f"seg{s:03d}.npz"
@@ -490,9 +510,10 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
             "vertex_storage_bytes": memory.vertex_storage_bytes,
             "vertices": int(len(geometry.mesh.vertices)),
         },
+        **({"interreflection": interreflection or {"bounces": 0, "auto": auto}} if auto else {}),
         "timings": {
             "precompute_s": precompute_s,
-            **({"bounce_s": bounce_s} if spec.bounces else {}),
+            **({"bounce_s": bounce_s} if spec.bounces or auto else {}),
             "train_s": train_s,
             "export_s": export_s,
             "total_s": time.perf_counter() - t_start,
@@ -566,7 +587,7 @@ class _FitCache:
     """
 
     def __init__(self, folder: Path, pre_key: str, segment: int, fit_settings):
-        self.folder, self.base = Path(folder), (pre_key, segment, asdict(fit_settings), FIT_FORMAT)
+        self.folder, self.base = Path(folder), (pre_key, segment, fit_settings.cache_key(), FIT_FORMAT)
 
     def _paths(self, arch):
         key = _hash(*self.base, arch.as_dict())

@@ -27,7 +27,8 @@ import numpy as np
 from ..runtime.errors import PRTError, SpecError
 from .cache import atomic_save_npz, atomic_write_json
 from .outdir import check_output_folder, mark_output_folder
-from .sampling import TRAIN_STREAM, VALIDATION_STREAM, sample_surface
+from .adaptive import NEIGHBOURS, adaptive_samples
+from .sampling import TRAIN_STREAM, VALIDATION_STREAM, SurfaceSamples, sample_surface
 from .segments import segment_samples
 from .transfer import DEFAULT_CHUNK, compute_transfer, make_tracer
 
@@ -51,6 +52,9 @@ class PrecomputeSettings:
     merge_tolerance: float = 0.01
     delta: float = 0.05
     chunk_size: int = DEFAULT_CHUNK
+    # share of ``samples`` drawn by a second pass where the first pass's transfer varies fastest
+    # (prt.train.adaptive); 0: all area-uniform (and the cache key of older builds unchanged)
+    adaptive: float = 0.0
 
     def validation_count(self) -> int:
         return self.validation or max(1000, self.samples // 20)
@@ -130,6 +134,11 @@ def check_settings(settings: PrecomputeSettings, *, flags: bool = False) -> None
         value = getattr(settings, key)
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
             raise SpecError(f"{name(key)}: expected a finite non-negative number, got {value!r}")
+    share = settings.adaptive
+    if isinstance(share, bool) or not isinstance(share, (int, float)) or not 0.0 <= share <= 0.9:
+        raise SpecError(f"{name('adaptive')}: expected a share of the samples in 0 .. 0.9, got {share!r}")
+    if share and round(settings.samples * (1.0 - share)) < 2 * NEIGHBOURS:
+        raise SpecError(f"{name('adaptive')}: the first pass needs at least {2 * NEIGHBOURS} samples, got {settings.samples} x {1 - share:g}")
 
 
 def _geometry_key(geometry) -> str:
@@ -139,6 +148,8 @@ def _geometry_key(geometry) -> str:
     h.update(np.ascontiguousarray(geometry.object_ids, dtype=np.int64).tobytes())
     if geometry.sdf is not None:
         h.update(geometry.sdf.glsl().encode())
+    if geometry.kind == "mixed":  # the SDF objects' fields, not only their proxies
+        h.update(geometry.mixed.glsl().encode())
     return h.hexdigest()[:16]
 
 
@@ -169,8 +180,9 @@ def run_precompute(
     check_settings(settings)
     check_output_folder(out, "precompute", force=force)
     mark_output_folder(out, "precompute")
+    keyed = {k: v for k, v in asdict(settings).items() if k != "adaptive" or v}  # older builds keep their key
     key = hashlib.sha1(
-        json.dumps([_geometry_key(geometry), asdict(settings), FORMAT_VERSION]).encode()
+        json.dumps([_geometry_key(geometry), keyed, FORMAT_VERSION]).encode()
     ).hexdigest()[:16]
     summary_path = out / "precompute.json"
     previous = _read_summary(summary_path)
@@ -182,7 +194,8 @@ def run_precompute(
     timings = {}
     tracer = make_tracer(geometry)
     t0 = time.perf_counter()
-    train = sample_surface(geometry, settings.samples, seed=settings.seed, stream=TRAIN_STREAM)
+    first = settings.samples - int(round(settings.samples * settings.adaptive))
+    train = sample_surface(geometry, first, seed=settings.seed, stream=TRAIN_STREAM)
     valid = sample_surface(
         geometry, settings.validation_count(), seed=settings.seed, stream=VALIDATION_STREAM
     )
@@ -202,6 +215,15 @@ def run_precompute(
     )
     log(f"precompute: {len(train):,} samples x {settings.rays} rays ({geometry.kind})")
     train_t = compute_transfer(geometry, train.points, train.normals, **common)
+    if first < settings.samples:  # the second pass: where the first pass's transfer varies fastest
+        extra, stats = adaptive_samples(geometry, train, train_t, settings.samples - first, seed=settings.seed)
+        log(f"precompute: {len(extra):,} adaptive samples (top decile of variation drawn {stats['favoured']:.1f}x as often)")
+        timings["adaptive"] = stats
+        extra_t = compute_transfer(geometry, extra.points, extra.normals, **{**common, "cache_dir": out / "cache" / "adaptive"})
+        train = SurfaceSamples(*(np.concatenate([a, b]) for a, b in zip(
+            (train.points, train.normals, train.face_index, train.object_ids),
+            (extra.points, extra.normals, extra.face_index, extra.object_ids))))  # fmt: skip
+        train_t = np.concatenate([train_t, extra_t])
     timings["transfer_s"] = time.perf_counter() - t0
     timings["rays_per_s"] = len(train) * settings.rays / max(timings["transfer_s"], 1e-9)
     t0 = time.perf_counter()

@@ -38,6 +38,7 @@ SETTINGS_OPTIONS = (
     ("merge", "--no-merge", "keep every leaf of the split as its own segment"),
     ("by_object", "--no-object-split", "let segments span several objects"),
     ("seed", "--seed", "random seed (samples and ray frames)"),
+    ("adaptive", "--adaptive", "share of --samples drawn by a second pass where the first pass's transfer varies fastest"),
 )
 
 

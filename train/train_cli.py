@@ -1,6 +1,6 @@
 """prt-train: build a deployable scene: precompute -> train -> export (ONNX, GLSL, scene.json).
 
-usage: prt-train INPUT -o OUTDIR [--samples N] [--rays R] [--segments S] [--steps N] [--time-budget S] [--seed K] [--bounces N]
+usage: prt-train INPUT -o OUTDIR [--samples N] [--rays R] [--segments S] [--steps N] [--time-budget S] [--seed K] [--bounces N|auto]
                  [--hidden K --layers L] [--encoding freq|grid [--grid L6-F2-T12-N4-32]] [--target MAE | --match 64x4]
                  [--cluster auto|ADDRESS] [--force]
                  [--neural-sdf [--sdf-size KxL] [--sdf-samples N] [--sdf-steps N]]
@@ -28,6 +28,16 @@ from .outdir import check_output_folder
 __all__ = ["main", "build_parser"]
 
 
+def _bounce_count(value: str):
+    """``--bounces``: a count, or "auto" (:func:`prt.train.bounce_depth.auto_bounces`)."""
+    if value == "auto":
+        return value
+    try:
+        return int(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of bounces or 'auto', got {value!r}") from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     d = BuildSpec()
     p = argparse.ArgumentParser(
@@ -45,6 +55,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--validation", type=int, default=None, help="held-out samples [5%% of --samples, at least 1000]")
     p.add_argument("--rays", type=int, default=None, help=f"rays per sample for the ground truth [{d.precompute.rays}]")
     p.add_argument("--segments", type=int, default=None, help=f"leaf budget of the spatial split before merging [{d.precompute.segments}]")
+    p.add_argument("--adaptive", type=float, default=None, metavar="SHARE",
+                   help="share of --samples drawn by a second pass where the first pass's transfer varies fastest (contact shadows, creases) [0: all area-uniform]")
     p.add_argument("--steps", type=int, default=None, help=f"Adam steps per network whatever its sample count (early stopping on validation) [{DEFAULT_STEPS}]")
     p.add_argument("--epochs", type=int, default=None, help="alone: the old epoch-based run, E passes over each network's samples (a small segment then gets few steps); "
                    "with --steps: at least E passes [off]")
@@ -65,12 +77,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--target", type=float, default=None, help=f"validation MAE (SH coefficients) a right-sized network must reach [{d.target}]")
     p.add_argument("--match", default=None, metavar="KxL", help="right-size to the accuracy of this size instead of --target: train it, then keep the cheapest smaller size on the ladder within --match-tolerance of its validation MAE (e.g. 64x4, the paper's k = 64)")
     p.add_argument("--match-tolerance", type=float, default=None, help=f"with --match: share by which the validation MAE may exceed the reference's [{d.match_tolerance}]")
+    p.add_argument("--loss", choices=("l1", "relative"), default=None,
+                   help="fitting loss: L1 on the transfer coefficients, or each sample's L1 over its brightness (DC of its transfer, "
+                        "floor 0.05): dim regions (a room's interior) fit to the same relative error as bright ones [l1]")
     p.add_argument("--bf16", action="store_true", help="train the MLP layers under bf16 autocast (about 2x faster where the CPU has native bf16, slightly less accurate)")
-    p.add_argument("--bounces", type=int, default=None, metavar="N",
-                   help=f"diffuse interreflection: N bounces of light between surfaces, albedos from the mesh's own materials (0: direct light only) [{d.bounces}]")
+    p.add_argument("--bounces", type=_bounce_count, default=None, metavar="N",
+                   help=f"diffuse interreflection: N bounces of light between surfaces, albedos from the mesh's own materials (0: direct light only; "
+                        f"auto: the smallest N whose truncation PSNR on the validation samples is >= 50 dB under the bundled env maps) [{d.bounces}]")
     p.add_argument("--bounce-rays", type=int, default=None, metavar="M", help=f"with --bounces: rays per sample of the bounce stage [{d.bounce_rays}]")
     p.add_argument("--no-analytic", action="store_true", help="give every segment a network, even unshadowed ones")
-    p.add_argument("--glsl-layout", choices=("auto", "const", "texture"), default=None, help="weights as baked mat4 constants or in a texture [auto]")
+    p.add_argument("--glsl-layout", choices=("auto", "const", "texture"), default=None, help="auto: one GLSL function per network architecture, every segment's weights in one scene texture (compiles in seconds on llvmpipe); "
+                        "const / texture: the older per-segment functions, weights as baked mat4 constants (fastest per fragment, slow to compile) or in a texture [auto]")
     p.add_argument("--threads", type=int, default=os.cpu_count(), help="CPU threads for ray tracing and training")
     add_cluster_argument(p)
     p.add_argument("--neural-sdf", action="store_true",
@@ -98,6 +115,7 @@ def _spec_from_args(args):
         "validation": args.validation,
         "rays": args.rays,
         "segments": args.segments,
+        "adaptive": args.adaptive,
         "steps": args.steps,
         "epochs": args.epochs,
         "time_budget": args.time_budget,
@@ -111,6 +129,7 @@ def _spec_from_args(args):
         "bounce_rays": args.bounce_rays,
         "encoding": args.encoding,
         "grid": args.grid,
+        "loss": args.loss,
     }
     data = spec.to_dict()
     data.update({k: v for k, v in overrides.items() if v is not None})
