@@ -84,6 +84,7 @@ def main(argv=None) -> int:
             "--hidden", "64",
             "--layers", "3",
             "--glsl-layout", "auto",  # the compact GLSL (prt.export.glsl_compact)
+            "--bounces", "0",  # the demo stays direct-only (the paper's transfer)
             "--no-progress",
         ]
     )  # fmt: skip

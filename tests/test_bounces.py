@@ -29,11 +29,12 @@ N = 16
 # --------------------------------------------------------------------------- build side, no build
 
 
-def test_spec_bounces_default_zero_and_checked():
+def test_spec_bounces_default_auto_and_checked():
     from prt.train.build import BuildSpec, spec_from_dict
 
-    spec = BuildSpec(geometry="x")
-    assert spec.bounces == 0 and spec.layout == "direct"
+    assert BuildSpec(geometry="x").bounces == "auto"  # as many as the scene needs (docs/benchmarks/bounce_depth.md)
+    spec = BuildSpec(geometry="x", bounces=0)
+    assert spec.layout == "direct"
     # N = 0: the architecture records (ONNX metadata, fit-cache keys) are those of before the
     # layouts existed, so a direct-only build writes the same bytes (checked by hand against the
     # previous commit: identical ONNX, GLSL, geometry and scene.json).

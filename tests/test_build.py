@@ -21,7 +21,7 @@ from prt.train.precompute import PrecomputeSettings
 from prt.train.train_cli import main as prt_train_main
 
 DATA = Path(__file__).parent / "data"
-QUICK = ["--samples", 4000, "--validation", 1500, "--rays", 64, "--epochs", 4, "--batch", 512, "--no-progress"]
+QUICK = ["--samples", 4000, "--validation", 1500, "--rays", 64, "--epochs", 4, "--batch", 512, "--bounces", 0, "--no-progress"]
 
 
 def prt_train(*args):

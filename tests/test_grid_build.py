@@ -106,17 +106,17 @@ def test_default_encoding_keeps_fit_cache_keys():
     """The frequency build's cache keys are those of before the grid option (values from that code)."""
     from prt.train.build import BuildSpec, _FitCache, _hash, spec_from_dict
 
-    spec = BuildSpec(geometry="x")
+    spec = BuildSpec(geometry="x", bounces=0)  # direct transfer: the layout the keys were taken from
     assert spec.encoding == "freq" and spec.grid is None
     cache = _FitCache(Path("fits"), "prekey", 3, spec.fit_settings())
     names = [cache._paths(a)[0].name for a in spec.architectures()]
     assert names[0] == "342a1e485ec73e5a.json" and names[-1] == "15c7ed98289bd823.json"
     assert _hash([a.as_dict() for a in spec.architectures()]) == "23a8fb0504017710"
-    grid = spec_from_dict({"geometry": "x", "encoding": "grid"})
+    grid = spec_from_dict({"geometry": "x", "encoding": "grid", "bounces": 0})
     assert [a.label() for a in grid.architectures()] == [f"grid-L6-F2-T12-N4-32-k{k}-l{l}" for k, l in ((16, 1), (32, 2), (64, 2), (64, 3))]
     assert not set(names) & {cache._paths(a)[0].name for a in grid.architectures()}
     # --match 64x4 with grids: the reference stays the paper's frequency network, the rungs are grids
-    matched = spec_from_dict({"geometry": "x", "encoding": "grid", "match": {"hidden": 64, "layers": 4}})
+    matched = spec_from_dict({"geometry": "x", "encoding": "grid", "bounces": 0, "match": {"hidden": 64, "layers": 4}})
     assert matched.reference_architecture().label() == "k64-l4-f6"
     assert all(a.flops_per_fragment() < matched.reference_architecture().flops_per_fragment() for a in matched.architectures())
 

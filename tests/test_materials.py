@@ -174,7 +174,7 @@ def cornell_scene(tmp_path_factory):
     out = tmp_path_factory.mktemp("cornell") / "scene"
     proc = subprocess.run(
         [sys.executable, "-m", "prt.train.train_cli", str(CORNELL), "-o", str(out), "--samples", "3000",
-         "--validation", "1000", "--rays", "32", "--segments", "4", "--target", "10", "--no-progress"],
+         "--validation", "1000", "--rays", "32", "--segments", "4", "--target", "10", "--bounces", "0", "--no-progress"],
         capture_output=True, text=True,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
@@ -321,7 +321,7 @@ def spot_scene(tmp_path_factory):
     path = _textured_spot(folder / "mesh", (DATA / "spot_texture.png").read_bytes())
     proc = subprocess.run(
         [sys.executable, "-m", "prt.train.train_cli", str(path), "-o", str(folder / "scene"), "--samples", "3000",
-         "--validation", "1000", "--rays", "32", "--segments", "2", "--target", "10", "--no-progress"],
+         "--validation", "1000", "--rays", "32", "--segments", "2", "--target", "10", "--bounces", "0", "--no-progress"],
         capture_output=True, text=True,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr

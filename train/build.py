@@ -90,7 +90,7 @@ class BuildSpec:
     grid: str | None = None
     # interreflection (prt.train.interreflection): N diffuse bounces (0: direct transfer only, the
     # paper's); N > 0 fits "direct+rgb" networks (direct + indirect R, G, B transfer)
-    bounces: int | Literal["auto"] = 0  # or "auto": the smallest N whose truncation error is small (prt.train.bounce_depth)
+    bounces: int | Literal["auto"] = "auto"  # "auto": the smallest N whose truncation error is small (prt.train.bounce_depth); 0: the paper's direct transfer
     bounce_rays: int = BOUNCE_RAYS
     # export
     glsl_layout: str = "auto"
@@ -384,6 +384,9 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
     materials = mesh_materials(spec.geometry, geometry.object_names, spec.material, log) if geometry.sdf is None else []
     materials = geometry.mixed.materials if geometry.mixed is not None else materials
     materials, albedo_uv = textured_geometry(spec.geometry, geometry, materials, log)
+    if spec.bounces == "auto" and geometry.kind != "mesh":  # the default: direct transfer where bounces are not built
+        log(f"bounces: auto -> 0 (interreflection is built for triangle meshes; this is {'an SDF' if geometry.kind == 'sdf' else 'a mixed'} scene)")
+        spec = dataclasses.replace(spec, bounces=0)
     if spec.bounces and geometry.kind != "mesh":
         raise SpecError(f"bounces: interreflection needs a triangle mesh; {spec.geometry!r} is {'an SDF' if geometry.kind == 'sdf' else 'a mixed'} scene (use --bounces 0)")
     mark_output_folder(out, "scene")

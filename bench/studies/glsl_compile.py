@@ -90,7 +90,7 @@ def ladder_files(folder: Path, grid: bool) -> list[dict]:
     rng = np.random.default_rng(0)
     torch.manual_seed(0)
     segments = []
-    archs = list(BuildSpec(geometry="x").architectures()) + (list(spec_from_dict({"geometry": "x", "encoding": "grid"}).architectures()) if grid else [])
+    archs = list(BuildSpec(geometry="x", bounces=0).architectures()) + (list(spec_from_dict({"geometry": "x", "encoding": "grid", "bounces": 0}).architectures()) if grid else [])
     for i, arch in enumerate(archs):
         scale, shift = rng.uniform(0.1, 0.5, 16).astype(np.float32), rng.uniform(-0.1, 0.1, 16).astype(np.float32)
         info = SimpleNamespace(id=i, model=folder / f"seg{i:03d}.onnx", architecture=None, glsl=None, glsl_weights=None)

@@ -174,7 +174,7 @@ def main(argv=None) -> int:
     log("== mesh G-buffer scene (throwaway transfer networks)")
     _run_build([sys.executable, "-m", "prt.train.train_cli", str(mesh), "-o", str(mesh_out), "--name", f"{stem}-mesh",
                 "--samples", "2000", "--validation", "1000", "--rays", "16", "--steps", "50", "--segments", "1",
-                "--hidden", "8", "--layers", "1", "--threads", str(args.threads), "--no-progress"], mesh_out, log)  # fmt: skip
+                "--hidden", "8", "--layers", "1", "--bounces", "0", "--threads", str(args.threads), "--no-progress"], mesh_out, log)  # fmt: skip
     if args.build_only:
         log(f"built {len(builds)} neural-SDF scenes and the mesh scene under {args.work}")
         return 0

@@ -197,7 +197,7 @@ def main(argv=None) -> int:
                 out.mkdir(parents=True, exist_ok=True)
                 (out / "precompute").symlink_to((first / "precompute").resolve())
             cmd = [sys.executable, "-m", "prt.train.train_cli", str(mesh), "-o", str(out), "--name", f"{name}-{size}",
-                   "--samples", str(args.samples), "--rays", str(args.rays), "--no-progress", *flags]  # fmt: skip
+                   "--samples", str(args.samples), "--rays", str(args.rays), "--bounces", "0", "--no-progress", *flags]  # fmt: skip  (the paper's direct transfer)
             print(f"== {name} {size}: {shlex.join(cmd[2:])}", flush=True)
             subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
             first = first or out

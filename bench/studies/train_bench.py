@@ -45,7 +45,7 @@ def main(argv=None) -> int:
     if not args.no_fp32 or not variants:
         variants.append(("fp32", False))
     for label, bf16 in variants:
-        spec = BuildSpec(geometry=str(mesh), precompute=PrecomputeSettings(samples=args.samples), fixed={"hidden": 64, "layers": 4}, analytic=False, bf16=bf16)
+        spec = BuildSpec(geometry=str(mesh), precompute=PrecomputeSettings(samples=args.samples), fixed={"hidden": 64, "layers": 4}, analytic=False, bf16=bf16, bounces=0)
         out = args.out / label
         # share the (expensive) precompute between the two runs
         if label != variants[0][0] and not (out / "precompute").exists():
