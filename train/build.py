@@ -408,7 +408,7 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
     # -- stage 1b: bounces (interreflection), before fitting; the fits' cache keys follow its settings
     t0 = time.perf_counter()
     data_key, interreflection, auto = pre_summary["key"], None, None
-    bounce_key = _hash(pre_summary["key"], spec.bounce_rays, spec.seed, spec.precompute.chunk_size, "v1")
+    bounce_key = _hash(pre_summary["key"], spec.bounce_rays, spec.seed, spec.precompute.chunk_size, "v2")  # v2: the tangent-plane nearest-sample rule
     if spec.bounces == "auto":  # rays traced once (the cache bounce_stage then reads); N measured on the validation samples
         auto_n, auto = auto_bounces(geometry, out / "precompute" / "cache", samples, valid, _object_albedos(geometry, materials, spec.material),
                                     _env_lights(spec.bands), rays=spec.bounce_rays, seed=spec.seed, chunk_size=spec.precompute.chunk_size,
@@ -416,7 +416,7 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
         spec = dataclasses.replace(spec, bounces=auto_n)
     if spec.bounces:
         albedos = _object_albedos(geometry, materials, spec.material)
-        data_key = _hash(pre_summary["key"], spec.bounces, spec.bounce_rays, albedos)
+        data_key = _hash(pre_summary["key"], spec.bounces, spec.bounce_rays, albedos, "v2")
         log(f"bounces: {spec.bounces} diffuse bounce(s), {spec.bounce_rays} rays per sample ({len(samples['points']):,} + "
             f"{len(valid['points']):,} samples)")  # fmt: skip
         face_albedo = np.asarray([albedos[n] for n in geometry.object_names], dtype=np.float64)[geometry.object_ids]

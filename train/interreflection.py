@@ -15,8 +15,11 @@ is RGB transfer, shape (S, n, 3).
 Estimator of ``T_{b-1}(q)`` at a hit point: the ray-traced transfer of the precomputed sample
 nearest to ``q`` in (position, NORMAL_WEIGHT * normal), the hit's normal turned towards the ray's
 origin: so the sample is on the side of the surface the ray sees (open surfaces have samples
-on both sides at the same places).  The search is bounded (:data:`SEARCH_RADIUS`); a hit with no
-sample of its side that near takes the best of the samples nearest in position.
+on both sides at the same places); of the :data:`PLANE_CANDIDATES` nearest, the one nearest the
+hit's tangent plane wins ties between parallel sheets facing the same way (:func:`nearest_on_plane`:
+the Cornell box's light quad below the ceiling, issue #13).  The search is bounded
+(:data:`SEARCH_RADIUS`); a hit with no sample of its side that near takes the best of the
+samples nearest in position.
 Chosen over the fitted direct networks because it needs nothing beyond the precompute (the
 bounce stage runs before fitting, stays chunked and deterministic, and its error does not depend
 on how well a network fitted), and because each bounce then costs a sparse product: the rays,
@@ -41,6 +44,7 @@ import numpy as np
 from .transfer import _unit, cosine_directions, orthonormal_frames
 
 __all__ = ["BounceRays", "BounceJob", "trace_bounce_rays", "bounce_chunk", "trace_stage", "bounce_terms", "bounce_stage", "interreflect", "bounce_matrices",
+           "nearest_on_plane",
            "BOUNCE_RAYS", "NORMAL_WEIGHT"]
 
 # Rays per sample of the bounce stage (the direct transfer keeps its own count).  32: on the
@@ -57,6 +61,14 @@ NORMAL_WEIGHT = 0.25
 # hits together); those take the best of the FALLBACK_CANDIDATES samples nearest in position.
 SEARCH_RADIUS = 0.15
 FALLBACK_CANDIDATES = 8
+# Parallel sheets facing the same way a few sample spacings apart (the Cornell box's light quad,
+# 0.01 below the ceiling) are not told apart by the normal term: a hit on the light's underside
+# took the ceiling sample above it (inside the light/ceiling gap, whose estimate is wrong) about
+# as often as a light sample, and a hit on the light's top the ceiling's roof side (sky light).
+# So the search takes the PLANE_CANDIDATES nearest samples and keeps the one minimising the 6-d
+# distance squared plus (PLANE_WEIGHT * its distance from the hit's tangent plane) squared.
+PLANE_CANDIDATES = 8
+PLANE_WEIGHT = 4.0
 
 
 class BounceRays:
@@ -76,7 +88,7 @@ class BounceRays:
 
 
 def trace_bounce_rays(mesh, points, normals, sample_faces=None, *, rays: int = BOUNCE_RAYS, seed: int = 0, chunk: int = 4096,
-                      workers: int = -1, targets=None) -> BounceRays:
+                      workers: int = -1, targets=None, candidates: int | None = None, plane_weight: float | None = None) -> BounceRays:
     """Trace ``rays`` cosine-distributed rays per sample and find, at every hit, the nearest sample.
 
     Parameters
@@ -93,6 +105,8 @@ def trace_bounce_rays(mesh, points, normals, sample_faces=None, *, rays: int = B
     targets : (points, normals), optional
         The samples searched at the hit points; default: ``points, normals`` themselves (the
         bounce stage).  Other query points (the benchmark's pixels) pass the precomputed samples.
+    candidates, plane_weight : optional
+        Of :func:`nearest_on_plane` (defaults :data:`PLANE_CANDIDATES`, :data:`PLANE_WEIGHT`).
     """
     from .transfer import EmbreeTracer
 
@@ -100,7 +114,8 @@ def trace_bounce_rays(mesh, points, normals, sample_faces=None, *, rays: int = B
     normals = _unit(np.asarray(normals, dtype=np.float64))
     if targets is None:
         targets = (points, normals)
-    job = BounceJob(EmbreeTracer(mesh), targets[0], targets[1], rays=rays, seed=seed, workers=workers)
+    job = BounceJob(EmbreeTracer(mesh), targets[0], targets[1], rays=rays, seed=seed, workers=workers, candidates=candidates,
+                    plane_weight=plane_weight)  # fmt: skip
     nearest = np.full((len(points), rays), -1, dtype=np.int64)
     hit_face = np.full((len(points), rays), -1, dtype=np.int64)
     for c, start in enumerate(range(0, len(points), chunk)):
@@ -115,7 +130,7 @@ class BounceJob:
     the k-d tree of the target samples travels as it is)."""
 
     def __init__(self, tracer, target_points, target_normals, *, rays: int = BOUNCE_RAYS, seed: int = 0, stream: int = 0,
-                 workers: int = -1):  # fmt: skip
+                 workers: int = -1, candidates: int | None = None, plane_weight: float | None = None):  # fmt: skip
         from scipy.spatial import cKDTree
 
         target_points = np.asarray(target_points, dtype=np.float64)
@@ -124,6 +139,7 @@ class BounceJob:
         self.tree = cKDTree(np.concatenate([target_points, NORMAL_WEIGHT * target_normals], axis=1))
         self.positions = cKDTree(target_points)
         self.local = cosine_directions(self.rays).astype(np.float32)
+        self.candidates, self.plane_weight = candidates, plane_weight
 
     def chunk(self, points, normals, c: int) -> tuple[np.ndarray, np.ndarray]:
         """(nearest, hit_face), each (S, rays) int64, of the rays of chunk ``c`` (deterministic in seed, stream, c)."""
@@ -143,8 +159,8 @@ class BounceJob:
         ng = _unit(result["Ng"][hit].astype(np.float64))
         ng *= -np.sign(np.einsum("qc,qc->q", ng, w))[:, None]  # the side facing the ray's origin
         key = np.concatenate([q, NORMAL_WEIGHT * ng], axis=1)
-        distance, chosen = self.tree.query(key, k=1, distance_upper_bound=SEARCH_RADIUS, workers=self.workers)
-        far = np.flatnonzero(~np.isfinite(distance))
+        chosen = nearest_on_plane(self.tree, key, candidates=self.candidates, plane_weight=self.plane_weight, workers=self.workers)
+        far = np.flatnonzero(chosen < 0)
         if len(far):  # the same 6-d distance, over the samples nearest in position
             k = min(FALLBACK_CANDIDATES, self.tree.n)
             _, near = self.positions.query(q[far], k=k, workers=self.workers)
@@ -154,6 +170,45 @@ class BounceJob:
         flat_nearest = np.full(len(origins), -1, dtype=np.int64)
         flat_nearest[hit] = chosen
         return flat_nearest.reshape(-1, rays), faces.reshape(-1, rays)
+
+
+def nearest_on_plane(tree, key, *, candidates: int | None = None, plane_weight: float | None = None, bound: float = SEARCH_RADIUS, workers: int = -1) -> np.ndarray:
+    """Index of the sample for each hit ``key`` (Q, 6) = (position, NORMAL_WEIGHT * normal) in ``tree``
+    (built on the same key): of the ``candidates`` (default :data:`PLANE_CANDIDATES`) nearest within ``bound``, the one minimising the
+    6-d distance squared plus ``(plane_weight * (sample - hit) . normal)**2`` (default
+    :data:`PLANE_WEIGHT`); -1 where none is
+    within ``bound``.  See :data:`PLANE_WEIGHT`; :func:`nearest_on_plane_reference` is its plain twin."""
+    key = np.asarray(key, dtype=np.float64)
+    k = min(int(PLANE_CANDIDATES if candidates is None else candidates), tree.n)
+    distance, index = tree.query(key, k=k, distance_upper_bound=bound, workers=workers)
+    distance, index = distance.reshape(len(key), k), index.reshape(len(key), k)
+    found = np.isfinite(distance)
+    safe = np.where(found, index, 0)
+    normal = key[:, 3:] / NORMAL_WEIGHT
+    off = np.einsum("qkc,qc->qk", tree.data[safe, :3] - key[:, None, :3], normal)
+    weight = PLANE_WEIGHT if plane_weight is None else float(plane_weight)
+    score = np.where(found, distance**2 + (weight * off) ** 2, np.inf)
+    best = np.argmin(score, axis=1)
+    chosen = index[np.arange(len(key)), best]
+    return np.where(found.any(axis=1), chosen, -1).astype(np.int64)
+
+
+def nearest_on_plane_reference(data, key, *, candidates: int | None = None, plane_weight: float | None = None, bound: float = SEARCH_RADIUS) -> np.ndarray:
+    """Plain twin of :func:`nearest_on_plane` (brute force over ``data`` (T, 6), one hit at a time)."""
+    data = np.asarray(data, dtype=np.float64)
+    out = []
+    for row in np.asarray(key, dtype=np.float64):
+        d = np.sqrt(((data - row) ** 2).sum(axis=1))
+        k = min(int(PLANE_CANDIDATES if candidates is None else candidates), len(data))
+        order = [i for i in np.argsort(d, kind="stable")[:k] if d[i] <= bound]
+        if not order:
+            out.append(-1)
+            continue
+        normal = row[3:] / NORMAL_WEIGHT
+        weight = PLANE_WEIGHT if plane_weight is None else float(plane_weight)
+        scores = [d[i] ** 2 + (weight * float((data[i, :3] - row[:3]) @ normal)) ** 2 for i in order]
+        out.append(order[int(np.argmin(scores))])
+    return np.asarray(out, dtype=np.int64)
 
 
 def bounce_chunk(job: BounceJob, item) -> np.ndarray:
