@@ -214,9 +214,41 @@ def _as_input(points: np.ndarray, normals: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(np.concatenate([points, normals], axis=1), dtype=np.float32))
 
 
-def _predict(model: TransferMLP, x: torch.Tensor, batch: int = 65536) -> np.ndarray:
+def _predict(model: torch.nn.Module, x: torch.Tensor, batch: int = 65536) -> np.ndarray:
     with torch.inference_mode():
         return torch.cat([model(x[i : i + batch]) for i in range(0, len(x), batch)]).numpy()
+
+
+class Validation:
+    """The held-out check a fit runs every few steps (frequency and grid networks alike): the
+    history, the progress callback, the best state so far (a 0.5 % better score restarts the
+    patience count) and early stopping.  The score is the validation MAE, or with ``weights``
+    (the relative loss) the weighted L1 of :func:`weighted_l1_numpy`."""
+
+    def __init__(self, xv: torch.Tensor, yv: np.ndarray, n_coeffs: int, weights, settings, progress=None):
+        self.xv, self.yv, self.n_coeffs, self.weights = xv, yv, n_coeffs, weights
+        self.settings, self.progress = settings, progress
+        self.best = (math.inf, None, 0)  # (score, state, evaluation that last improved by 0.5 %)
+        self.history: list[dict] = []
+        self.evaluation = 0
+
+    def __call__(self, model, step: int, total_steps: int, train_l1: float) -> bool:
+        """Evaluate ``model`` (left in training mode); True when the fit should stop."""
+        self.evaluation += 1
+        model.eval()
+        val_pred = _predict(model, self.xv)
+        val_mae = transfer_error(val_pred, self.yv, self.n_coeffs)
+        model.train()
+        self.history.append({"epoch": self.evaluation, "step": step, "train_l1": train_l1, "val_mae": val_mae})
+        if self.progress is not None:
+            self.progress(step, total_steps, train_l1, val_mae)
+        score = val_mae if self.weights is None else weighted_l1_numpy(val_pred, self.yv, self.weights)
+        if score < self.best[0] * (1 - 5e-3):
+            self.best = (score, copy.deepcopy(model.state_dict()), self.evaluation)
+        elif score < self.best[0]:
+            self.best = (score, copy.deepcopy(model.state_dict()), self.best[2])
+        settings = self.settings
+        return self.evaluation - self.best[2] >= settings.patience and step >= settings.min_epochs_fraction * total_steps
 
 
 def fit_segment(
@@ -283,9 +315,8 @@ def fit_segment(
     use_bf16 = bf16_supported() if settings.bf16 is None else settings.bf16
     scale_t = torch.from_numpy(scale)
 
-    best = (math.inf, None, 0)
-    history = []
-    evaluation = step = 0
+    check = Validation(xv, yv, n_coeffs, val_weights, settings, progress)
+    step = 0
     perm, cursor, total, counted = torch.randperm(n, generator=gen), 0, 0.0, 0
     model.train()
     while step < total_steps:
@@ -310,25 +341,11 @@ def fit_segment(
         out_of_time = budget is not None and time.perf_counter() - t0 > budget
         if step % eval_every and step < total_steps and not out_of_time:
             continue
-        evaluation += 1
-        model.eval()
-        val_pred = _predict(model, xv)
-        val_mae = transfer_error(val_pred, yv, n_coeffs)
-        model.train()
-        history.append({"epoch": evaluation, "step": step, "train_l1": total / counted, "val_mae": val_mae})
-        if progress is not None:
-            progress(step, total_steps, total / counted, val_mae)
+        stop = check(model, step, total_steps, total / counted)
         total, counted = 0.0, 0
-        score = val_mae if val_weights is None else weighted_l1_numpy(val_pred, yv, val_weights)
-        if score < best[0] * (1 - 5e-3):
-            best = (score, copy.deepcopy(model.state_dict()), evaluation)
-        elif score < best[0]:
-            best = (score, copy.deepcopy(model.state_dict()), best[2])
-        if evaluation - best[2] >= settings.patience and step >= settings.min_epochs_fraction * total_steps:
+        if stop or out_of_time:
             break
-        if out_of_time:
-            break
-    model.load_state_dict(best[1])
+    model.load_state_dict(check.best[1])
     model.eval()
     pred = _predict(model, xv)
     return FitResult(
@@ -336,9 +353,9 @@ def fit_segment(
         arch=arch,
         val_mae=transfer_error(pred, yv, n_coeffs),
         shaded=shaded_error(pred, yv, lights or {}, n_coeffs),
-        epochs=evaluation,
+        epochs=check.evaluation,
         seconds=time.perf_counter() - t0,
-        history=history,
+        history=check.history,
         steps=step,
     )
 

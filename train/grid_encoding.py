@@ -27,7 +27,6 @@ held-out samples, the same errors reported).
 
 from __future__ import annotations
 
-import copy
 import math
 import time
 from dataclasses import asdict, dataclass
@@ -37,7 +36,7 @@ import torch
 from torch import nn
 
 from ..export.onnx_model import LEAKY_SLOPE, NORMAL_EPS
-from .fit import FitResult, FitSettings, batch_loss, loss_weights, shaded_error, transfer_error, weighted_l1_numpy
+from .fit import FitResult, FitSettings, Validation, _as_input, _predict, batch_loss, loss_weights, shaded_error, transfer_error
 from .network import layout_width, target_scaling
 
 __all__ = [
@@ -415,15 +414,6 @@ class GridTransfer(nn.Module):
         return {**arrays, **{k: v.copy() for k, v in self._consts.items()}}
 
 
-def _predict(model: nn.Module, x: torch.Tensor, batch: int = 65536) -> np.ndarray:
-    with torch.inference_mode():
-        return torch.cat([model(x[i : i + batch]) for i in range(0, len(x), batch)]).numpy()
-
-
-def _as_input(points: np.ndarray, normals: np.ndarray) -> torch.Tensor:
-    return torch.from_numpy(np.ascontiguousarray(np.concatenate([points, normals], axis=1), dtype=np.float32))
-
-
 def fit_grid_segment(
     points: np.ndarray,
     normals: np.ndarray,
@@ -473,9 +463,8 @@ def fit_grid_segment(
         lr=settings.lr,
     )
     t0 = time.perf_counter()
-    best = (math.inf, None, 0)
-    history = []
-    evaluation = step = 0
+    check = Validation(xv, yv, n_coeffs, val_weights, settings, progress)
+    step = 0
     perm, cursor, total, counted = torch.randperm(n, generator=gen), 0, 0.0, 0
     model.train()
     while step < total_steps:
@@ -496,23 +485,11 @@ def fit_grid_segment(
         counted += len(idx)
         if step % eval_every and step < total_steps:
             continue
-        evaluation += 1
-        model.eval()
-        val_pred = _predict(model, xv)
-        val_mae = transfer_error(val_pred, yv, n_coeffs)
-        model.train()
-        history.append({"epoch": evaluation, "step": step, "train_l1": total / counted, "val_mae": val_mae})
-        if progress is not None:
-            progress(step, total_steps, total / counted, val_mae)
+        stop = check(model, step, total_steps, total / counted)
         total, counted = 0.0, 0
-        score = val_mae if val_weights is None else weighted_l1_numpy(val_pred, yv, val_weights)
-        if score < best[0] * (1 - 5e-3):
-            best = (score, copy.deepcopy(model.state_dict()), evaluation)
-        elif score < best[0]:
-            best = (score, copy.deepcopy(model.state_dict()), best[2])
-        if evaluation - best[2] >= settings.patience and step >= settings.min_epochs_fraction * total_steps:
+        if stop:
             break
-    model.load_state_dict(best[1])
+    model.load_state_dict(check.best[1])
     model.eval()
     pred = _predict(model, xv)
     return FitResult(
@@ -520,8 +497,8 @@ def fit_grid_segment(
         arch=arch,
         val_mae=transfer_error(pred, yv, n_coeffs),
         shaded=shaded_error(pred, yv, lights or {}, n_coeffs),
-        epochs=evaluation,
+        epochs=check.evaluation,
         seconds=time.perf_counter() - t0,
-        history=history,
+        history=check.history,
         steps=step,
     )
