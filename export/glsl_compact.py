@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from .glsl import _groups_doc, _literal, _network, _template, _texture
-from .grid_onnx import TABLE_WIDTH, table_texture
+from .grid_onnx import TABLE_WIDTH, grid_level_lines, table_texture
 from .onnx_model import LEAKY_SLOPE, NORMAL_EPS, POSITION_CLIP
 
 __all__ = [
@@ -249,27 +249,8 @@ def grid_source(arrays: dict[str, np.ndarray]) -> str:
         "    vec3 u = x * 0.5 + 0.5;",
         f"    int table = base + {prefix};",
         f"    float h[{width}];",
-        "    for (int l = 0; l < n_levels; ++l) {",
-        "        float res = float(FN_RES[l]);",
-        "        vec3 pos = u * res;",
-        "        vec3 i0f = min(floor(pos), vec3(res - 1.0));",
-        "        vec3 w = pos - i0f;",
-        "        vec3 v = 1.0 - w;",
-        "        ivec3 i0 = ivec3(i0f);",
-        "        int s1 = FN_RES[l] + 1;",
-        "        vec4 acc = vec4(0.0);",
-        "        for (int k = 0; k < 8; ++k) {",
-        "            ivec3 d = ivec3(k & 1, (k >> 1) & 1, k >> 2);",
-        "            ivec3 c = i0 + d;",
-        "            float weight = (d.x == 1 ? w.x : v.x) * (d.y == 1 ? w.y : v.y) * (d.z == 1 ? w.z : v.z);",
-        "            int row;",
-        f"            if (FN_HASHED[l] == 1) row = int((uint(c.x) ^ (uint(c.y) * 2654435761u) ^ (uint(c.z) * 805459861u)) & {table_size - 1}u);",
-        "            else row = c.x + s1 * c.y + s1 * s1 * c.z;",
-        "            acc += weight * prt_weight(table + row + FN_OFFSET[l]);",
-        "        }",
     ]
-    body += [f"        h[{features} * l + {j}] = acc.{'xyzw'[j]};" for j in range(features)]
-    body.append("    }")
+    body += grid_level_lines("FN", "n_levels", "prt_weight(table + row + FN_OFFSET[l])", features, table_size)
     at = levels * features
     if use_pos:
         body += [f"    h[{at + j}] = x.{'xyz'[j]};" for j in range(3)]

@@ -270,6 +270,36 @@ def _vec3(values) -> str:
     return f"vec3({_floats(values)})"
 
 
+
+def grid_level_lines(prefix: str, count: str, texel: str, features: int, table_size: int) -> list[str]:
+    """GLSL of the grid lookup, shared by the per-segment and the compact generators: for each level
+    ``l < count`` (``<prefix>_RES``, ``_HASHED`` arrays), the 8 cell corners' rows (hashed or dense)
+    fetched by the expression ``texel`` (of ``row`` and ``l``), blended trilinearly into
+    ``h[features * l + j]``; expects ``vec3 u`` (the position in [0, 1]^3) and ``float h[]``."""
+    lines = [
+        f"    for (int l = 0; l < {count}; ++l) {{",
+        f"        float res = float({prefix}_RES[l]);",
+        "        vec3 pos = u * res;",
+        "        vec3 i0f = min(floor(pos), vec3(res - 1.0));",
+        "        vec3 w = pos - i0f;",
+        "        vec3 v = 1.0 - w;",
+        "        ivec3 i0 = ivec3(i0f);",
+        f"        int s1 = {prefix}_RES[l] + 1;",
+        "        vec4 acc = vec4(0.0);",
+        "        for (int k = 0; k < 8; ++k) {",
+        "            ivec3 d = ivec3(k & 1, (k >> 1) & 1, k >> 2);",
+        "            ivec3 c = i0 + d;",
+        "            float weight = (d.x == 1 ? w.x : v.x) * (d.y == 1 ? w.y : v.y) * (d.z == 1 ? w.z : v.z);",
+        "            int row;",
+        f"            if ({prefix}_HASHED[l] == 1) row = int((uint(c.x) ^ (uint(c.y) * 2654435761u) ^ (uint(c.z) * 805459861u)) & {table_size - 1}u);",
+        "            else row = c.x + s1 * c.y + s1 * s1 * c.z;",
+        f"            acc += weight * {texel};",
+        "        }",
+    ]
+    lines += [f"        h[{features} * l + {j}] = acc.{'xyzw'[j]};" for j in range(features)]
+    return lines + ["    }"]
+
+
 def glsl_function(arrays: dict[str, np.ndarray], name: str = "grid_transfer", sampler: str | None = None) -> str:
     """GLSL 3.30 source defining ``uniform sampler2D <sampler>`` (default ``<name>_table``; bind :func:`table_texture`)
     and ``void <name>(vec3 p, vec3 n, out vec4 t[K])``: the transfer (K = outputs / 4 vec4s), the
@@ -304,27 +334,8 @@ def glsl_function(arrays: dict[str, np.ndarray], name: str = "grid_transfer", sa
         f"    vec3 x = clamp((p - {_vec3(arrays['enc_centre'])}) * {_vec3(arrays['enc_inv_half'])}, -1.0, 1.0);",
         "    vec3 u = x * 0.5 + 0.5;",
         f"    float h[{width}];",
-        f"    for (int l = 0; l < {levels}; ++l) {{",
-        f"        float res = float({f}_RES[l]);",
-        "        vec3 pos = u * res;",
-        "        vec3 i0f = min(floor(pos), vec3(res - 1.0));",
-        "        vec3 w = pos - i0f;",
-        "        vec3 v = 1.0 - w;",
-        "        ivec3 i0 = ivec3(i0f);",
-        f"        int s1 = {f}_RES[l] + 1;",
-        "        vec4 acc = vec4(0.0);",
-        "        for (int k = 0; k < 8; ++k) {",
-        "            ivec3 d = ivec3(k & 1, (k >> 1) & 1, k >> 2);",
-        "            ivec3 c = i0 + d;",
-        "            float weight = (d.x == 1 ? w.x : v.x) * (d.y == 1 ? w.y : v.y) * (d.z == 1 ? w.z : v.z);",
-        "            int row;",
-        f"            if ({f}_HASHED[l] == 1) row = int((uint(c.x) ^ (uint(c.y) * 2654435761u) ^ (uint(c.z) * 805459861u)) & {table_size - 1}u);",
-        "            else row = c.x + s1 * c.y + s1 * s1 * c.z;",
-        f"            acc += weight * {f}_texel(row + {f}_OFFSET[l]);",
-        "        }",
     ]
-    body += [f"        h[{features} * l + {j}] = acc.{'xyzw'[j]};" for j in range(features)]
-    body.append("    }")
+    body += grid_level_lines(f, str(levels), f"{f}_texel(row + {f}_OFFSET[l])", features, table_size)
     at = levels * features
     if use_pos:
         body += [f"    h[{at + j}] = x.{'xyz'[j]};" for j in range(3)]
