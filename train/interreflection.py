@@ -311,6 +311,25 @@ def bounce_matrices(bounce_rays: BounceRays, face_albedo, targets: int | None = 
     return [csr_matrix((albedo[:, c], (rows, landed)), shape=shape) for c in range(3)]
 
 
+def run_ray_chunks(executor, job, items, out: np.ndarray, chunk_size: int, rays: int, *, store=None, bar=None) -> None:
+    """Trace the chunks ``items`` (``(k, points, normals)``) of bounce rays through ``executor``
+    (:func:`bounce_chunk`): each chunk's rows into ``out[k * chunk_size ...]`` and, when given, into
+    ``store`` (the driver alone writes the cache); ``bar`` advances by rays and is closed at the end."""
+    from contextlib import closing
+
+    try:
+        with closing(executor.map(bounce_chunk, job, items, task_threads=1)) as finished:
+            for (k, chunk_points, _), value in finished:
+                if store is not None:
+                    store.save(k, value)
+                out[k * chunk_size : (k + 1) * chunk_size] = value
+                if bar is not None:
+                    bar.update(len(chunk_points) * rays)
+    finally:
+        if bar is not None:
+            bar.close()
+
+
 def trace_stage(mesh, folder, train: dict, valid: dict, *, rays: int = BOUNCE_RAYS, seed: int = 0, chunk_size: int = 2048, key: str = "",
                 executor=None, threads: int | None = None, progress: bool = True, log=print) -> dict:  # fmt: skip
     """The rays of the bounce stage, traced in chunks (cached in ``folder``): {"train", "validation"} -> :class:`BounceRays`.
@@ -318,7 +337,6 @@ def trace_stage(mesh, folder, train: dict, valid: dict, *, rays: int = BOUNCE_RA
     The hit points and nearest training samples do not depend on the albedos or the bounce count
     (see :func:`bounce_stage`); validation samples shoot their own rays (another seed stream).
     """
-    from contextlib import closing
     from pathlib import Path
 
     from .executor import LocalExecutor
@@ -346,16 +364,7 @@ def trace_stage(mesh, folder, train: dict, valid: dict, *, rays: int = BOUNCE_RA
             bar = tqdm(total=count * rays, initial=(count - sum(min(chunk_size, count - k * chunk_size) for k in todo)) * rays,
                        unit="ray", unit_scale=True, desc=f"bounce rays ({name})", mininterval=0.5)  # fmt: skip
         items = [(k, points[k * chunk_size : (k + 1) * chunk_size], normals[k * chunk_size : (k + 1) * chunk_size]) for k in todo]
-        try:
-            with closing(executor.map(bounce_chunk, job, items, task_threads=1)) as finished:
-                for (k, chunk_points, _), value in finished:
-                    store.save(k, value)  # the driver alone writes the cache
-                    out[k * chunk_size : (k + 1) * chunk_size] = value
-                    if bar is not None:
-                        bar.update(len(chunk_points) * rays)
-        finally:
-            if bar is not None:
-                bar.close()
+        run_ray_chunks(executor, job, items, out, chunk_size, rays, store=store, bar=bar)
         found[name] = BounceRays(out[:, 0].astype(np.int64), out[:, 1].astype(np.int64))
     log(f"bounce rays: {sum(len(f.nearest) for f in found.values()):,} samples x {rays} rays in {time.perf_counter() - t0:.1f} s")
     return found

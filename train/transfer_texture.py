@@ -373,10 +373,8 @@ def texel_indirect(tracer, points, normals, bounces: TextureBounces, *, chunk_si
     hit, ``mean_j a(hit_j) gathered[nearest_j]``.  Chunked through a local executor; with
     ``cache_dir`` the chunks' ray indices (not the albedos) are kept, so a bake resumes.
     """
-    from contextlib import closing
-
     from .executor import LocalExecutor
-    from .interreflection import BounceJob, BounceRays, _IndexStore, bounce_chunk, bounce_matrices
+    from .interreflection import BounceJob, BounceRays, _IndexStore, bounce_matrices, run_ray_chunks
 
     points = np.ascontiguousarray(points, dtype=np.float64)
     normals = np.ascontiguousarray(normals, dtype=np.float64)
@@ -395,17 +393,7 @@ def texel_indirect(tracer, points, normals, bounces: TextureBounces, *, chunk_si
 
         bar = tqdm(total=count * rays, unit="ray", unit_scale=True, desc="texel bounce rays", mininterval=0.5)
     items = [(k, points[k * chunk_size : (k + 1) * chunk_size], normals[k * chunk_size : (k + 1) * chunk_size]) for k in todo]
-    try:
-        with closing(LocalExecutor(threads).map(bounce_chunk, job, items, task_threads=1)) as finished:
-            for (k, chunk_points, _), value in finished:
-                if store is not None:
-                    store.save(k, value)
-                out[k * chunk_size : (k + 1) * chunk_size] = value
-                if bar is not None:
-                    bar.update(len(chunk_points) * rays)
-    finally:
-        if bar is not None:
-            bar.close()
+    run_ray_chunks(LocalExecutor(threads), job, items, out, chunk_size, rays, store=store, bar=bar)
     found = BounceRays(out[:, 0].astype(np.int64), out[:, 1].astype(np.int64))
     matrices = bounce_matrices(found, bounces.face_albedo, targets=len(bounces.points))
     gathered = np.asarray(bounces.gathered, dtype=np.float64)
