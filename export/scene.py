@@ -71,6 +71,8 @@ class TrainedSegment:
         ``hidden``, ``layers``, ``pos_freqs``, ``normal_freqs``, ``bands``, ``input_dim``.
     flops_per_fragment, weight_bytes : int
         Cost of the network (0 when analytic).
+    sizing : dict or None
+        How right-sizing chose it (:mod:`prt.train.rightsize`): rule, target, measured, reason, sizes tried.
     """
 
     id: int
@@ -82,6 +84,7 @@ class TrainedSegment:
     architecture: dict | None = None
     flops_per_fragment: int = 0
     weight_bytes: int = 0
+    sizing: dict | None = None
 
     @property
     def is_network(self) -> bool:
@@ -99,7 +102,7 @@ def export_segment(out: Path, segment: TrainedSegment, glsl_layout: str = "auto"
     info = SegmentInfo(
         id=s, kind="network" if segment.is_network else "analytic", model=None, glsl=None,
         bounds=segment.bounds, architecture=None, flops_per_fragment=0, weight_bytes=0,
-        samples=segment.samples, validation={"coeff_mae": segment.coeff_mae, "shaded_mae": segment.shaded_mae},
+        samples=segment.samples, validation={"coeff_mae": segment.coeff_mae, "shaded_mae": segment.shaded_mae}, sizing=segment.sizing,
     )  # fmt: skip
     if not segment.is_network:
         return info

@@ -189,6 +189,9 @@ class SegmentInfo:
         Training samples of the segment.
     validation : dict
         ``coeff_mae`` (float) and ``shaded_mae`` (dict of lighting name -> float).
+    sizing : dict or None
+        What right-sizing chose and why (``rule``, ``target``, ``chosen``, ``psnr_db``, ``met``,
+        ``reason``, ``tried``); absent in scenes built before it was recorded.
     """
 
     id: int
@@ -202,6 +205,7 @@ class SegmentInfo:
     samples: int
     validation: dict
     glsl_weights: Path | None = None
+    sizing: dict | None = None
 
     @property
     def is_network(self) -> bool:
@@ -231,6 +235,7 @@ class SegmentInfo:
                 "coeff_mae": data["validation"]["coeff_mae"],
                 "shaded_mae": dict(data["validation"]["shaded_mae"]),
             },
+            sizing=dict(data["sizing"]) if "sizing" in data else None,
         )
 
     def to_dict(self, root: Path) -> dict:
@@ -249,6 +254,8 @@ class SegmentInfo:
                 "flops_per_fragment": self.flops_per_fragment,
                 "weight_bytes": self.weight_bytes,
             }
+        if self.sizing is not None:
+            out["sizing"] = self.sizing
         return out
 
     def _files(self) -> dict[str, Path | None]:

@@ -32,17 +32,17 @@ from ..runtime.envmaps import BUNDLED_ENVMAPS, bundled_envmap_path
 from ..runtime.errors import SpecError
 from ..runtime.files import atomic_save_npz, atomic_write_json
 from ..runtime.manifest import validate_manifest_field
-from ..runtime.sh import unshadowed_transfer
-from .fit import DEFAULT_LADDER, DEFAULT_STEPS, LOSSES, FitResult, FitSettings, fit_segment, right_size, right_size_matching, shaded_error, transfer_error
+from .fit import DEFAULT_LADDER, DEFAULT_STEPS, LOSSES, FitResult, FitSettings
 from .geometry import load_geometry
 from .materials import mesh_materials, textured_geometry
 from .mixed import load_scene_geometry, parse_objects, resolve_objects
 from .executor import LocalExecutor
-from .grid_encoding import DEFAULT_GRID, GridArchitecture, fit_grid_segment, parse_grid
+from .grid_encoding import DEFAULT_GRID, GridArchitecture, parse_grid
 from .network import Architecture
 from .outdir import check_output_folder, mark_output_folder
 from .interreflection import BOUNCE_RAYS, bounce_stage
 from .bounce_depth import auto_bounces
+from .rightsize import SCENE_LIGHT, SegmentJob, candidates, segment_task
 from .precompute import SPEC_LIMITS, DamagedPrecompute, PrecomputeSettings, SpecLimits, check_settings, load_precompute, run_precompute
 
 __all__ = ["BuildSpec", "SpecLimits", "SPEC_LIMITS", "load_spec", "spec_from_dict", "run_build", "ENV_LIGHTS"]
@@ -78,6 +78,9 @@ class BuildSpec:
     bf16: bool | None = False  # bf16 autocast: about 2x faster on AVX512-BF16, about 9 % higher error
     loss: str = "l1"  # fitting loss (prt.train.fit.LOSSES): L1 on the coefficients, or "relative" (over each sample's brightness)
     target: float = 0.0025  # validation coefficient MAE a right-sized network must reach
+    # right-size to a shaded target instead (prt.train.rightsize): the cheapest size whose held-out
+    # shaded, tone-mapped PSNR (dB, worst bundled env map) is at least this
+    target_db: float | None = None
     ladder: list[dict] | None = None  # [{hidden, layers, pos_freqs, normal_freqs}], small to large
     fixed: dict | None = None  # force one size for every network segment
     match: dict | None = None  # right-size to this size's accuracy ({hidden, layers, ...}) instead of ``target``
@@ -85,7 +88,8 @@ class BuildSpec:
     analytic: bool = True  # let unshadowed segments skip the network
     # the networks' encoding of position: "freq" (the paper's frequency-encoded MLP) or "grid" (a
     # multiresolution feature grid feeding a small MLP, prt.train.grid_encoding; ``grid`` spells its
-    # levels, e.g. "L6-F2-T12-N4-32", None: DEFAULT_GRID); ``fixed``/``ladder`` then size its MLP
+    # levels, e.g. "L6-F2-T12-N4-32", None: DEFAULT_GRID); ``fixed``/``ladder`` then size its MLP;
+    # "auto": right-size per segment over both (the frequency ladder and the grid ladder)
     encoding: str = "freq"
     grid: str | None = None
     # interreflection (prt.train.interreflection): N diffuse bounces (0: direct transfer only, the
@@ -126,6 +130,8 @@ class BuildSpec:
         """The sizes to try, smallest first (one when ``fixed``)."""
         if self.encoding == "grid":
             return _grid_architectures(self)
+        if self.encoding == "auto":  # both ladders, cheapest first
+            return candidates([dataclasses.replace(a, bands=self.bands, layout=self.layout) for a in DEFAULT_LADDER], _grid_architectures(self))
         if self.fixed is not None:
             return [_architecture(self.fixed, self.bands, "fixed", self.layout)]
         if self.ladder is not None:
@@ -192,11 +198,6 @@ def _grid_architectures(spec: BuildSpec) -> list[GridArchitecture]:
         out.append(GridArchitecture(**grid, hidden=a.hidden, layers=a.layers, normal_freqs=d.get("normal_freqs", 0), bands=spec.bands,
                                     layout=spec.layout))  # fmt: skip
     return out
-
-
-def _weight_bytes(arch) -> int:
-    """Stored bytes of a network: fp32 weights; a grid's tables in fp16 (as exported)."""
-    return arch.bytes() if isinstance(arch, GridArchitecture) else arch.weight_count() * 4
 
 
 # Flat spec field -> its annotation (the precompute fields come from PrecomputeSettings).
@@ -293,17 +294,29 @@ def spec_from_dict(data: dict) -> BuildSpec:
         raise SpecError(f"glsl_layout: expected 'auto', 'const' or 'texture', got {spec.glsl_layout!r}")
     if spec.loss not in LOSSES:
         raise SpecError(f"loss: expected one of {', '.join(map(repr, LOSSES))}, got {spec.loss!r}")
-    if spec.encoding not in ("freq", "grid"):
-        raise SpecError(f"encoding: expected 'freq' (the paper's frequency-encoded MLP) or 'grid' (a multiresolution feature grid), got {spec.encoding!r}")
-    if spec.encoding != "grid":
+    if spec.encoding not in ("freq", "grid", "auto"):
+        raise SpecError(f"encoding: expected 'freq' (the paper's frequency-encoded MLP), 'grid' (a multiresolution feature grid) or 'auto' "
+                        f"(right-sized over both), got {spec.encoding!r}")  # fmt: skip
+    if spec.encoding == "auto":
+        for key in ("fixed", "ladder"):
+            if getattr(spec, key) is not None:
+                raise SpecError(f"{key}: not with encoding 'auto' (it right-sizes over the frequency ladder and the grid ladder; "
+                                f"choose encoding 'freq' or 'grid' to set sizes)")  # fmt: skip
+    if spec.target_db is not None:
+        if isinstance(spec.target_db, bool) or not isinstance(spec.target_db, (int, float)) or not (0 < spec.target_db <= 100):
+            raise SpecError(f"target_db: expected a PSNR in dB, 0 < dB <= 100, got {spec.target_db!r}")
+        for key in ("fixed", "match"):
+            if getattr(spec, key) is not None:
+                raise SpecError(f"target_db: cannot be combined with {key} (one right-sizing rule per build)")
+    if spec.encoding == "freq":
         if spec.grid is not None:
-            raise SpecError(f"grid: only with encoding 'grid' (got encoding {spec.encoding!r})")
+            raise SpecError(f"grid: only with encoding 'grid' or 'auto' (got encoding {spec.encoding!r})")
     else:
         for key, value, why in (("glsl_layout", spec.glsl_layout == "const", "a grid's tables are always a texture"),
                                 ("time_budget", spec.time_budget is not None, "grids train by steps only"),
                                 ("bf16", bool(spec.bf16) or spec.bf16 is None, "grids train in fp32")):  # fmt: skip
             if value:
-                raise SpecError(f"{key}: {getattr(spec, key)!r} is not supported with encoding 'grid' ({why})")
+                raise SpecError(f"{key}: {getattr(spec, key)!r} is not supported with encoding {spec.encoding!r} ({why})")
     if spec.ladder is not None and not spec.ladder:
         raise SpecError("ladder: empty (list at least one size, or leave it out for the default ladder)")
     spec.architectures()  # validates ladder / fixed
@@ -441,7 +454,8 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
     for seg in seg_json["segments"]:
         s = seg["id"]
         key = _hash(data_key, s, fit_settings.cache_key(), [a.as_dict() for a in archs], spec.target, spec.analytic, TRAIN_FORMAT,
-                    *([spec.match, spec.match_tolerance] if spec.match is not None else []))  # fmt: skip
+                    *([spec.match, spec.match_tolerance] if spec.match is not None else []),
+                    *([spec.target_db, spec.material] if spec.target_db is not None else []))  # fmt: skip
         record_path = out / "train" / f"seg{s:03d}.json"
         weights_path = out / "train" / f"seg{s:03d}.npz"
         record = _read_record(record_path)
@@ -452,14 +466,14 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
                 continue
         todo.append((seg, key))
     fits_folder = out / "precompute" / "fits"
-    job = _SegmentJob(spec, samples, valid, members, archs, fit_settings, lights, progress and executor.local, log if executor.local else None)
+    job = SegmentJob(spec, samples, valid, members, archs, fit_settings, lights, progress and executor.local, log if executor.local else None)
     items = []
     for seg, key in todo:  # a cluster gets the fits cached before with its task; its new fits come back
         fits = _FitCache(fits_folder, data_key, seg["id"], fit_settings)
         items.append((seg, key, fits if executor.local else fits.memo([*archs, *filter(None, [spec.reference_architecture()])])))
     bar = tqdm(total=len(todo), desc="train", unit="segment") if progress and todo and not executor.local else None
     try:  # torch's thread count changes a fit's bytes: a task uses this process's, wherever it runs
-        with closing(executor.map(_segment_task, job, items, task_threads=torch.get_num_threads(), exclusive=True)) as finished:
+        with closing(executor.map(segment_task, job, items, task_threads=torch.get_num_threads(), exclusive=True)) as finished:
             for (seg, _, _), (record, new_fits, lines) in finished:
                 s = seg["id"]
                 for line in lines:
@@ -492,7 +506,7 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
         },
         segments=[_trained_segment(record, out) for record in segments],
         sh_bands=spec.bands,
-        lighting_sh=lights["potsdamer"],
+        lighting_sh=lights[SCENE_LIGHT],
         material=spec.material,
         camera=spec.camera,
         glsl_layout=spec.glsl_layout,
@@ -558,17 +572,6 @@ def _loadable(path: Path) -> bool:
         raise
     except Exception:  # zipfile, zlib and numpy each raise their own kind on damaged bytes
         return False
-
-
-def _validation_split(s, valid, own_idx, seed):
-    """Held-out samples of segment ``s``; if the validation set has too few, hold out 10 % of its own."""
-    vsel = np.flatnonzero(valid["segment"] == s)
-    if len(vsel) >= 32:
-        return vsel, None
-    rng = np.random.default_rng([seed, 0x5E6, s])
-    n_hold = max(1, len(own_idx) // 10)
-    held = rng.choice(own_idx, size=min(n_hold, max(len(own_idx) - 1, 1)), replace=False)
-    return None, held
 
 
 class _StoredModel:
@@ -639,134 +642,11 @@ class _FitMemo:
         self.new.append(stored)
 
 
-@dataclass
-class _SegmentJob:
-    """What the fits of one build share (sent once to a cluster).  ``log`` None: lines come back."""
-
-    spec: BuildSpec
-    samples: dict
-    valid: dict
-    members: list
-    archs: list
-    fit_settings: FitSettings
-    lights: dict
-    progress: bool
-    log: object = None
-
-
-def _segment_task(job: _SegmentJob, item) -> tuple[dict, list, list[str]]:
-    """Fit one segment ``(seg, key, fits)``: a task.  Returns (record, new fits for the cache, log lines)."""
-    seg, key, fits = item
-    lines = []
-    s = seg["id"]
-    record = _train_segment(job.spec, s, seg, job.samples, job.valid, job.members[s], job.archs, job.fit_settings,
-                            job.lights, job.progress, job.log or lines.append, fits)  # fmt: skip
-    record["key"] = key
-    return record, getattr(fits, "new", []), lines
-
-
-def _train_segment(spec, s, seg, samples, valid, member_idx, archs, fit_settings, lights, progress, log, fits=None) -> dict:
-    own_idx = member_idx[samples["segment"][member_idx] == s]
-    vsel, held = _validation_split(s, valid, own_idx, spec.seed)
-    if held is not None:
-        train_idx = np.setdiff1d(member_idx, held)
-        vp, vn, vt = samples["points"][held], samples["normals"][held], samples["transfer"][held]
-        note = f"validation set had {int((valid['segment'] == s).sum())} samples here; held out {len(held)} of its own"
-    else:
-        train_idx = member_idx
-        vp, vn, vt = valid["points"][vsel], valid["normals"][vsel], valid["transfer"][vsel]
-        note = ""
-    p, n, t = samples["points"][train_idx], samples["normals"][train_idx], samples["transfer"][train_idx]
-    bounds = np.array([p.min(axis=0), p.max(axis=0)])
-    bounds = bounds + np.array([[-1.0], [1.0]]) * 0.01 * np.maximum(bounds[1] - bounds[0], 1e-3)
-    base = {
-        "id": s,
-        "samples": int(len(own_idx)),
-        "margin_samples": int(len(member_idx) - len(own_idx)),
-        "validation_samples": int(len(vt)),
-        "bounds": bounds.tolist(),
-        "note": note,
-    }
-    reference = spec.reference_architecture()
-    analytic = None
-    if spec.analytic:
-        pred = unshadowed_transfer(vn, spec.bands)
-        n_coeffs = pred.shape[1]
-        if vt.shape[1] > n_coeffs:  # "direct+rgb": an analytic segment has no indirect light
-            pred = np.concatenate([pred, np.zeros((len(pred), vt.shape[1] - n_coeffs), dtype=pred.dtype)], axis=1)
-        mae = transfer_error(pred, vt, n_coeffs)
-        analytic = {**base, "kind": "analytic", "val_mae": mae, "shaded": shaded_error(pred, vt, lights, n_coeffs), "tried": [], "flops_per_fragment": 0,
-                    "weight_bytes": 0}  # fmt: skip
-        if mae <= spec.target and reference is None:
-            log(f"segment {s}: analytic (unshadowed; validation MAE {mae:.5f} <= {spec.target})")
-            return analytic
-
-    log(f"segment {s}: {len(train_idx):,} training samples ({base['margin_samples']:,} margin), {len(vt):,} held out")
-
-    def fit(arch):
-        cached = fits.get(arch) if fits is not None else None
-        if cached is not None:
-            log(f"  {arch.label():>12}: fitted before on this precompute (cached)")
-            return cached
-        result = _fit(arch)
-        if fits is not None:
-            fits.put(result)
-        return result
-
-    def _fit(arch):
-        bar = None
-        if progress:
-            bar = tqdm(desc=f"  seg {s} {arch.label()}", unit="step", leave=False, mininterval=0.5)
-
-        def on_epoch(step, total_steps, train_l1, val_mae):
-            if bar is not None:
-                bar.total = total_steps
-                bar.update(step - bar.n)
-                bar.set_postfix(val_mae=f"{val_mae:.5f}", refresh=False)
-
-        try:
-            if isinstance(arch, GridArchitecture):
-                return fit_grid_segment(p, n, t, vp, vn, vt, arch, bounds, fit_settings, lights=lights, progress=on_epoch)
-            return fit_segment(p, n, t, vp, vn, vt, arch, bounds, fit_settings, lights=lights, progress=on_epoch)
-        finally:
-            if bar is not None:
-                bar.close()
-
-    if reference is not None:
-        result, tried, bar = right_size_matching(fit, reference, archs, tolerance=spec.match_tolerance, log=log)
-        if analytic is not None and analytic["val_mae"] <= min(bar, spec.target):
-            log(f"segment {s}: analytic (unshadowed; validation MAE {analytic['val_mae']:.5f} <= the bar {bar:.5f})")
-            return {**analytic, "tried": tried, "bar": bar}
-        met = result.val_mae <= bar
-    else:
-        result, tried = right_size(fit, archs, target=spec.target, log=log)
-        met, bar = result.val_mae <= spec.target, spec.target
-    arch = result.arch
-    return {
-        **base,
-        "kind": "network",
-        "arch": arch.as_dict(),
-        "arch_label": arch.label(),
-        "val_mae": result.val_mae,
-        "shaded": result.shaded,
-        "epochs": result.epochs,
-        "steps": result.steps,
-        "train_s": result.seconds,
-        "tried": tried,
-        "met_target": met,
-        "bar": bar,
-        "flops_per_fragment": arch.flops_per_fragment(),
-        "weight_bytes": _weight_bytes(arch),
-        "arrays": result.model.arrays(),
-        "history": result.history,
-    }
-
-
 def _trained_segment(record: dict, out: Path) -> TrainedSegment:
     """What export needs of a segment's training record (weights from ``train/segNNN.npz``)."""
     s = record["id"]
     segment = TrainedSegment(id=s, bounds=record["bounds"], samples=record["samples"],
-                             coeff_mae=record["val_mae"], shaded_mae=record["shaded"])  # fmt: skip
+                             coeff_mae=record["val_mae"], shaded_mae=record["shaded"], sizing=record.get("sizing"))  # fmt: skip
     if record["kind"] == "network":
         with np.load(out / "train" / f"seg{s:03d}.npz") as f:
             segment.arrays = dict(f)

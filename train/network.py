@@ -30,7 +30,7 @@ from torch import nn
 
 from ..export.onnx_model import LEAKY_SLOPE, NORMAL_EPS, POSITION_CLIP
 
-__all__ = ["Architecture", "TransferMLP", "frequency_matrix", "target_scaling", "TARGET_RANGE", "LAYOUTS", "layout_width"]
+__all__ = ["Architecture", "TransferMLP", "evaluate_numpy", "frequency_matrix", "target_scaling", "TARGET_RANGE", "LAYOUTS", "layout_width"]
 
 TARGET_RANGE = 0.9  # scaled targets live in [-0.9, 0.9], where tanh' >= 0.19
 # Output layouts: "direct" (bands^2, the paper's), "direct+rgb" (direct + indirect R, G, B:
@@ -159,6 +159,25 @@ class TransferMLP(nn.Module):
             out[f"layer{i}_weight"] = layer.weight.T  # (in, out): x @ W
             out[f"layer{i}_bias"] = layer.bias
         return {k: v.detach().cpu().numpy().astype(np.float32) for k, v in out.items()}
+
+
+def evaluate_numpy(arrays: dict[str, np.ndarray], points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """The plain numpy evaluation of :meth:`TransferMLP.arrays` (float32, as the ONNX graph): the
+    network's output (N, outputs) at ``points`` (N, 3) with ``normals`` (N, 3).  Used to score
+    fits read back from the fit cache, where only the arrays survive."""
+    p = np.asarray(points, dtype=np.float32)
+    n = np.asarray(normals, dtype=np.float32)
+    x = np.clip((p - arrays["enc_centre"]) * arrays["enc_inv_half"], np.float32(-POSITION_CLIP), np.float32(POSITION_CLIP))
+    n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), np.float32(NORMAL_EPS))
+    ap, an = x @ arrays["enc_pos_freq"], n @ arrays["enc_normal_freq"]
+    h = np.concatenate([x, np.sin(ap), np.cos(ap), n, np.sin(an), np.cos(an)], axis=1).astype(np.float32)
+    i = 0
+    while f"layer{i}_weight" in arrays:
+        h = h @ arrays[f"layer{i}_weight"] + arrays[f"layer{i}_bias"]
+        h = np.where(h > 0, h, np.float32(LEAKY_SLOPE) * h)
+        i += 1
+    z = h @ arrays["out_weight"] + arrays["out_bias"]
+    return (np.tanh(z) * arrays["out_scale"] + arrays["out_offset"]).astype(np.float32)
 
 
 def target_scaling(transfer: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

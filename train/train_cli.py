@@ -1,7 +1,7 @@
 """prt-train: build a deployable scene: precompute -> train -> export (ONNX, GLSL, scene.json).
 
 usage: prt-train INPUT -o OUTDIR [--samples N] [--rays R] [--segments S] [--steps N] [--time-budget S] [--seed K] [--bounces N|auto]
-                 [--hidden K --layers L] [--encoding freq|grid [--grid L6-F2-T12-N4-32]] [--target MAE | --match 64x4]
+                 [--hidden K --layers L] [--encoding freq|grid|auto [--grid L6-F2-T12-N4-32]] [--target MAE | --target-db DB | --match 64x4]
                  [--cluster auto|ADDRESS] [--force]
                  [--neural-sdf [--sdf-size KxL] [--sdf-samples N] [--sdf-steps N]]
 
@@ -68,13 +68,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--hidden", type=int, default=None, help="force k neurons per layer for every network (with --layers)")
     p.add_argument("--layers", type=int, default=None, help="force l hidden layers for every network (with --hidden)")
     p.add_argument("--pos-freqs", type=int, default=None, help="with --hidden/--layers: position encoding frequencies [6]")
-    p.add_argument("--encoding", choices=("freq", "grid"), default=None,
-                   help="the networks' encoding of position: the paper's frequency-encoded MLP, or a multiresolution feature grid "
-                        "(dense coarse levels, hashed fine ones) feeding a small MLP that --hidden/--layers size [freq]")
+    p.add_argument("--encoding", choices=("freq", "grid", "auto"), default=None,
+                   help="the networks' encoding of position: the paper's frequency-encoded MLP, a multiresolution feature grid "
+                        "(dense coarse levels, hashed fine ones) feeding a small MLP that --hidden/--layers size, or auto: per segment "
+                        "the cheapest of both ladders (by FLOPs per fragment) that meets the target [freq]")
     p.add_argument("--grid", default=None, metavar="L6-F2-T12-N4-32",
                    help="with --encoding grid: L levels of F features, at most 2^T table rows per level, N_min-N_max cells per axis "
                         "[L6-F2-T12-N4-32; without --hidden/--layers the MLP is right-sized over 16x1, 32x2, 64x2, 64x3]")
     p.add_argument("--target", type=float, default=None, help=f"validation MAE (SH coefficients) a right-sized network must reach [{d.target}]")
+    p.add_argument("--target-db", type=float, default=None, metavar="DB",
+                   help="right-size to a shaded target instead of --target: per segment the cheapest size whose held-out diffuse "
+                        "shading, tone-mapped as prt-bench's images, reaches DB dB PSNR under every bundled env map (e.g. 40)")
     p.add_argument("--match", default=None, metavar="KxL", help="right-size to the accuracy of this size instead of --target: train it, then keep the cheapest smaller size on the ladder within --match-tolerance of its validation MAE (e.g. 64x4, the paper's k = 64)")
     p.add_argument("--match-tolerance", type=float, default=None, help=f"with --match: share by which the validation MAE may exceed the reference's [{d.match_tolerance}]")
     p.add_argument("--loss", choices=("l1", "relative"), default=None,
@@ -123,6 +127,7 @@ def _spec_from_args(args):
         "lr": args.lr,
         "seed": args.seed,
         "target": args.target,
+        "target_db": args.target_db,
         "match_tolerance": args.match_tolerance,
         "glsl_layout": args.glsl_layout,
         "bounces": args.bounces,

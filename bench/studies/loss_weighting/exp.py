@@ -3,7 +3,8 @@ import sys, json, time
 import numpy as np, torch
 torch.set_num_threads(1)
 from prt.train.precompute import load_precompute
-from prt.train.build import _validation_split, _env_lights
+from prt.train.build import _env_lights
+from prt.train.rightsize import validation_split as _validation_split
 from prt.train.fit import FitSettings, fit_segment, _predict, _as_input, total_transfer, brightness
 from prt.train.network import Architecture
 from prt.runtime.shading import tonemap

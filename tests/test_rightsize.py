@@ -1,0 +1,202 @@
+"""Right-sizing across encodings against a shaded target (issue 12, item 4): ``prt-train --encoding auto
+--target-db DB`` picks per segment the cheapest of the frequency and grid ladders whose held-out shaded
+PSNR meets DB, and the manifest records what was chosen and why.
+
+Twins: the shaded PSNR against a per-sample loop; the bisection against an exhaustive walk; the freq
+network's numpy evaluation against its torch forward.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from prt.runtime.errors import SpecError
+from prt.runtime.manifest import load_manifest
+from prt.runtime.shading import tonemap
+from prt.train.build import spec_from_dict
+from prt.train.grid_encoding import GridArchitecture
+from prt.train.network import Architecture, TransferMLP, evaluate_numpy, target_scaling
+from prt.train.rightsize import candidates, search_cheapest, shaded_psnr
+
+DATA = Path(__file__).parent / "data"
+
+
+def _psnr_loop(pred, truth, light, n, albedo):
+    """Plain twin: sample by sample, channel by channel."""
+    sq = []
+    for i in range(len(pred)):
+        for c in range(3):
+            def radiance(t):
+                t = np.asarray(t, dtype=np.float64)
+                total = t[:n] if len(t) == n else t[:n] + t[n * (1 + c) : n * (2 + c)]
+                return max(0.0, albedo[c] * float(sum(total[k] * light[k, c] for k in range(n))))
+
+            a = tonemap(np.array([[radiance(pred[i]), 0.0, 0.0]]))[0, 0]
+            b = tonemap(np.array([[radiance(truth[i]), 0.0, 0.0]]))[0, 0]
+            sq.append((float(a) - float(b)) ** 2)
+    mse = float(np.mean(sq))
+    return 100.0 if mse <= 1e-10 else min(100.0, -10 * math.log10(mse))
+
+
+@pytest.mark.parametrize("width", [16, 64])
+def test_shaded_psnr_matches_a_per_sample_loop(width):
+    rng = np.random.default_rng(3)
+    n = 16
+    truth = rng.normal(0.1, 0.2, (40, width))
+    pred = truth + rng.normal(0, 0.02, truth.shape)
+    light = rng.normal(0.5, 0.6, (n, 3))
+    albedo = [0.7, 0.5, 0.9]
+    fast = shaded_psnr(pred, truth, {"a": light}, n, albedo)["a"]
+    assert fast == pytest.approx(_psnr_loop(pred, truth, light, n, albedo), abs=1e-6)
+    assert shaded_psnr(truth, truth, {"a": light}, n, albedo)["a"] == 100.0
+    # more error, less PSNR
+    worse = shaded_psnr(truth + rng.normal(0, 0.1, truth.shape), truth, {"a": light}, n, albedo)["a"]
+    assert worse < fast
+
+
+class _Fit:
+    def __init__(self, arch, q):
+        self.arch, self.val_mae, self.seconds, self.q = arch, 1.0 / (1 + q), 0.0, q
+
+
+def _archs(count):
+    return candidates([Architecture(hidden=8 * (i + 1), layers=2) for i in range(count)])
+
+
+@pytest.mark.parametrize("count", [1, 2, 5, 7, 11])
+def test_bisection_finds_the_cheapest_size_meeting_the_target_when_quality_grows_with_cost(count):
+    archs = _archs(count)
+    rng = np.random.default_rng(count)
+    for _ in range(20):
+        qualities = np.sort(rng.uniform(10, 50, count))
+        target = float(rng.uniform(5, 55))
+        calls = []
+
+        def fit(arch):
+            calls.append(arch)
+            return _Fit(arch, qualities[archs.index(arch)])
+
+        result, tried, met = search_cheapest(fit, archs, lambda r: r.q, target, log=lambda *_: None)
+        meeting = [i for i in range(count) if qualities[i] >= target]  # the exhaustive walk
+        if meeting:
+            assert met and archs.index(result.arch) == meeting[0]
+        else:
+            assert not met and archs.index(result.arch) == count - 1  # the best there is
+        assert len(calls) <= math.floor(math.log2(count)) + 1
+        assert [t["arch"] for t in tried] == [a.label() for a in archs if a in calls]  # every fit recorded, in cost order
+
+
+def test_bisection_keeps_the_cheapest_met_of_what_it_tried_when_quality_is_not_monotone():
+    archs = _archs(7)
+    qualities = [45, 10, 10, 41, 10, 42, 10]
+    result, tried, met = search_cheapest(lambda a: _Fit(a, qualities[archs.index(a)]), archs, lambda r: r.q, 40.0, log=lambda *_: None)
+    assert met and result.q >= 40
+    cheaper_tried = [t for t in tried if t["flops"] < result.arch.flops_per_fragment()]
+    assert all(t["psnr_db"] < 40 for t in cheaper_tried)
+    with pytest.raises(ValueError):
+        search_cheapest(lambda a: None, [], lambda r: 0, 1.0)
+
+
+def test_auto_candidates_mix_both_encodings_cheapest_first():
+    spec = spec_from_dict({"geometry": "x.obj", "encoding": "auto", "bounces": 0})
+    archs = spec.architectures()
+    flops = [a.flops_per_fragment() for a in archs]
+    assert flops == sorted(flops)
+    kinds = {type(a) for a in archs}
+    assert kinds == {Architecture, GridArchitecture}
+    assert len({a.label() for a in archs}) == len(archs)
+    assert len(archs) == len(spec_from_dict({"geometry": "x.obj", "bounces": 0}).architectures()) + len(
+        spec_from_dict({"geometry": "x.obj", "encoding": "grid", "bounces": 0}).architectures())
+
+
+def test_numpy_evaluation_of_a_frequency_network_matches_torch():
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    arch = Architecture(hidden=16, layers=3, pos_freqs=3)
+    scale, offset = target_scaling(rng.normal(0, 0.3, (50, 16)))
+    model = TransferMLP(arch, np.array([[-1, -0.5, -1], [1, 0.5, 0.2]]), scale, offset)
+    p = rng.uniform(-1.2, 1.2, (300, 3)).astype(np.float32)  # some outside the box (clipped)
+    n = rng.normal(size=(300, 3)).astype(np.float32)
+    with torch.no_grad():
+        want = model(torch.from_numpy(np.concatenate([p, n], axis=1))).numpy()
+    got = evaluate_numpy(model.arrays(), p, n)
+    np.testing.assert_allclose(got, want, atol=2e-5)
+
+
+@pytest.mark.parametrize("data, message", [
+    ({"encoding": "auto", "fixed": {"hidden": 16, "layers": 2}}, "fixed: not with encoding 'auto'"),
+    ({"encoding": "auto", "ladder": [{"hidden": 16, "layers": 2}]}, "ladder: not with encoding 'auto'"),
+    ({"target_db": -3}, "target_db: expected a PSNR in dB"),
+    ({"target_db": 140}, "target_db: expected a PSNR in dB"),
+    ({"target_db": 40, "match": {"hidden": 64, "layers": 4}}, "target_db: cannot be combined with match"),
+    ({"target_db": 40, "fixed": {"hidden": 64, "layers": 4}}, "target_db: cannot be combined with fixed"),
+    ({"encoding": "auto", "glsl_layout": "const"}, "not supported with encoding 'auto'"),
+])  # fmt: skip
+def test_bad_right_sizing_specs_are_one_line_errors(data, message):
+    with pytest.raises(SpecError, match=message) as info:
+        spec_from_dict({"geometry": "x.obj", **data})
+    assert "\n" not in str(info.value)
+
+
+@pytest.fixture(scope="module")
+def auto_build(tmp_path_factory):
+    out = tmp_path_factory.mktemp("auto") / "scene"
+    proc = subprocess.run([sys.executable, "-m", "prt.train.train_cli", str(DATA / "spot.obj"), "-o", str(out), "--samples", "5000",
+                           "--validation", "1200", "--rays", "32", "--steps", "80", "--batch", "1024", "--segments", "3", "--bounces", "0",
+                           "--encoding", "auto", "--target-db", "21", "--no-progress", "--threads", "1"],
+                          capture_output=True, text=True)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    return out
+
+
+def test_auto_build_records_what_it_chose_and_why(auto_build):
+    manifest = load_manifest(auto_build / "scene.json")  # the schema accepts ``sizing``
+    report = json.loads((auto_build / "build.json").read_text())
+    assert manifest.segments and all(seg.sizing is not None for seg in manifest.segments)
+    for seg, record in zip(manifest.segments, report["segments"]):
+        sizing = seg.sizing
+        assert sizing["rule"] == "target_db" and sizing["target"] == 21
+        assert sizing["reason"] and "\n" not in sizing["reason"]
+        worst = sizing["psnr_db"]["potsdamer"]  # the scene lighting
+        assert sizing["met"] == (worst >= 21)
+        if seg.kind == "analytic":
+            continue
+        assert sizing["chosen"] == record["arch_label"]
+        assert sizing["encoding"] == seg.encoding
+        tried = {t["arch"]: t for t in sizing["tried"]}
+        assert tried[sizing["chosen"]]["psnr_db"] == pytest.approx(worst, abs=1e-3)
+        assert tried[sizing["chosen"]]["flops"] == seg.flops_per_fragment
+        if sizing["met"]:  # nothing cheaper that was tried met the target
+            assert all(t["psnr_db"] < 21 for t in sizing["tried"] if t["flops"] < seg.flops_per_fragment)
+        else:
+            assert worst == max(t["psnr_db"] for t in sizing["tried"])
+
+
+def test_auto_build_renders_alike_in_onnx_and_glsl(auto_build):
+    from prt.runtime.renderer import Renderer, Scene
+
+    scene = Scene.load(auto_build / "scene.json")
+    images = [Renderer(scene, backend=b, width=64, height=64).render() for b in ("onnx", "glsl")]
+    a, b = (np.asarray(i, dtype=np.float64) for i in images)
+    mse = float(((a - b) ** 2).mean())
+    assert mse == 0.0 or -10 * math.log10(mse / max(float(a.max()) ** 2, 1e-12)) >= 60
+
+
+def test_default_builds_record_their_rule_too(tmp_path):
+    out = tmp_path / "scene"
+    proc = subprocess.run([sys.executable, "-m", "prt.train.train_cli", str(DATA / "spot.obj"), "-o", str(out), "--samples", "3000",
+                           "--rays", "16", "--steps", "20", "--batch", "1024", "--segments", "2", "--bounces", "0", "--hidden", "16",
+                           "--layers", "2", "--no-progress", "--threads", "1"], capture_output=True, text=True)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    for seg in load_manifest(out / "scene.json").segments:
+        assert seg.sizing["rule"] == "fixed"
+        if seg.kind == "network":
+            assert seg.sizing["chosen"] == "k16-l2-f6" and len(seg.sizing["tried"]) == 1
