@@ -46,8 +46,9 @@ PSNR_CAP = 100.0  # the same cap as prt-bench's metrics
 DEFAULT_ALBEDO = (0.7, 0.7, 0.7)  # the spec's default material
 # The lighting a build's manifest gets (prt.train.build) and the shaded target is measured under.
 # The held-out samples cover every surface, the dark ones a view rarely shows too, and the sRGB
-# curve is steep near black: on Spot the pooled sample PSNR was 7.4 dB below the rendered images'
-# (docs/benchmarks/rightsize_auto.md), so a target is conservative for the images.
+# curve is steep near black: on Spot the pooled sample PSNR sat 2.9-8.0 dB below the rendered
+# images', with no stable offset (docs/benchmarks/rightsize_auto.md): a conservative,
+# view-independent bound, not a prediction of a view's PSNR.
 SCENE_LIGHT = "potsdamer"
 
 
