@@ -97,3 +97,27 @@ def test_texture_columns_appear_when_the_run_measured_texture_prt(paper_table, r
     assert table[0].split(" | ")[5] == "texture 512^2"
     assert _line("\n".join(table), "| bunny").split(" | ")[5] == "49.2 / 49.7 (3.0 MiB)"
     assert _line("\n".join(table), "| teapot").split(" | ")[5] == "-"
+
+
+def test_default_build_verdicts_against_vertex_prt_and_k128(paper_table, report):
+    edited = copy.deepcopy(report)
+    rs, vd, big = _record(edited, "spot-right-sized"), _record(edited, "spot-k64", "vertex"), _record(edited, "spot-k128")
+    rs["psnr"], rs["weight_bytes"] = vd["psnr"] + 3.5, vd["weight_bytes"]
+    assert "spot +3.5 dB with 1.00x the bytes (met)" in _line(paper_table.summary(edited), "- default (right-sized) against per-vertex")
+    rs["weight_bytes"] = vd["weight_bytes"] + 1  # one byte more than per-vertex storage
+    assert "spot +3.5 dB with 1.00x the bytes (missed)" in _line(paper_table.summary(edited), "- default (right-sized) against per-vertex")
+    rs["psnr"], rs["flops_per_fragment"] = big["psnr"] + 0.1, 35_257
+    assert "spot +0.1 dB at 35.3k FLOPs (met)" in _line(paper_table.summary(edited), "- default (right-sized) against k = 128")
+    rs["flops_per_fragment"] = 35_258
+    assert "spot +0.1 dB at 35.3k FLOPs (missed)" in _line(paper_table.summary(edited), "- default (right-sized) against k = 128")
+
+
+def test_summary_only_rewrites_the_summary_and_keeps_the_rest(paper_table, report, tmp_path):
+    doc = tmp_path / "table.md"
+    doc.write_text("# T\n\nMade by `x`.\n\n## Summary\n\nold summary\n\n## Every configuration\n\n| a |\n")
+    out = tmp_path / "paper.json"
+    out.write_text(json.dumps(report))
+    assert paper_table.main(["--summary-only", "--doc", str(doc), "--out", str(tmp_path / "paper")]) == 0
+    text = doc.read_text()
+    assert "old summary" not in text and text.startswith("# T\n\nMade by `x`.") and text.endswith("## Every configuration\n\n| a |\n")
+    assert "- default (right-sized) against per-vertex PRT" in text
