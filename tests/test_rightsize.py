@@ -200,3 +200,23 @@ def test_default_builds_record_their_rule_too(tmp_path):
         assert seg.sizing["rule"] == "fixed"
         if seg.kind == "network":
             assert seg.sizing["chosen"] == "k16-l2-f6" and len(seg.sizing["tried"]) == 1
+
+
+def test_a_spec_naming_no_rule_gets_the_default_rule_and_flags_replace_it(tmp_path):
+    from prt.train.build import DEFAULT_MATCH, DEFAULT_TARGET
+    from prt.train.train_cli import _spec_from_args, build_parser
+
+    assert spec_from_dict({"geometry": "x.obj"}).match == DEFAULT_MATCH
+    for named in ({"target": 0.003}, {"target_db": 40}, {"fixed": {"hidden": 16, "layers": 2}}, {"encoding": "grid"},
+                  {"ladder": [{"hidden": 16, "layers": 2}]}, {"match": {"hidden": 32, "layers": 3}}):  # fmt: skip
+        spec = spec_from_dict({"geometry": "x.obj", **named})
+        assert spec.match == named.get("match"), named
+        assert spec.target == named.get("target", DEFAULT_TARGET)
+    spec_file = tmp_path / "s.json"
+    spec_file.write_text(json.dumps({"geometry": "x.obj"}))
+    for flags, match, target in (([], DEFAULT_MATCH, DEFAULT_TARGET), (["--target", "0.004"], None, 0.004),
+                                 (["--hidden", "16", "--layers", "2"], None, DEFAULT_TARGET), (["--target-db", "38"], None, DEFAULT_TARGET)):  # fmt: skip
+        spec = _spec_from_args(build_parser().parse_args([str(spec_file), "-o", str(tmp_path / "o"), *flags]))
+        assert (spec.match, spec.target) == (match, target), flags
+    spec_file.write_text(json.dumps({"geometry": "x.obj", "match": {"hidden": 32, "layers": 2}}))  # a spec's own rule stays
+    assert _spec_from_args(build_parser().parse_args([str(spec_file), "-o", str(tmp_path / "o")])).match == {"hidden": 32, "layers": 2}

@@ -77,7 +77,9 @@ class BuildSpec:
     patience: int = 10
     bf16: bool | None = False  # bf16 autocast: about 2x faster on AVX512-BF16, about 9 % higher error
     loss: str = "l1"  # fitting loss (prt.train.fit.LOSSES): L1 on the coefficients, or "relative" (over each sample's brightness)
-    target: float = 0.0025  # validation coefficient MAE a right-sized network must reach
+    # validation coefficient MAE a right-sized network must reach (None: DEFAULT_TARGET; a spec
+    # that names no sizing rule gets DEFAULT_MATCH, see spec_from_dict)
+    target: float | None = None
     # right-size to a shaded target instead (prt.train.rightsize): the cheapest size whose held-out
     # shaded, tone-mapped PSNR (dB, worst bundled env map) is at least this
     target_db: float | None = None
@@ -200,6 +202,15 @@ def _grid_architectures(spec: BuildSpec) -> list[GridArchitecture]:
     return out
 
 
+# The default sizing rule, chosen from the measured Pareto front (README, "Default network size";
+# docs/benchmarks/many_networks.md): per segment the cheapest ladder size as accurate as k = 64,
+# l = 4 (within match_tolerance), used when a spec names no rule (fixed, ladder, match, target,
+# target_db, a non-default encoding).  DEFAULT_TARGET: the MAE target of --target / ladder
+# builds, and the cap below which a segment stays analytic under match.
+DEFAULT_MATCH = {"hidden": 64, "layers": 4}
+DEFAULT_TARGET = 0.0025
+
+
 # Flat spec field -> its annotation (the precompute fields come from PrecomputeSettings).
 _TYPES = {
     **{f.name: f.type for f in dataclasses.fields(BuildSpec) if f.name in ("geometry", "name")},
@@ -284,6 +295,11 @@ def spec_from_dict(data: dict) -> BuildSpec:
             raise SpecError(f"{key}: expected 1 .. {getattr(SPEC_LIMITS, key)}, got {flat[key]}")
     if spec.bounces != "auto" and (isinstance(spec.bounces, str) or not 0 <= spec.bounces <= SPEC_LIMITS.bounces):
         raise SpecError(f"bounces: expected 0 .. {SPEC_LIMITS.bounces} (0: direct light only) or 'auto', got {spec.bounces!r}")
+    if spec.target is None:
+        named = any(v is not None for v in (spec.fixed, spec.ladder, spec.match, spec.target_db)) or spec.encoding != "freq"
+        if not named:
+            spec.match = dict(DEFAULT_MATCH)
+        spec.target = flat["target"] = DEFAULT_TARGET
     for key, positive in (("lr", True), ("target", False), ("time_budget", True)):
         value = flat[key]
         if value is None and key == "time_budget":

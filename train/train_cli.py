@@ -14,12 +14,13 @@ new, empty or one of our build folders (marked by ``.prt-build``); ``--force`` w
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 from pathlib import Path
 
 from ..runtime.errors import InputError, PRTError, SpecError
-from .build import BuildSpec, load_spec, run_build, spec_from_dict
+from .build import DEFAULT_TARGET, BuildSpec, load_spec, run_build, spec_from_dict
 from .fit import DEFAULT_STEPS
 from .cluster import open_executor
 from .executor import add_cluster_argument
@@ -75,11 +76,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--grid", default=None, metavar="L6-F2-T12-N4-32",
                    help="with --encoding grid: L levels of F features, at most 2^T table rows per level, N_min-N_max cells per axis "
                         "[L6-F2-T12-N4-32; without --hidden/--layers the MLP is right-sized over 16x1, 32x2, 64x2, 64x3]")
-    p.add_argument("--target", type=float, default=None, help=f"validation MAE (SH coefficients) a right-sized network must reach [{d.target}]")
+    p.add_argument("--target", type=float, default=None, help=f"right-size to a validation MAE (SH coefficients) instead of the default rule (--match 64x4) [{DEFAULT_TARGET} with --encoding grid|auto]")
     p.add_argument("--target-db", type=float, default=None, metavar="DB",
                    help="right-size to a shaded target instead of --target: per segment the cheapest size whose held-out diffuse "
                         "shading, tone-mapped as prt-bench's images, reaches DB dB PSNR under every bundled env map (e.g. 40)")
-    p.add_argument("--match", default=None, metavar="KxL", help="right-size to the accuracy of this size instead of --target: train it, then keep the cheapest smaller size on the ladder within --match-tolerance of its validation MAE (e.g. 64x4, the paper's k = 64)")
+    p.add_argument("--match", default=None, metavar="KxL", help="right-size to the accuracy of this size: train it, then keep the cheapest smaller size on the ladder within --match-tolerance of its validation MAE [64x4, the paper's k = 64: the default when no --hidden/--target/--target-db is given]")
     p.add_argument("--match-tolerance", type=float, default=None, help=f"with --match: share by which the validation MAE may exceed the reference's [{d.match_tolerance}]")
     p.add_argument("--loss", choices=("l1", "relative"), default=None,
                    help="fitting loss: L1 on the transfer coefficients, or each sample's L1 over its brightness (DC of its transfer, "
@@ -109,8 +110,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _spec_from_args(args):
     source = str(args.input)
+    named = {}  # the sizing fields as the spec file wrote them: its default rule is resolved again with the flags
     if source.lower().endswith(".json"):
         spec = load_spec(source)
+        raw = json.loads(Path(source).read_bytes())  # valid: load_spec read it
+        named = {"match": raw.get("match"), "target": raw.get("target")}
     else:
         spec = BuildSpec(geometry=source)
     overrides = {
@@ -136,7 +140,7 @@ def _spec_from_args(args):
         "grid": args.grid,
         "loss": args.loss,
     }
-    data = spec.to_dict()
+    data = spec.to_dict() | named
     data.update({k: v for k, v in overrides.items() if v is not None})
     if args.no_analytic:
         data["analytic"] = False
