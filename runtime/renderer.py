@@ -26,6 +26,7 @@ backend), or an image that is, raises :class:`~prt.runtime.errors.FrameError` (o
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import threading
@@ -91,6 +92,26 @@ class Scene:
         return f"Scene({m.name!r}, {m.geometry.type}, {len(m.segments)} segments, {len(self.network_segments)} networks)"
 
 
+def _in_context(method):
+    """Run a Renderer method with its GL context made current first: several renderers in one
+    thread, each with its own context or a shared one, each draw into theirs; the last one used
+    stays current, as a single renderer's always was."""
+
+    @functools.wraps(method)
+    def wrapper(self, *args, **kwargs):
+        if not self._closed:
+            make_current(self.ctx)
+        return method(self, *args, **kwargs)
+
+    return wrapper
+
+
+def make_current(ctx: moderngl.Context) -> None:
+    """Make ``ctx`` the thread's current GL context and leave it current (moderngl's ``with ctx``
+    would restore the previous one on exit, which may be a context released since)."""
+    ctx.__enter__()
+
+
 class Renderer:
     """Renders a :class:`Scene` headlessly (or into a window's context).
 
@@ -148,6 +169,7 @@ class Renderer:
         self._finalizer.atexit = False  # at exit the GL driver may be gone already
         self._bound_fbo = self.ctx.fbo  # bound again on close: a released framebuffer must not stay bound
         try:
+            make_current(self.ctx)  # another renderer's context may be current
             _check_size(self.ctx, width, height)
             self._backend_options = {"providers": providers, "threads": threads}
             self._backends = self._resources.backends  # created on first use, kept while switching
@@ -235,6 +257,7 @@ class Renderer:
         self.camera = camera
         self._transfer_valid = False
 
+    @_in_context
     def set_envmap(self, envmap, rotation=None) -> None:
         """Light with an equirectangular ``.hdr``/``.exr`` file, or a bundled map by name
         (:data:`prt.runtime.envmaps.BUNDLED_ENVMAPS`); ``rotation`` is a 3x3 matrix."""
@@ -248,6 +271,7 @@ class Renderer:
         self.lighting = Lighting.from_sh(self._envmap_sh[key], rotation=rotation)
         self._envmap_path, self._envmap_rotation = Path(path), rotation
 
+    @_in_context
     def set_lighting_sh(self, coeffs, rotation=None) -> None:
         """Light with SH coefficients (16, 3), finite in float32."""
         self._check_usable()
@@ -258,6 +282,7 @@ class Renderer:
         self.lighting = lighting
         self._envmap_path = None  # no image to draw behind the geometry
 
+    @_in_context
     def set_background(self, envmap: bool) -> None:
         """Draw the env map of the light where no geometry is (True), or black (False); a
         manifest's ``lighting.background`` sets the default.  Runs no network."""
@@ -266,6 +291,7 @@ class Renderer:
             raise ArgumentTypeError(f"Renderer.set_background: expected True or False, got {type(envmap).__name__}")
         self.background = envmap
 
+    @_in_context
     def set_material(self, kind: str = "diffuse", *, object: str | None = None, **params) -> None:
         """``"diffuse"`` (albedo) or ``"glossy"`` (albedo, specular, exponent).
 
@@ -300,6 +326,7 @@ class Renderer:
         """Whether pixels are shaded with their object's material (else with self.material)."""
         return self.gbuffer.material_texture is not None and not self.materials.uniform
 
+    @_in_context
     def set_backend(self, backend: str) -> None:
         self._check_usable()
         _check_backend(backend)
@@ -309,6 +336,7 @@ class Renderer:
 
     # ------------------------------------------------------------------ frames
 
+    @_in_context
     def render(self) -> np.ndarray:
         """One frame: (H, W, 3) float32 linear radiance, row 0 at the top, background 0 (or the
         env map, :meth:`set_background`).
@@ -397,6 +425,7 @@ class Renderer:
         """One frame tone-mapped for display: (H, W, 3) uint8 sRGB."""
         return to_srgb8(self.render(), exposure)
 
+    @_in_context
     def render_transfer(self) -> np.ndarray:
         """The transfer image of the current view: (H, W, 16) float32, row 0 at the top ((H, W, 64) with
         interreflection: direct, indirect R, G, B)."""
@@ -418,6 +447,7 @@ class Renderer:
             raise FrameError(self._broken_transfer_message(bad))
         return transfer
 
+    @_in_context
     def gbuffer_image(self):
         """The G-buffer of the current view (see :class:`prt.runtime.gbuffer.GBuffer`)."""
         self._check_usable()
@@ -589,16 +619,21 @@ class _Resources:
             # current: GL calls would go nowhere.  The objects die with the context at exit.
             return
         self.released = True
-        for backend in self.backends.values():
-            backend.release()
-        self.backends.clear()
         # close() rebinds the framebuffer bound at creation; collection (at any moment, maybe during
         # another renderer's frame on a shared context) rebinds only if one of ours is bound.
         ours = {id(o) for o in self.objects}
-        if rebind or (self.ctx.fbo is not None and id(self.ctx.fbo) in ours):
-            bind_framebuffer(self.ctx, self.bound_fbo)
-        for obj in reversed(self.objects):
-            obj.release()
+        # Release in our context (another renderer's may be current).  close() leaves it current;
+        # collection, which may come during another renderer's frame, gives the current one back.
+        if rebind:
+            make_current(self.ctx)
+        with contextlib.nullcontext() if rebind else self.ctx:
+            for backend in self.backends.values():
+                backend.release()
+            self.backends.clear()
+            if rebind or (self.ctx.fbo is not None and id(self.ctx.fbo) in ours):
+                bind_framebuffer(self.ctx, self.bound_fbo)
+            for obj in reversed(self.objects):
+                obj.release()
         self.objects.clear()
         if self.own_ctx:
             self.ctx.release()

@@ -240,3 +240,23 @@ def test_readme_embedding_example_runs():
     exec(compile(code, "README.md", "exec"), namespace)
     image = namespace["image"]
     assert image.ndim == 3 and image.shape[2] == 3 and np.isfinite(image).all() and image.max() > 0
+
+
+@pytest.mark.parametrize("backend", ["onnx", "glsl"])
+def test_two_renderers_in_one_thread_each_draw_their_own_scene(sdf_scene, backend):
+    """Each renderer owns an EGL context; its calls make it current (found by the many-networks
+    study: the first renderer's frame ran in the second's context and failed or drew wrongly)."""
+    demo, sdf_scene = Scene.load(), Scene.load(sdf_scene)
+    alone = {}
+    for name, scene, size in (("demo", demo, 48), ("sdf", sdf_scene, 40)):
+        with Renderer(scene, size, size, backend=backend) as r:
+            alone[name] = r.render().copy()
+    with Renderer(demo, 48, 48, backend=backend) as a, Renderer(sdf_scene, 40, 40, backend=backend) as b:
+        for name, r in (("demo", a), ("sdf", b), ("demo", a), ("sdf", b)):
+            np.testing.assert_array_equal(r.render(), alone[name], err_msg=name)
+        a.set_material("glossy")  # state changes go to the right context too
+        assert a.render().shape == (48, 48, 3) and np.isfinite(a.render()).all()
+    with Renderer(demo, 48, 48, backend=backend) as a:  # closing one leaves the other working
+        b = Renderer(sdf_scene, 40, 40, backend=backend)
+        b.close()
+        np.testing.assert_array_equal(a.render(), alone["demo"])
