@@ -48,7 +48,7 @@ from .precompute import SPEC_LIMITS, DamagedPrecompute, PrecomputeSettings, Spec
 __all__ = ["BuildSpec", "SpecLimits", "SPEC_LIMITS", "load_spec", "spec_from_dict", "run_build", "ENV_LIGHTS"]
 
 ENV_LIGHTS = tuple(BUNDLED_ENVMAPS)  # the shaded-error lightings, in the bundled order
-TRAIN_FORMAT = 1
+TRAIN_FORMAT = 2  # 2: a fixed-size build keeps a segment analytic only where as accurate as its network
 FIT_FORMAT = 2  # layout of the fit cache (precompute/fits/); 2: trained by steps
 
 # The precompute settings a build spec sets, by their flat names (chunk_size is not a spec field).
