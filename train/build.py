@@ -81,7 +81,7 @@ class BuildSpec:
     # that names no sizing rule gets DEFAULT_MATCH, see spec_from_dict)
     target: float | None = None
     # right-size to a shaded target instead (prt.train.rightsize): the cheapest size whose held-out
-    # shaded, tone-mapped PSNR (dB, worst bundled env map) is at least this
+    # shaded, tone-mapped PSNR (dB, under the scene lighting, rightsize.SCENE_LIGHT) is at least this
     target_db: float | None = None
     ladder: list[dict] | None = None  # [{hidden, layers, pos_freqs, normal_freqs}], small to large
     fixed: dict | None = None  # force one size for every network segment
