@@ -37,7 +37,7 @@ from torch import nn
 
 from ..export.onnx_model import LEAKY_SLOPE, NORMAL_EPS
 from .fit import FitResult, FitSettings, Validation, _as_input, _predict, batch_loss, loss_weights, shaded_error, transfer_error
-from .network import layout_width, target_scaling
+from .network import layout_width, mlp_numpy, target_scaling
 
 __all__ = [
     "GridArchitecture",
@@ -279,14 +279,7 @@ def evaluate_numpy(arrays: dict[str, np.ndarray], points: np.ndarray, normals: n
     if freq is not None and freq.shape[1] > 0:
         a = n @ freq
         parts += [np.sin(a), np.cos(a)]
-    h = np.concatenate(parts, axis=1).astype(np.float32)
-    i = 0
-    while f"layer{i}_weight" in arrays:
-        h = h @ arrays[f"layer{i}_weight"] + arrays[f"layer{i}_bias"]
-        h = np.where(h > 0, h, np.float32(LEAKY_SLOPE) * h)
-        i += 1
-    z = h @ arrays["out_weight"] + arrays["out_bias"]
-    return (np.tanh(z) * arrays["out_scale"] + arrays["out_offset"]).astype(np.float32)
+    return mlp_numpy(arrays, np.concatenate(parts, axis=1))
 
 
 class _Interpolate(torch.autograd.Function):

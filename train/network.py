@@ -30,7 +30,7 @@ from torch import nn
 
 from ..export.onnx_model import LEAKY_SLOPE, NORMAL_EPS, POSITION_CLIP
 
-__all__ = ["Architecture", "TransferMLP", "evaluate_numpy", "frequency_matrix", "target_scaling", "TARGET_RANGE", "LAYOUTS", "layout_width"]
+__all__ = ["Architecture", "TransferMLP", "evaluate_numpy", "mlp_numpy", "frequency_matrix", "target_scaling", "TARGET_RANGE", "LAYOUTS", "layout_width"]
 
 TARGET_RANGE = 0.9  # scaled targets live in [-0.9, 0.9], where tanh' >= 0.19
 # Output layouts: "direct" (bands^2, the paper's), "direct+rgb" (direct + indirect R, G, B:
@@ -170,7 +170,13 @@ def evaluate_numpy(arrays: dict[str, np.ndarray], points: np.ndarray, normals: n
     x = np.clip((p - arrays["enc_centre"]) * arrays["enc_inv_half"], np.float32(-POSITION_CLIP), np.float32(POSITION_CLIP))
     n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), np.float32(NORMAL_EPS))
     ap, an = x @ arrays["enc_pos_freq"], n @ arrays["enc_normal_freq"]
-    h = np.concatenate([x, np.sin(ap), np.cos(ap), n, np.sin(an), np.cos(an)], axis=1).astype(np.float32)
+    return mlp_numpy(arrays, np.concatenate([x, np.sin(ap), np.cos(ap), n, np.sin(an), np.cos(an)], axis=1))
+
+
+def mlp_numpy(arrays: dict[str, np.ndarray], features: np.ndarray) -> np.ndarray:
+    """The MLP of a network's arrays on encoded ``features`` in numpy (float32): LeakyReLU layers
+    ``layer{i}_weight/bias``, then ``tanh(out) * out_scale + out_offset`` (frequency and grid alike)."""
+    h = np.asarray(features, dtype=np.float32)
     i = 0
     while f"layer{i}_weight" in arrays:
         h = h @ arrays[f"layer{i}_weight"] + arrays[f"layer{i}_bias"]
