@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from .glsl import _groups_doc, _literal, _network, _template, _texture
-from .grid_onnx import TABLE_WIDTH, grid_level_lines, table_texture
+from .grid_onnx import TABLE_WIDTH, grid_input_lines, grid_level_lines, mlp_layer_lines, table_texture
 from .onnx_model import LEAKY_SLOPE, NORMAL_EPS, POSITION_CLIP
 
 __all__ = [
@@ -251,13 +251,8 @@ def grid_source(arrays: dict[str, np.ndarray]) -> str:
         f"    float h[{width}];",
     ]
     body += grid_level_lines("FN", "n_levels", "prt_weight(table + row + FN_OFFSET[l])", features, table_size)
-    at = levels * features
-    if use_pos:
-        body += [f"    h[{at + j}] = x.{'xyz'[j]};" for j in range(3)]
-        at += 3
-    body.append(f"    vec3 n = n_raw / max(length(n_raw), {NORMAL_EPS:.9g});")
-    body += [f"    h[{at + j}] = n.{'xyz'[j]};" for j in range(3)]
-    at += 3
+    inputs, at = grid_input_lines(levels * features, use_pos)
+    body += inputs
     first_freq = 3 + 2 * (outputs // 4)
     for j in range(cols):  # column j: dot with its (block-diagonal) frequency column, exact
         body.append(f"    float a{j} = dot(n, prt_weight(base + {first_freq + j}).xyz);")
@@ -269,18 +264,8 @@ def grid_source(arrays: dict[str, np.ndarray]) -> str:
     body += [f"    vec4 a[{width // 4}];", "    int n_in = int(dims.w), n_hidden = int(dims.y) / 4;"]
     for i, (wbase, bbase, din, dout) in enumerate(layout):
         last = i == len(layout) - 1
-        q4 = "n_blocks" if last else "n_hidden"
-        body += [
-            f"    for (int q = 0; q < {q4}; ++q) a[q] = prt_weight(base + {bbase} + q);",
-            f"    for (int j = 0; j < {'n_in' if i == 0 else '4 * n_hidden'}; ++j) {{",
-            "        float hj = h[j];",
-            f"        for (int q = 0; q < {q4}; ++q) a[q] += hj * prt_weight(base + {wbase} + j * {q4} + q);",
-            "    }",
-            f"    for (int q = 0; q < {q4}; ++q) {{",
-            f"        vec4 s = {'a[q]' if last else f'max(a[q], {LEAKY_SLOPE!r} * a[q])'};",
-            "        h[4 * q] = s.x; h[4 * q + 1] = s.y; h[4 * q + 2] = s.z; h[4 * q + 3] = s.w;",
-            "    }",
-        ]
+        body += mlp_layer_lines(lambda e: f"prt_weight(base + {e})", wbase, bbase, "n_in" if i == 0 else "4 * n_hidden",
+                                "n_blocks" if last else "n_hidden", last)  # fmt: skip
     body += [
         "    for (int q = 0; q < n_blocks; ++q) {",
         "        vec4 z = vec4(h[4 * q], h[4 * q + 1], h[4 * q + 2], h[4 * q + 3]);",

@@ -300,6 +300,35 @@ def grid_level_lines(prefix: str, count: str, texel: str, features: int, table_s
     return lines + ["    }"]
 
 
+def grid_input_lines(at: int, use_pos: bool) -> tuple[list[str], int]:
+    """GLSL lines putting the MLP's inputs after the ``at`` grid features into ``h``: the clipped
+    position ``x`` (when the network takes it) and the normalised normal; returns the next index."""
+    lines = []
+    if use_pos:
+        lines += [f"    h[{at + j}] = x.{'xyz'[j]};" for j in range(3)]
+        at += 3
+    lines.append(f"    vec3 n = n_raw / max(length(n_raw), {NORMAL_EPS:.9g});")
+    lines += [f"    h[{at + j}] = n.{'xyz'[j]};" for j in range(3)]
+    return lines, at + 3
+
+
+def mlp_layer_lines(fetch, wbase: int, bbase: int, n_in: str, q4: str, last: bool) -> list[str]:
+    """GLSL lines of one MLP layer over ``h`` in vec4 blocks: ``a = bias + h W``, then LeakyReLU
+    (none on the last); ``fetch(expr)`` reads texel ``expr`` of the weights, ``n_in``/``q4`` are the
+    loop bounds (constants or header values)."""
+    return [
+        f"    for (int q = 0; q < {q4}; ++q) a[q] = {fetch(f'{bbase} + q')};",
+        f"    for (int j = 0; j < {n_in}; ++j) {{",
+        "        float hj = h[j];",
+        f"        for (int q = 0; q < {q4}; ++q) a[q] += hj * {fetch(f'{wbase} + j * {q4} + q')};",
+        "    }",
+        f"    for (int q = 0; q < {q4}; ++q) {{",
+        f"        vec4 s = {'a[q]' if last else f'max(a[q], {LEAKY_SLOPE!r} * a[q])'};",
+        "        h[4 * q] = s.x; h[4 * q + 1] = s.y; h[4 * q + 2] = s.z; h[4 * q + 3] = s.w;",
+        "    }",
+    ]
+
+
 def glsl_function(arrays: dict[str, np.ndarray], name: str = "grid_transfer", sampler: str | None = None) -> str:
     """GLSL 3.30 source defining ``uniform sampler2D <sampler>`` (default ``<name>_table``; bind :func:`table_texture`)
     and ``void <name>(vec3 p, vec3 n, out vec4 t[K])``: the transfer (K = outputs / 4 vec4s), the
@@ -336,13 +365,8 @@ def glsl_function(arrays: dict[str, np.ndarray], name: str = "grid_transfer", sa
         f"    float h[{width}];",
     ]
     body += grid_level_lines(f, str(levels), f"{f}_texel(row + {f}_OFFSET[l])", features, table_size)
-    at = levels * features
-    if use_pos:
-        body += [f"    h[{at + j}] = x.{'xyz'[j]};" for j in range(3)]
-        at += 3
-    body.append(f"    vec3 n = n_raw / max(length(n_raw), {NORMAL_EPS:.9g});")
-    body += [f"    h[{at + j}] = n.{'xyz'[j]};" for j in range(3)]
-    at += 3
+    inputs, at = grid_input_lines(levels * features, use_pos)
+    body += inputs
     cols = freq.shape[1]
     for j in range(cols):  # column j: one axis times 2^k pi (block-diagonal)
         axis = int(np.argmax(np.abs(freq[:, j])))
@@ -353,19 +377,7 @@ def glsl_function(arrays: dict[str, np.ndarray], name: str = "grid_transfer", sa
         raise ValueError(f"the features are {at} wide, the first layer takes {layout[0][2]}")
     body.append(f"    vec4 a[{width // 4 + 1}];")
     for i, (wbase, bbase, din, dout) in enumerate(layout):
-        q4 = dout // 4
-        last = i == len(layout) - 1
-        body += [
-            f"    for (int q = 0; q < {q4}; ++q) a[q] = {f}_texel({bbase} + q);",
-            f"    for (int j = 0; j < {din}; ++j) {{",
-            "        float hj = h[j];",
-            f"        for (int q = 0; q < {q4}; ++q) a[q] += hj * {f}_texel({wbase} + j * {q4} + q);",
-            "    }",
-            f"    for (int q = 0; q < {q4}; ++q) {{",
-            f"        vec4 s = {'a[q]' if last else f'max(a[q], {LEAKY_SLOPE!r} * a[q])'};",
-            "        h[4 * q] = s.x; h[4 * q + 1] = s.y; h[4 * q + 2] = s.z; h[4 * q + 3] = s.w;",
-            "    }",
-        ]
+        body += mlp_layer_lines(lambda e: f"{f}_texel({e})", wbase, bbase, str(din), str(dout // 4), i == len(layout) - 1)
     body += [
         f"    for (int o = 0; o < {outputs}; ++o) h[o] = tanh(h[o]) * {f}_SCALE[o] + {f}_SHIFT[o];",
         f"    for (int q = 0; q < {outputs // 4}; ++q) t[q] = vec4(h[4 * q], h[4 * q + 1], h[4 * q + 2], h[4 * q + 3]);",
