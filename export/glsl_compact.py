@@ -44,6 +44,7 @@ __all__ = [
     "FORMAT_LINE",
     "format_line",
     "MAX_LOOP_ITERATIONS",
+    "freq_bias_texel",
     "freq_source",
     "freq_texels",
     "grid_source",
@@ -346,6 +347,13 @@ def write_segment_glsl(info, form: str = "auto", grid_arrays: dict | None = None
     if texels is not None:
         info.glsl_weights = folder / f"seg{s:03d}_weights.npy"
         atomic_save_npy(info.glsl_weights, texels)
+
+
+def freq_bias_texel(onnx_path) -> int:
+    """The first texel of the first hidden layer's bias among a frequency network's compact texels
+    (:func:`freq_texels`): where a deformable scene writes the bias of each frame's shape code."""
+    _, meta = _texture(_network(onnx_path))
+    return FREQ_HEADER + int(meta["tensors"]["layer0_bias"]["offset"])
 
 
 def freq_fits(model) -> bool:

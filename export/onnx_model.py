@@ -3,6 +3,9 @@
 Graph (opset 17), one input and one output, dynamic batch ``N``:
 
     x : float32 [N, 6]   position (scene units), normal (any length)
+    code : float32 [1, d]   only a shape-conditioned network's (deformable scenes): the frame's shape
+           code; its features ``[code, sin(code @ enc_code_freq), cos(...)] @ code_weight`` are added to
+           the first layer's output once per call (:mod:`prt.runtime.deformation`)
     transfer : float32 [N, bands^2]   (or [N, architecture["outputs"]]: 4 bands^2 for the
                "direct+rgb" layout of interreflection: direct, then indirect R, G, B)
 
@@ -73,9 +76,21 @@ def build_model(arrays: dict[str, np.ndarray], architecture: dict, *, name: str 
         features += ["n_sin", "n_cos"]
     add("Concat", features, ["features"], axis=1)
     h = "features"
+    coded = "code_weight" in arrays
+    if coded:  # the shape code's features, one row: added to the first layer's output (its bias per frame)
+        code_parts = ["code"]
+        if np.asarray(arrays["enc_code_freq"]).shape[1]:
+            add("MatMul", ["code", "enc_code_freq"], ["code_angle"])
+            add("Sin", ["code_angle"], ["code_sin"])
+            add("Cos", ["code_angle"], ["code_cos"])
+            code_parts += ["code_sin", "code_cos"]
+        add("Concat", code_parts, ["code_features"], axis=1)
+        add("MatMul", ["code_features", "code_weight"], ["code_bias"])
     for i in range(layers):
         add("Gemm", [h, f"layer{i}_weight", f"layer{i}_bias"], [f"pre{i}"])
-        add("LeakyRelu", [f"pre{i}"], [f"h{i}"], alpha=LEAKY_SLOPE)
+        if coded and i == 0:
+            add("Add", ["pre0", "code_bias"], ["pre0_coded"])
+        add("LeakyRelu", ["pre0_coded" if coded and i == 0 else f"pre{i}"], [f"h{i}"], alpha=LEAKY_SLOPE)
         h = f"h{i}"
     add("Gemm", [h, "out_weight", "out_bias"], ["out_pre"])
     add("Tanh", ["out_pre"], ["out_tanh"])
@@ -84,7 +99,8 @@ def build_model(arrays: dict[str, np.ndarray], architecture: dict, *, name: str 
     graph = helper.make_graph(
         nodes,
         name,
-        [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["N", 6])],
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["N", 6])]
+        + ([helper.make_tensor_value_info("code", TensorProto.FLOAT, [1, int(np.asarray(arrays["enc_code_freq"]).shape[0])])] if coded else []),
         [helper.make_tensor_value_info("transfer", TensorProto.FLOAT, ["N", outputs])],
         initializer=inits,
     )
@@ -105,7 +121,7 @@ def build_model(arrays: dict[str, np.ndarray], architecture: dict, *, name: str 
         ),
         "prt.output_scale": json.dumps(np.asarray(arrays["out_scale"]).tolist()),
         "prt.output_offset": json.dumps(np.asarray(arrays["out_offset"]).tolist()),
-        "prt.input": "x float32 [N, 6]: position (scene units), normal",
+        "prt.input": "x float32 [N, 6]: position (scene units), normal" + ("; code float32 [1, d]: the frame's shape code" if coded else ""),
     }
     helper.set_model_props(model, meta)
     onnx.checker.check_model(model, full_check=True)

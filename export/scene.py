@@ -7,7 +7,9 @@ files of a scene folder:
     OUTDIR/segments/segNNN.glsl         GLSL generated from it
     OUTDIR/segments/segNNN_weights.npy  its weight texture (texture layout only; a grid segment's
                                         tables and MLP, prt.export.grid_onnx.table_texture)
+    OUTDIR/segments/segNNN_code.npz     deformable scenes: the first layer's shape-code rows
     OUTDIR/geometry.npz                 the normalised mesh (or scene_sdf.glsl for an SDF scene)
+    OUTDIR/deformation.npz              deformable scenes: rest pose, frames, codes, PCA basis
     OUTDIR/scene.json                   the manifest the runtime loads
 """
 
@@ -26,6 +28,7 @@ from ..runtime.manifest import (
     GENERATOR,
     MANIFEST_NAME,
     CameraInfo,
+    DeformationInfo,
     GeometryInfo,
     LightingInfo,
     Manifest,
@@ -35,7 +38,7 @@ from ..runtime.manifest import (
     SegmentInfo,
     validate_manifest_field,
 )
-from .glsl_compact import write_segment_glsl
+from .glsl_compact import FORMAT_LINE, freq_bias_texel, write_segment_glsl
 from .grid_onnx import build_grid_model, save_grid_model
 from .manifest import write_manifest
 from .onnx_model import build_model, save_model
@@ -114,9 +117,22 @@ def export_segment(out: Path, segment: TrainedSegment, glsl_layout: str = "auto"
     save_model(build_model(segment.arrays, arch, name=f"segment{s}"), info.model)
     write_segment_glsl(info, glsl_layout)  # the runtime uploads the weights; it cannot read ONNX initialisers
     info.architecture = {k: arch[k] for k in _ARCHITECTURE_FIELDS}
+    if "code_weight" in segment.arrays:  # shape-conditioned: the code rows, and where the first bias sits among the texels
+        if info.glsl_weights is None or not _compact_line(info.glsl):
+            raise ValueError(f"segment {s}: a shape-conditioned network needs the compact GLSL layout (glsl_layout 'auto')")
+        info.code = out / f"segments/seg{s:03d}_code.npz"
+        atomic_save_npz(info.code, layer0_bias=segment.arrays["layer0_bias"], code_weight=segment.arrays["code_weight"],
+                        enc_code_freq=segment.arrays["enc_code_freq"], bias_texel=np.int64(freq_bias_texel(info.model)))  # fmt: skip
+        info.architecture |= {"code_dim": int(arch["code_dim"]), "code_freqs": int(arch["code_freqs"])}
     info.flops_per_fragment = segment.flops_per_fragment
     info.weight_bytes = segment.weight_bytes
     return info
+
+
+def _compact_line(path) -> str:
+    """The compact format line of a segment's GLSL (its fourth line), or ''."""
+    lines = Path(path).read_text().splitlines()
+    return next((line for line in lines[:8] if line.startswith(FORMAT_LINE)), "")
 
 
 def _export_grid_segment(out: Path, segment: TrainedSegment, info: SegmentInfo) -> SegmentInfo:
@@ -217,6 +233,7 @@ def export_scene(
     materials: list | None = None,
     albedo_uv: np.ndarray | None = None,
     interreflection: dict | None = None,
+    deformation: dict | None = None,
 ) -> Manifest:
     """Write a whole scene folder: segment files, geometry, then ``scene.json``.
 
@@ -248,6 +265,10 @@ def export_scene(
     interreflection : dict, optional
         ``bounces``, ``bounce_rays``, ``layout`` ("direct+rgb") and ``albedos`` (object -> RGB):
         the manifest's ``interreflection`` (the networks then output 4 ``sh_bands**2`` values).
+    deformation : dict, optional
+        A deformable object (:mod:`prt.train.deform_build`): ``arrays`` (``rest``, ``frames``, ``theta``,
+        ``mean``, ``basis``, written to ``deformation.npz``), ``source``, ``code`` and ``frames`` (the
+        manifest's ``deformation`` record).
 
     Returns
     -------
@@ -263,6 +284,11 @@ def export_scene(
     path = out / MANIFEST_NAME
     infos = [export_segment(out, segment, glsl_layout) for segment in segments]
     geometry_info = export_geometry(geometry, out, albedo_uv)
+    deformation_info = None
+    if deformation is not None:
+        deformation_info = DeformationInfo(path=out / "deformation.npz", source=deformation["source"], code=deformation["code"],
+                                           frames=deformation["frames"])  # fmt: skip
+        atomic_save_npz(deformation_info.path, **{k: np.asarray(v, np.float32) for k, v in deformation["arrays"].items()})
     for key, value in (("material", material), ("camera", camera)):
         validate_manifest_field(key, value, str(path))
     manifest = Manifest(
@@ -282,6 +308,7 @@ def export_scene(
             vertex_storage_bytes=int(len(geometry.mesh.vertices) * sh_bands**2 * 4 * (4 if interreflection else 1)),
         ),
         interreflection=None if interreflection is None else InterreflectionInfo.from_dict(interreflection),
+        deformation=deformation_info,
     )
     if materials:
         data = manifest.to_dict(root=out)

@@ -398,6 +398,10 @@ class GBufferPass:
         self._with_material = self.kind in ("mesh", "mixed") and bool(object_materials)
         self._sdf_program = self._sdf_vao = None  # mixed scenes: the SDF pass after the mesh draw
         self.material_texture = self._albedo_uv_vbo = None
+        # Deformable scenes: the rest position in target 0, the posed one in world_texture (set_pose).
+        self._deformable = self.kind == "mesh" and getattr(manifest, "deformation", None) is not None
+        self.world_texture = self._rest_vbo = None
+        self._pose_faces = self._mesh = None
         try:
             self._build_targets()
             if self.kind == "mesh":
@@ -423,6 +427,8 @@ class GBufferPass:
         self.material_texture = self._target_texture(size) if self._with_material else None
         colour = [self.position_texture, self.normal_texture] + ([self.uv_texture] if self._with_uv else [])
         colour += [self.material_texture] if self._with_material else []
+        self.world_texture = self._target_texture(size) if self._deformable else None
+        colour += [self.world_texture] if self._deformable else []
         self._fbo = self.ctx.framebuffer(colour, self.depth_texture)
 
     def _target_texture(self, size: tuple[int, int]) -> moderngl.Texture:
@@ -437,9 +443,10 @@ class GBufferPass:
         _check_uniform_budget(self.ctx, tables, str(manifest.path))
         uv_define = {"PRT_GBUFFER_UV": 1} if self._with_uv else {}
         material_define = {"PRT_GBUFFER_MATERIAL": self.material_attachment} if self._with_material else {}
-        defines = {**_lookup_defines(tables), **uv_define, **material_define}
+        rest_define = {"PRT_GBUFFER_REST": 1, "PRT_GBUFFER_WORLD": self.world_attachment} if self._deformable else {}
+        defines = {**_lookup_defines(tables), **uv_define, **material_define, **rest_define}
         fragment = assemble("segment_lookup.glsl", "gbuffer_mesh.frag", defines=defines)
-        vertex = assemble("gbuffer_mesh.vert", defines={**uv_define, **material_define})
+        vertex = assemble("gbuffer_mesh.vert", defines={**uv_define, **material_define, **rest_define})
         self._program = compile_program(self.ctx, fragment, "G-buffer pass", vertex=vertex)
         _set_tables(self._program, tables)
         n_faces = len(mesh["faces"])
@@ -456,6 +463,11 @@ class GBufferPass:
             corners = np.zeros((n_faces, 3, 2), np.float32) if albedo_uv is None else albedo_uv[faces]
             self._albedo_uv_vbo = self.ctx.buffer(np.ascontiguousarray(corners, dtype=np.float32).tobytes())
             buffers.append((self._albedo_uv_vbo, "2f", "in_albedo_uv"))
+        if self._deformable:  # the rest pose stays; set_pose rewrites the posed records
+            self._mesh, self._pose_faces = mesh, faces
+            rest = np.ascontiguousarray(mesh["vertices"][mesh["faces"]][faces], dtype=np.float32)
+            self._rest_vbo = self.ctx.buffer(rest.tobytes())
+            buffers.append((self._rest_vbo, "3f", "in_rest"))
         self._vao = self.ctx.vertex_array(self._program, buffers)
         self._vertices = 3 * n_faces
         # GL's culling drops exactly what the shader would discard on closed faces (gl_FrontFacing
@@ -578,6 +590,29 @@ class GBufferPass:
             self._fbo.read_into(self._staging[attachment], components=4, attachment=attachment, dtype="f4")
         return self._staging[:, ::-1]
 
+    def set_pose(self, vertices: np.ndarray) -> None:
+        """Deformable scenes: draw the mesh with ``vertices`` (V, 3) from now on (positions, smooth and
+        face normals recomputed by the rule the training samples used); the rest pose stays in target 0."""
+        self._check_alive()
+        if not self._deformable:
+            raise ValueError("set_pose: the scene is not deformable")
+        mesh = {**self._mesh, "vertices": np.asarray(vertices, np.float32)}
+        n_faces = len(mesh["faces"])
+        self._vbo.write(_mesh_vertices(mesh).reshape(n_faces, 3)[self._pose_faces].tobytes())
+
+    @property
+    def world_attachment(self) -> int | None:
+        """Index of the posed-position target (deformable scenes), None without one."""
+        return 2 + int(self._with_uv) + int(self._with_material) if self._deformable else None
+
+    def read_world(self) -> np.ndarray | None:
+        """Deformable scenes: the posed position of every pixel, (H * W, 3) float32, rows from the top."""
+        self._check_alive()
+        if not self._deformable:
+            return None
+        raw = self._fbo.read(components=4, attachment=self.world_attachment, dtype="f4")
+        return np.frombuffer(raw, dtype=np.float32).reshape(self.height, self.width, 4)[::-1, :, :3].reshape(-1, 3)
+
     @property
     def material_attachment(self) -> int | None:
         """Index of the material target in the framebuffer, None without one."""
@@ -658,7 +693,7 @@ class GBufferPass:
         resources = [
             self._vao, self._program, self._sdf_vao, self._sdf_program, self._vbo, self._uv_vbo, self._albedo_uv_vbo,
             self._normal_fbo, self._fbo, self.position_texture, self.normal_texture, self.depth_texture, self.uv_texture,
-            self.material_texture,
+            self.material_texture, self.world_texture, self._rest_vbo,
         ]  # fmt: skip
         for resource in resources:
             if resource is not None:

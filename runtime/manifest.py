@@ -69,7 +69,7 @@ __all__ = [
 ]
 
 FORMAT = "prt-scene"
-FORMAT_VERSION = 2  # the newest version runtime/schemas/scene.schema.json describes (2: "mixed" geometry)
+FORMAT_VERSION = 3  # the newest version runtime/schemas/scene.schema.json describes (2: "mixed" geometry, 3: a deformation)
 # Version 2 is the version of manifests with mixed geometry, every other manifest is version 1 (the
 # schema ties them), so scenes without mixed geometry stay readable by version-1 runtimes.  Both load.
 GENERATOR = "prt-train 0.1.0"  # what the build writes as ``generator``
@@ -206,6 +206,7 @@ class SegmentInfo:
     validation: dict
     glsl_weights: Path | None = None
     sizing: dict | None = None
+    code: Path | None = None  # deformable scenes: the first layer's code rows (prt.runtime.deformation)
 
     @property
     def is_network(self) -> bool:
@@ -226,6 +227,7 @@ class SegmentInfo:
             model=files.get("model"),
             glsl=files.get("glsl"),
             glsl_weights=files.get("glsl_weights"),
+            code=files.get("code"),
             bounds=np.asarray(data["bounds"], dtype=np.float64),
             architecture=dict(data["architecture"]) if "architecture" in data else None,
             flops_per_fragment=data.get("flops_per_fragment", 0),
@@ -259,7 +261,7 @@ class SegmentInfo:
         return out
 
     def _files(self) -> dict[str, Path | None]:
-        return {"model": self.model, "glsl": self.glsl, "glsl_weights": self.glsl_weights}
+        return {"model": self.model, "glsl": self.glsl, "glsl_weights": self.glsl_weights, "code": self.code}
 
 
 @dataclass
@@ -423,6 +425,35 @@ class InterreflectionInfo:
 
 
 @dataclass
+class DeformationInfo:
+    """A deformable object (``prt-train --deform``; format version 3).
+
+    Attributes
+    ----------
+    path : Path
+        ``deformation.npz`` (:class:`prt.runtime.deformation.Deformation`): rest pose, frames, codes, basis.
+    source : dict
+        Where the poses came from (``kind``: sequence, gltf or procedural; path, animation, parameters).
+    code : dict
+        The shape code: ``kind`` ("pca"), ``dim``, ``freqs`` (and how much variance it keeps).
+    frames : dict
+        ``count`` and the frames' roles: ``train``, ``unseen``, ``extrapolated`` (indices); names, parameters.
+    """
+
+    path: Path
+    source: dict
+    code: dict
+    frames: dict
+
+    @classmethod
+    def from_dict(cls, data: dict, path: Path) -> DeformationInfo:
+        return cls(path=path, source=dict(data["source"]), code=dict(data["code"]), frames=dict(data["frames"]))
+
+    def to_dict(self, root: Path) -> dict:
+        return {"file": _relative(self.path, root), "source": self.source, "code": self.code, "frames": self.frames}
+
+
+@dataclass
 class Manifest:
     """A scene manifest: what :func:`load_manifest` returns and the writer serialises.
 
@@ -472,6 +503,7 @@ class Manifest:
     transfer_texture: TransferTextureInfo | None = None
     raw: dict | None = field(default=None, repr=False)
     interreflection: InterreflectionInfo | None = None
+    deformation: DeformationInfo | None = None
 
     @property
     def transfer_width(self) -> int:
@@ -517,7 +549,7 @@ class Manifest:
             "leaf_segment": np.asarray(seg["leaf_segment"], dtype=np.int64),
         }
         segments = [
-            SegmentInfo.from_dict(s, {k: files.get(f"segments[{i}].{k}") for k in ("model", "glsl", "glsl_weights")})
+            SegmentInfo.from_dict(s, {k: files.get(f"segments[{i}].{k}") for k in ("model", "glsl", "glsl_weights", "code")})
             for i, s in enumerate(data["segments"])
         ]
         return cls(
@@ -536,6 +568,7 @@ class Manifest:
             transfer_texture=TransferTextureInfo.from_manifest(data, files),
             raw=data,
             interreflection=InterreflectionInfo.from_dict(data["interreflection"]) if "interreflection" in data else None,
+            deformation=DeformationInfo.from_dict(data["deformation"], files["deformation.file"]) if "deformation" in data else None,
         )
 
     def to_dict(self, root: str | Path | None = None) -> dict:
@@ -549,7 +582,7 @@ class Manifest:
         """
         root = Path(self.root if root is None else root)
         seg = self.segmentation
-        version = FORMAT_VERSION if self.geometry.type == "mixed" else 1
+        version = 3 if self.deformation is not None else 2 if self.geometry.type == "mixed" else 1
         out: dict[str, Any] = {"format": FORMAT, "version": version, "name": self.name}
         if self.generator is not None:
             out["generator"] = self.generator
@@ -572,6 +605,8 @@ class Manifest:
             out["transfer_texture"] = self.transfer_texture.to_dict(root)
         if self.interreflection is not None:
             out["interreflection"] = self.interreflection.to_dict()
+        if self.deformation is not None:
+            out["deformation"] = self.deformation.to_dict(root)
         return out
 
 

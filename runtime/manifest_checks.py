@@ -154,6 +154,11 @@ def _check_semantics(data: dict, source: str) -> None:
             if name not in objects:
                 raise _fail(source, ["interreflection", "albedos", name], f"{name!r} is not an object of the geometry ({', '.join(objects) or 'none named'})")
 
+    deformation = data.get("deformation")
+    if deformation is not None:  # every network takes the shape code
+        for i, seg in enumerate(segments):
+            if seg["kind"] == "network" and ("code" not in seg or (seg.get("architecture") or {}).get("code_dim") != deformation["code"]["dim"]):
+                raise _fail(source, ["segments", i], f"a deformable scene's network needs a 'code' file and architecture.code_dim {deformation['code']['dim']}")
     geometry = data["geometry"]
     if geometry["type"] == "mixed":  # (the schema ties version 2 to mixed geometry)
         if len(geometry["kinds"]) != len(geometry["objects"]):
@@ -237,7 +242,9 @@ def _path_fields(data: dict) -> list[tuple[list[str | int], str]]:
     keys = {"mesh": ["file"], "sdf": ["glsl"], "mixed": ["file", "glsl"]}[geometry["type"]]
     fields: list[tuple[list[str | int], str]] = [(["geometry", key], geometry[key]) for key in keys]
     for i, seg in enumerate(data["segments"]):
-        fields += [(["segments", i, k], seg[k]) for k in ("model", "glsl", "glsl_weights") if k in seg]
+        fields += [(["segments", i, k], seg[k]) for k in ("model", "glsl", "glsl_weights", "code") if k in seg]
+    if "deformation" in data:
+        fields.append((["deformation", "file"], data["deformation"]["file"]))
     envmap = data["lighting"].get("envmap")
     if envmap is not None:
         fields.append((["lighting", "envmap"], envmap))

@@ -46,7 +46,8 @@ from .envmap import load_envmap_sh
 from .envmaps import BUNDLED_ENVMAPS, DEFAULT_ENVMAP, bundled_envmap_path
 from .checks import count_nonfinite, positive_int
 from .errors import ArgumentTypeError, FrameError, InputError, RendererStateError
-from .gbuffer import PACKED_SEGMENT, GBufferPass
+from .deformation import Deformation
+from .gbuffer import PACKED_SEGMENT, GBufferPass, load_mesh
 from .gl import ShaderCompileError, bind_framebuffer, compile_program, create_context, draw_fullscreen
 from .manifest import Manifest, load_manifest
 from .albedo_textures import AlbedoTextures
@@ -70,6 +71,9 @@ class Scene:
 
     def __init__(self, manifest: Manifest):
         self.manifest = manifest
+        self.deformation: Deformation | None = None  # deformable scenes: frames, codes, basis
+        if manifest.deformation is not None:
+            self.deformation = Deformation.load(manifest.deformation.path, load_mesh(manifest.geometry.path)["vertices"].shape[0])
 
     @classmethod
     def load(cls, path=None) -> "Scene":
@@ -230,6 +234,10 @@ class Renderer:
         self._transfer_valid = False
         self._transfer_on_cpu = True
         self._closed = False
+        self._code: np.ndarray | None = None  # deformable scenes: the pose's shape code
+        self.pose: dict | None = None
+        if scene.deformation is not None:
+            self.set_deformation(frame=0)
 
     def _check_usable(self) -> None:
         """RendererStateError after close() or from a thread other than the creator (see the class docstring)."""
@@ -281,6 +289,30 @@ class Renderer:
             raise InputError(f"Renderer.set_lighting_sh: the scene has {n} SH bands ({n * n} rows), got {lighting.bands} bands ({lighting.sh.shape[0]} rows)")
         self.lighting = lighting
         self._envmap_path = None  # no image to draw behind the geometry
+
+    @_in_context
+    def set_deformation(self, theta=None, *, frame=None) -> None:
+        """Deformable scenes (``scene.deformation``): pose the object by a recorded ``frame`` (index)
+        or by a shape code ``theta`` (d numbers; the pose is the rest plus the code's PCA offsets).
+        The next :meth:`render` draws the new pose and runs the networks once with its code;
+        relighting after it stays free.
+
+        Raises
+        ------
+        InputError
+            If the scene is not deformable, the frame is out of range or theta has the wrong length.
+        """
+        self._check_usable()
+        deformation = self.scene.deformation
+        if deformation is None:
+            raise InputError(f"{self.scene.path}: set_deformation: the scene is not deformable (built without --deform)")
+        vertices, code = deformation.pose(frame=frame, theta=theta)
+        self.gbuffer.set_pose(vertices)
+        self._code = code
+        for backend in self._backends.values():
+            backend.set_code(code)
+        self.pose = {"frame": None if frame is None else int(frame), "theta": code.tolist()}
+        self._transfer_valid = False
 
     @_in_context
     def set_background(self, envmap: bool) -> None:
@@ -495,7 +527,9 @@ class Renderer:
             return np.maximum(self._transfer_cov @ light, 0.0)
         if self._geometry_cov is None:
             rows = self._inputs  # position, normal of each covered pixel
-            self._geometry_cov = (rows[:, 3:6], self.camera.eye[None, :] - rows[:, 0:3])
+            world = self.gbuffer.read_world()  # deformable scenes: the inputs hold the rest position
+            position = rows[:, 0:3] if world is None else world[self._covered]
+            self._geometry_cov = (rows[:, 3:6], self.camera.eye[None, :] - position)
         normals, view_dirs = self._geometry_cov
         if per_object:
             return shade_objects(self._transfer_cov, self._object_ids_cov, normals, view_dirs, self.lighting, self.materials, self._uv_cov)
@@ -515,7 +549,8 @@ class Renderer:
             if name in program:
                 program[name].write(np.ascontiguousarray(value).tobytes())
         program["u_eye"].value = tuple(float(v) for v in self.camera.eye)
-        textures = [(self.gbuffer.position_texture, 0), (self.gbuffer.normal_texture, 1)]
+        position = self.gbuffer.world_texture if self.gbuffer.world_texture is not None else self.gbuffer.position_texture  # view directions
+        textures = [(position, 0), (self.gbuffer.normal_texture, 1)]
         for k, tex in enumerate(self._t_textures):  # units 2..5; the indirect transfer's 9..20 (after the materials')
             textures.append((tex, 2 + k if k < 4 else 5 + k))
             program[f"u_t{k}"].value = 2 + k if k < 4 else 5 + k
@@ -549,7 +584,10 @@ class Renderer:
 
     def _backend(self) -> TransferBackend:
         if self.backend not in self._backends:
-            self._backends[self.backend] = create_backend(self.backend, self.ctx, self.scene.manifest, **self._backend_options)
+            backend = create_backend(self.backend, self.ctx, self.scene.manifest, **self._backend_options)
+            self._backends[self.backend] = backend
+            if self._code is not None:
+                backend.set_code(self._code)
         return self._backends[self.backend]
 
     def _broken_transfer_message(self, pixels: int) -> str:

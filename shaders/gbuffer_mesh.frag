@@ -3,6 +3,8 @@
 // segment_lookup.glsl, with that file's #defines).
 //   attachment 0: position.xyz, covered (1)
 //   attachment 1: unit normal facing the camera, segment id
+// Deformable scenes (PRT_GBUFFER_REST): attachment 0 holds the rest position (what the networks and
+// the segment rule take), attachment PRT_GBUFFER_WORLD the posed position (what shading takes).
 // Back faces of closed surfaces are discarded here.  runtime/gbuffer.py also draws the closed
 // faces apart with GL's culling on (nothing reaches the discard) and the two-sided ones, which
 // must stay visible from both sides, in a second draw without it; one draw relies on this alone.
@@ -20,6 +22,10 @@ layout(location = 1) out vec4 o_normal;
 in vec4 v_uv;
 flat in float v_atlas;
 layout(location = 2) out vec4 o_uv;  // u, v, atlas, covered: of the side facing the camera
+#endif
+#ifdef PRT_GBUFFER_REST
+in vec3 v_rest;
+layout(location = PRT_GBUFFER_WORLD) out vec4 o_world;  // posed position, covered
 #endif
 #ifdef PRT_GBUFFER_MATERIAL
 // Scenes with per-object materials: albedo-texture u, v, object id, covered.
@@ -50,8 +56,14 @@ void main() {
         }
     }
     n = normalize(n);
+#ifdef PRT_GBUFFER_REST
+    o_position = vec4(v_rest, 1.0);
+    o_normal = vec4(n, float(prt_segment(v_info.x, v_rest)));
+    o_world = vec4(v_position, 1.0);
+#else
     o_position = vec4(v_position, 1.0);
     o_normal = vec4(n, float(prt_segment(v_info.x, v_position)));
+#endif
 #ifdef PRT_GBUFFER_UV
     bool back = two_sided && dot(v_face_normal, to_eye) < 0.0;  // as the normal's flip above
     o_uv = vec4(back ? v_uv.zw : v_uv.xy, v_atlas, 1.0);

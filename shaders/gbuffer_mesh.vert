@@ -20,6 +20,10 @@ in float in_atlas;  // the face's atlas (texture set)
 out vec4 v_uv;
 flat out float v_atlas;
 #endif
+#ifdef PRT_GBUFFER_REST
+in vec3 in_rest;  // deformable scenes: this corner in the rest pose (the networks' position input)
+out vec3 v_rest;
+#endif
 #ifdef PRT_GBUFFER_MATERIAL
 in vec2 in_albedo_uv;  // this corner's albedo-texture UV (the mesh's own; 0 without one)
 out vec2 v_albedo_uv;
@@ -30,6 +34,9 @@ void main() {
     v_normal = in_normal;
     v_face_normal = in_face_normal;
     v_info = in_info;
+#ifdef PRT_GBUFFER_REST
+    v_rest = in_rest;
+#endif
 #ifdef PRT_GBUFFER_UV
     v_uv = in_uv;
     v_atlas = in_atlas;

@@ -152,7 +152,7 @@ def test_schema_is_valid_draft_2020_12():
     # the schema pins the format the model writes
     assert SCENE_SCHEMA["properties"]["format"]["const"] == FORMAT
     # version 2 adds mixed geometry; other scenes keep writing 1, so older runtimes read them
-    assert SCENE_SCHEMA["properties"]["version"]["enum"] == [1, FORMAT_VERSION] and FORMAT_VERSION == 2
+    assert SCENE_SCHEMA["properties"]["version"]["enum"] == [1, 2, FORMAT_VERSION] and FORMAT_VERSION == 3  # 3: deformable objects
 
 
 def test_round_trip(scene: Path):

@@ -210,8 +210,9 @@ def batch_loss(out: torch.Tensor, target_scaled: torch.Tensor, scale: torch.Tens
     return ((out - target_scaled).abs() * scale * weights).mean()
 
 
-def _as_input(points: np.ndarray, normals: np.ndarray) -> torch.Tensor:
-    return torch.from_numpy(np.ascontiguousarray(np.concatenate([points, normals], axis=1), dtype=np.float32))
+def _as_input(points: np.ndarray, normals: np.ndarray, codes: np.ndarray | None = None) -> torch.Tensor:
+    parts = [points, normals] + ([] if codes is None else [codes])
+    return torch.from_numpy(np.ascontiguousarray(np.concatenate(parts, axis=1), dtype=np.float32))
 
 
 def _predict(model: torch.nn.Module, x: torch.Tensor, batch: int = 65536) -> np.ndarray:
@@ -264,6 +265,8 @@ def fit_segment(
     *,
     lights: dict[str, np.ndarray] | None = None,
     progress=None,
+    codes: np.ndarray | None = None,
+    val_codes: np.ndarray | None = None,
 ) -> FitResult:
     """Train one network on a segment's samples (own + margin), validate on held-out samples.
 
@@ -275,6 +278,7 @@ def fit_segment(
     arch : network size; bounds : (2, 3) box the encoding normalises to
     lights : env name -> (n, 3) SH lighting for the shaded error
     progress : callable(step, total_steps, train_loss, val_mae) or None, after each validation
+    codes, val_codes : (N, d), (M, d) shape codes of the samples (deformable scenes, ``arch.code_dim`` = d)
     """
     settings = settings or FitSettings()
     for name, a in (("points", points), ("normals", normals), ("transfer", transfer)):
@@ -289,9 +293,11 @@ def fit_segment(
     gen = torch.Generator().manual_seed(settings.seed)
     scale, offset = target_scaling(transfer)
     model = TransferMLP(arch, bounds, scale, offset)
-    x = _as_input(points, normals)
+    if (codes is None) != (arch.code_dim == 0) or (codes is None) != (val_codes is None):
+        raise ValueError(f"a network with code_dim {arch.code_dim} needs {'codes' if arch.code_dim else 'no codes'} for training and validation")
+    x = _as_input(points, normals, codes)
     y = torch.from_numpy(np.ascontiguousarray(transfer, dtype=np.float32))
-    xv = _as_input(val_points, val_normals)
+    xv = _as_input(val_points, val_normals, val_codes)
     yv = np.asarray(val_transfer, dtype=np.float32)
     # L1 on the transfer itself, computed through the scaled tanh output
     inv_scale = torch.from_numpy(1.0 / scale)

@@ -29,6 +29,7 @@ import torch
 from torch import nn
 
 from ..export.onnx_model import LEAKY_SLOPE, NORMAL_EPS, POSITION_CLIP
+from ..runtime.deformation import code_features, code_frequencies
 
 __all__ = ["Architecture", "TransferMLP", "evaluate_numpy", "mlp_numpy", "frequency_matrix", "target_scaling", "TARGET_RANGE", "LAYOUTS", "layout_width"]
 
@@ -53,17 +54,26 @@ class Architecture:
     normal_freqs: int = 2
     bands: int = 4
     layout: str = "direct"  # see LAYOUTS
+    code_dim: int = 0  # deformable scenes: the shape code's dimensions (prt.runtime.deformation)
+    code_freqs: int = 0  # sin/cos frequencies of each code component
 
     @property
     def input_dim(self) -> int:
+        """Features a fragment computes (the shape code's are one vector per frame, not counted)."""
         return 6 + 6 * self.pos_freqs + 6 * self.normal_freqs
+
+    @property
+    def code_features(self) -> int:
+        """Features of the shape code ``[theta, sin, cos]``: rows of the first layer fed once per frame."""
+        return self.code_dim * (1 + 2 * self.code_freqs)
 
     @property
     def outputs(self) -> int:
         return layout_width(self.layout, self.bands)
 
     def flops_per_fragment(self) -> int:
-        """Multiply-adds count 2; encoding: 3 per sin/cos argument and ~20 per sin/cos."""
+        """Multiply-adds count 2; encoding: 3 per sin/cos argument and ~20 per sin/cos.  The shape
+        code's rows are folded into the first layer's bias once per frame: not per fragment."""
         k, d, o = self.hidden, self.input_dim, self.outputs
         mlp = 2 * (d * k + (self.layers - 1) * k * k + k * o) + self.layers * k + 2 * o
         n_trig = 6 * (self.pos_freqs + self.normal_freqs)
@@ -71,7 +81,7 @@ class Architecture:
         return int(mlp + encoding + 20 * o)  # tanh of each output
 
     def weight_count(self) -> int:
-        k, d, o = self.hidden, self.input_dim, self.outputs
+        k, d, o = self.hidden, self.input_dim + self.code_features, self.outputs
         return d * k + k + (self.layers - 1) * (k * k + k) + k * o + o
 
     def as_dict(self) -> dict:
@@ -82,10 +92,13 @@ class Architecture:
             del out["layout"]
         else:
             out["outputs"] = self.outputs
+        if not self.code_dim:  # a static network's record is what it was before shape codes
+            del out["code_dim"], out["code_freqs"]
         return out
 
     def label(self) -> str:
-        return f"k{self.hidden}-l{self.layers}-f{self.pos_freqs}" + ("" if self.layout == "direct" else f"-{self.layout}")
+        code = f"-c{self.code_dim}f{self.code_freqs}" if self.code_dim else ""
+        return f"k{self.hidden}-l{self.layers}-f{self.pos_freqs}" + ("" if self.layout == "direct" else f"-{self.layout}") + code
 
 
 def frequency_matrix(freqs: int) -> np.ndarray:
@@ -98,7 +111,8 @@ def frequency_matrix(freqs: int) -> np.ndarray:
 
 
 class TransferMLP(nn.Module):
-    """One segment's network.  ``forward(x)`` takes ``x`` (N, 6) = [position, normal]."""
+    """One segment's network.  ``forward(x)`` takes ``x`` (N, 6) = [position, normal], or with a
+    shape code (``arch.code_dim`` = d > 0) ``x`` (N, 6 + d) = [rest position, deformed normal, theta]."""
 
     def __init__(self, arch: Architecture, bounds: np.ndarray, out_scale: np.ndarray, out_offset: np.ndarray):
         super().__init__()
@@ -112,7 +126,11 @@ class TransferMLP(nn.Module):
         self.register_buffer("normal_freq", torch.from_numpy(frequency_matrix(arch.normal_freqs)))
         self.register_buffer("out_scale", torch.tensor(out_scale, dtype=torch.float32))
         self.register_buffer("out_offset", torch.tensor(out_offset, dtype=torch.float32))
-        sizes = [arch.input_dim] + [arch.hidden] * arch.layers
+        if arch.code_dim and arch.layers < 1:
+            raise ValueError("a shape-conditioned network needs at least one hidden layer (the code enters its bias)")
+        if arch.code_dim:
+            self.register_buffer("code_freq", torch.from_numpy(code_frequencies(arch.code_dim, arch.code_freqs)))
+        sizes = [arch.input_dim + arch.code_features] + [arch.hidden] * arch.layers
         self.hidden = nn.ModuleList(nn.Linear(a, b) for a, b in zip(sizes[:-1], sizes[1:]))
         self.out = nn.Linear(arch.hidden, arch.outputs)
         for layer in self.hidden:  # He init suits leaky-relu
@@ -127,7 +145,12 @@ class TransferMLP(nn.Module):
         n = n / torch.clamp(torch.linalg.vector_norm(n, dim=1, keepdim=True), min=NORMAL_EPS)
         ap = p @ self.pos_freq
         an = n @ self.normal_freq
-        return torch.cat([p, torch.sin(ap), torch.cos(ap), n, torch.sin(an), torch.cos(an)], dim=1)
+        features = [p, torch.sin(ap), torch.cos(ap), n, torch.sin(an), torch.cos(an)]
+        if self.arch.code_dim:  # [theta, sin, cos] after the fragment's features (code_features' order)
+            theta = x[:, 6 : 6 + self.arch.code_dim]
+            ac = theta @ self.code_freq
+            features += [theta, torch.sin(ac), torch.cos(ac)]
+        return torch.cat(features, dim=1)
 
     def trunk(self, features: torch.Tensor) -> torch.Tensor:
         """The MLP on encoded features, before tanh (bf16 autocast may run this part)."""
@@ -158,19 +181,33 @@ class TransferMLP(nn.Module):
         for i, layer in enumerate(self.hidden):
             out[f"layer{i}_weight"] = layer.weight.T  # (in, out): x @ W
             out[f"layer{i}_bias"] = layer.bias
+        if self.arch.code_dim:  # the first layer's code rows apart: the fragment part keeps a static shape
+            d = self.arch.input_dim
+            out["code_weight"] = out["layer0_weight"][d:]
+            out["layer0_weight"] = out["layer0_weight"][:d]
+            out["enc_code_freq"] = self.code_freq
         return {k: v.detach().cpu().numpy().astype(np.float32) for k, v in out.items()}
 
 
-def evaluate_numpy(arrays: dict[str, np.ndarray], points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+def evaluate_numpy(arrays: dict[str, np.ndarray], points: np.ndarray, normals: np.ndarray, codes: np.ndarray | None = None) -> np.ndarray:
     """The plain numpy evaluation of :meth:`TransferMLP.arrays` (float32, as the ONNX graph): the
-    network's output (N, outputs) at ``points`` (N, 3) with ``normals`` (N, 3).  Used to score
-    fits read back from the fit cache, where only the arrays survive."""
+    network's output (N, outputs) at ``points`` (N, 3) with ``normals`` (N, 3) (and shape ``codes``
+    (N, d) for a shape-conditioned network: their features concatenated to each row's, the plain
+    twin of the runtime's per-frame bias).  Used to score fits read back from the fit cache, where
+    only the arrays survive."""
     p = np.asarray(points, dtype=np.float32)
     n = np.asarray(normals, dtype=np.float32)
     x = np.clip((p - arrays["enc_centre"]) * arrays["enc_inv_half"], np.float32(-POSITION_CLIP), np.float32(POSITION_CLIP))
     n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), np.float32(NORMAL_EPS))
     ap, an = x @ arrays["enc_pos_freq"], n @ arrays["enc_normal_freq"]
-    return mlp_numpy(arrays, np.concatenate([x, np.sin(ap), np.cos(ap), n, np.sin(an), np.cos(an)], axis=1))
+    features = np.concatenate([x, np.sin(ap), np.cos(ap), n, np.sin(an), np.cos(an)], axis=1)
+    if "code_weight" in arrays:
+        if codes is None:
+            raise ValueError("a shape-conditioned network needs codes")
+        g = code_features(np.asarray(codes, np.float32).reshape(len(p), -1), arrays["enc_code_freq"])
+        arrays = {**arrays, "layer0_weight": np.concatenate([arrays["layer0_weight"], arrays["code_weight"]])}
+        features = np.concatenate([features, g], axis=1)
+    return mlp_numpy(arrays, features)
 
 
 def mlp_numpy(arrays: dict[str, np.ndarray], features: np.ndarray) -> np.ndarray:

@@ -29,19 +29,23 @@ class SurfaceSamples:
         :func:`prt.runtime.normals.corner_normals`), on SDFs the gradient
     face_index : (N,) int64, triangle of ``geometry.mesh`` the sample was drawn from
     object_ids : (N,) int64, object of that triangle
+    weights : (N, 3) float64 barycentric weights of the point in its triangle (meshes; None on SDFs):
+        the same point on another pose of the mesh (deformable scenes, :mod:`prt.train.deform_build`)
     """
 
     points: np.ndarray
     normals: np.ndarray
     face_index: np.ndarray
     object_ids: np.ndarray
+    weights: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.points)
 
     def subset(self, index: np.ndarray) -> "SurfaceSamples":
         return SurfaceSamples(
-            self.points[index], self.normals[index], self.face_index[index], self.object_ids[index]
+            self.points[index], self.normals[index], self.face_index[index], self.object_ids[index],
+            None if self.weights is None else self.weights[index],
         )
 
 
@@ -106,6 +110,7 @@ def sample_surface(geometry, count: int, *, seed: int = 0, stream: int = TRAIN_S
         normals.astype(np.float32),
         faces.astype(np.int64),
         np.asarray(geometry.object_ids, dtype=np.int64)[faces],
+        None if geometry.sdf is not None else np.stack([1.0 - r1, r1 * (1.0 - r2), r1 * r2], axis=1),
     )
 
 

@@ -87,6 +87,13 @@ class TransferBackend(ABC):
         (see the module docstring); sets :attr:`timings`.
         """
 
+    def set_code(self, theta: np.ndarray) -> None:
+        """Deformable scenes: the shape code (d,) the networks take from the next :meth:`run` on
+        (:mod:`prt.runtime.deformation`).  A backend that cannot follow a deformation raises InputError."""
+        from ..errors import InputError
+
+        raise InputError(f"{self.manifest.path}: the {self.name} backend does not render deformable scenes; use onnx or glsl")
+
     def release(self) -> None:
         """Free the backend's resources (sessions, programs, textures); it is not used again."""
 

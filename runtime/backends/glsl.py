@@ -38,6 +38,7 @@ from .. import sh
 from ..checks import count_nonfinite, read_text
 from ..errors import InputError
 from ..gl import ShaderCompileError, compile_program
+from ..deformation import code_bias, load_code_arrays
 from .base import TransferBackend, draw_transfer
 
 __all__ = ["GlslBackend"]
@@ -76,6 +77,18 @@ class GlslBackend(TransferBackend):
             if seg.glsl_weights is not None:
                 self._weights.append((f"seg{seg.id}_transfer_weights", _load_weights(seg.glsl_weights)))
         units = int(ctx.info.get("GL_MAX_TEXTURE_IMAGE_UNITS", 16))
+        # Deformable scenes: per network, its code rows and the texel of its first bias (set_code rewrites those texels).
+        self._codes = {}
+        for seg in manifest.segments:
+            if getattr(seg, "code", None) is not None:
+                if seg.id not in compact.base:
+                    raise InputError(f"{manifest.path}: segments[{seg.id}] takes a shape code but its GLSL is not compact; render with the onnx backend")
+                arrays = load_code_arrays(seg.code)
+                with np.load(seg.code, allow_pickle=False) as f:
+                    texel = int(f["bias_texel"]) if "bias_texel" in f.files else -1
+                if not 0 < texel < len(compact.texels[list(compact.base).index(seg.id)]):
+                    raise InputError(f"{seg.code}: bias_texel missing or outside the segment's texels")
+                self._codes[seg.id] = (arrays, compact.base[seg.id] + texel)
         if compact:
             self._weights.insert(0, ("prt_weights", compact.texture(int(ctx.info.get("GL_MAX_TEXTURE_SIZE", 16384)))))
             networks = [*compact.sources(), *networks]
@@ -110,6 +123,22 @@ class GlslBackend(TransferBackend):
             if name in self.program:
                 self.program[name].value = unit
         self.vao = ctx.vertex_array(self.program, [])
+
+    def set_code(self, theta) -> None:
+        """Rewrite each shape-conditioned network's first bias texels for code ``theta`` (d,): the
+        code's features times the first layer's code rows, once per frame (:mod:`prt.runtime.deformation`)."""
+        if not self._codes:
+            return super().set_code(theta)
+        weights, tex = self._weights[0][1], self._textures[0][0]  # the compact texture (H, 1024, 4), unit 2
+        flat = weights.reshape(-1, 4)
+        rows = set()
+        for arrays, texel in self._codes.values():
+            bias = code_bias(arrays, theta)
+            n = -(-bias.size // 4)
+            flat[texel : texel + n] = np.pad(bias, (0, 4 * n - bias.size)).reshape(n, 4)
+            rows.update(range(texel // _WIDTH, (texel + n - 1) // _WIDTH + 1))
+        for y in sorted(rows):
+            tex.write(np.ascontiguousarray(weights[y]).tobytes(), viewport=(0, y, _WIDTH, 1))
 
     def run(self, gbuffer, target) -> None:
         t0 = time.perf_counter()

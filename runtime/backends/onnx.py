@@ -105,6 +105,8 @@ class OnnxTransfer:
         self.slice_rows = int(slice_rows)
         self.sessions: dict[int, object] = {}
         self.input_names: dict[int, str] = {}
+        self.code: np.ndarray | None = None  # deformable scenes: (1, d) float32, the frame's shape code (set_code)
+        self._coded: set[int] = set()  # segments whose model takes the code
         self.models: dict[int, object] = {}  # segment id -> model path, for messages
         self.analytic: set[int] = set()
         self.segment_count = len(manifest.segments)
@@ -115,6 +117,8 @@ class OnnxTransfer:
             model = read_model(seg.model)  # refuses external data (files outside the scene folder)
             self.sessions[seg.id], self.input_names[seg.id] = self._open(model, seg.model)
             self.models[seg.id] = seg.model
+            if len(self.sessions[seg.id].get_inputs()) == 2:
+                self._coded.add(seg.id)
         self._pool = ThreadPoolExecutor(max_workers=self.threads, thread_name_prefix="ort") if self._concurrent_slices() else None
         self.calls = 0  # network invocations so far (tests check relighting makes none)
         self.timings: dict[str, float] = {}
@@ -143,8 +147,16 @@ class OnnxTransfer:
         """Whether slices run on a pool of threads (else one after another, the engine's own threads inside)."""
         return self.threads > 1
 
+    def set_code(self, theta) -> None:
+        """The shape code (d,) every shape-conditioned network takes from now on."""
+        self.code = np.ascontiguousarray(np.asarray(theta, np.float32).reshape(1, -1))
+
     def _infer(self, s: int, rows: np.ndarray) -> np.ndarray:
-        """Segment ``s``'s network on ``rows`` (R, 6)."""
+        """Segment ``s``'s network on ``rows`` (R, 6) (and the shape code, for a deformable scene's)."""
+        if s in self._coded:
+            if self.code is None:
+                raise InputError(f"{self.models[s]}: the network takes a shape code; set one first (Renderer.set_deformation)")
+            return self.sessions[s].run(None, {self.input_names[s]: rows, "code": self.code})[0]
         return self.sessions[s].run(None, {self.input_names[s]: rows})[0]
 
     def close(self) -> None:
@@ -314,21 +326,27 @@ class OnnxBackend(TransferBackend):
         self.timings = {"readback": 1e3 * (t1 - t0), "pack": 1e3 * (t2 - t1), **self.engine.timings}
         return CpuTransfer(order, transfer, x, segment[order])
 
+    def set_code(self, theta) -> None:
+        self.engine.set_code(theta)
+
     def release(self) -> None:
         self.engine.close()
 
 
 def _check_signature(sess, path, n_out: int) -> str:
-    """The name of the model's one input, after checking it is float32 [N, 6] and its one output float32 [N, n_out]."""
+    """The name of the model's first input, after checking it is float32 [N, 6] (a shape-conditioned
+    network's second input: ``code`` float32 [1, d]) and its one output float32 [N, n_out]."""
     inputs, outputs = sess.get_inputs(), sess.get_outputs()
 
     def fits(args, width):
         a = args[0]
         return len(args) == 1 and a.type == "tensor(float)" and len(a.shape) == 2 and a.shape[1] == width
 
-    if not fits(inputs, 6):
+    code = inputs[1:2]
+    coded = len(inputs) == 2 and code[0].name == "code" and code[0].type == "tensor(float)" and len(code[0].shape) == 2 and code[0].shape[0] == 1
+    if not fits(inputs[:1] if coded else inputs, 6):
         got = [(i.name, i.type, i.shape) for i in inputs]
-        raise InputError(f"{path}: model input must be one float32 tensor [N, 6] (position, normal), got {got}")
+        raise InputError(f"{path}: model input must be one float32 tensor [N, 6] (position, normal), and for a deformable scene code [1, d]; got {got}")
     if not fits(outputs, n_out):
         got = [(o.name, o.type, o.shape) for o in outputs]
         raise InputError(f"{path}: model output must be one float32 tensor [N, {n_out}], got {got}")
