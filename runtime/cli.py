@@ -26,7 +26,7 @@ from .envmaps import BUNDLED_ENVMAPS
 from .checks import finite_array, positive_int
 from .errors import InputError, PRTError
 from .materials import parse_object_albedo
-from .camera_path import load_camera_path
+from .camera_path import CameraPath, load_camera_path
 from .orbit import FORMATS, render_camera_path, render_orbit
 from .renderer import Scene
 from .viewer import ViewerOptions, run_window
@@ -54,6 +54,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--exposure", type=float, default=1.0, help="exposure before tone mapping")
     p.add_argument("--providers", default=None, help="comma-separated ONNX Runtime providers (default: CUDA if present, then CPU)")
     p.add_argument("--threads", type=int, default=None, help="CPU threads of the ONNX backend")
+    p.add_argument("--animate", action="store_true", help="headless, deformable scenes: --frames frames at the scene camera playing the recorded poses (instead of an orbit)")
+    p.add_argument("--pose", type=int, default=None, metavar="FRAME", help="headless, deformable scenes: render the orbit at this recorded frame")
     p.add_argument("--camera-path", type=Path, default=None, help="headless: render the views of this camera-path JSON (saved by the viewer's c / o keys)")
     p.add_argument("--format", choices=FORMATS, default="png", help="headless: PNG frames, linear EXR frames, or one MP4 video (--out DIR or FILE.mp4)")
     p.add_argument("--fps", type=float, default=30.0, help="frame rate of an MP4")
@@ -106,7 +108,17 @@ def main(argv: list[str] | None = None) -> int:
         if not args.headless and has_display() and path is None:
             return run_window(scene, options)
         with options.renderer(scene) as r:
-            if path is not None:
+            if args.pose is not None:
+                r.set_deformation(frame=args.pose)
+            if args.animate:
+                deformation = scene.deformation
+                if deformation is None:
+                    raise InputError(f"{scene.path}: --animate needs a deformable scene (built with prt-train --deform)")
+                frames = positive_int(args.frames, "--frames")
+                poses = [round(i * (deformation.frame_count - 1) / max(frames - 1, 1)) for i in range(frames)]
+                summary = render_camera_path(r, CameraPath((r.camera,), frames), args.out, exposure=options.exposure, fmt=args.format,
+                                             fps=args.fps, poses=poses)  # fmt: skip
+            elif path is not None:
                 summary = render_camera_path(r, path, args.out, exposure=options.exposure, fmt=args.format, fps=args.fps)
             else:
                 summary = render_orbit(r, args.frames, args.out, exposure=options.exposure, fmt=args.format, fps=args.fps)

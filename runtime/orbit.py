@@ -77,7 +77,7 @@ def render_orbit(r, frames: int, out, *, exposure: float = 1.0, warmup: int = 2,
 
 
 def render_camera_path(r, path: CameraPath, out, *, exposure: float = 1.0, warmup: int = 2, fmt: str = "png",
-                       fps: float = 30.0) -> OrbitSummary:  # fmt: skip
+                       fps: float = 30.0, poses: list[int] | None = None) -> OrbitSummary:  # fmt: skip
     """Render every frame of ``path``.
 
     Parameters
@@ -98,6 +98,8 @@ def render_camera_path(r, path: CameraPath, out, *, exposure: float = 1.0, warmu
     fmt : {"png", "exr", "mp4"}
     fps : float
         Frame rate of the video.
+    poses : list of int, optional
+        Deformable scenes: the recorded frame (:meth:`Renderer.set_deformation`) of each output frame.
 
     Returns
     -------
@@ -122,6 +124,8 @@ def render_camera_path(r, path: CameraPath, out, *, exposure: float = 1.0, warmu
         stages: dict[str, list[float]] = {}
         for i, camera in enumerate(cameras):
             r.set_camera_object(camera)
+            if poses is not None:
+                r.set_deformation(frame=poses[i % len(poses)])
             image = r.render()
             for k, v in r.timings.items():
                 stages.setdefault(k, []).append(v)

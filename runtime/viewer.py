@@ -9,6 +9,8 @@ Controls (also printed on ``h``):
   c                save the camera path (the moves so far; the orbit if none)
   o                save the orbit of the current view as a camera path
   h                help                      q / Esc      quit
+  a                play / pause the recorded poses (deformable scenes)
+  , / .            previous / next pose (deformable scenes)
 The title shows the FPS of frames that ran the networks (camera moves) and, apart, the time
 of re-shading the cached transfer (light, material: no network runs), labelled "relight";
 the stage times of network frames are printed here.
@@ -214,6 +216,18 @@ class _View:
         self.backend = r.backend
         self.background = r.background
         self.yaw, self.pitch, self.zoom = 0.0, 0.0, 1.0
+        # Deformable scenes: the recorded frame shown, and whether the poses play.
+        deformation = r.scene.deformation
+        self.poses = 0 if deformation is None else deformation.frame_count
+        self.pose = None if deformation is None else (r.pose or {}).get("frame", 0)
+        self.playing = False
+
+    def step_pose(self, step: int) -> bool:
+        """Move to the next (``step`` 1) or previous (-1) recorded pose; False when the scene has none."""
+        if not self.poses:
+            return False
+        self.pose = (self.pose + step) % self.poses
+        return True
 
     def update_camera(self) -> None:
         cam = self.base_camera.orbit(self.yaw)
@@ -232,6 +246,8 @@ class _View:
             self._given[id(r)] = m
         r.set_backend(self.backend)
         r.set_background(self.background)
+        if self.pose is not None and (r.pose or {}).get("frame") != self.pose:
+            r.set_deformation(frame=self.pose)
 
 
 def run_window(scene, options: ViewerOptions) -> int:
@@ -322,6 +338,10 @@ def run_window(scene, options: ViewerOptions) -> int:
                     elif key in ("e", "E"):
                         exposure *= 1.25 if key == "e" else 0.8
                         redraw = True
+                    elif key == "a":
+                        view.playing = bool(view.poses) and not view.playing
+                    elif key in (",", "."):
+                        camera_moved = view.step_pose(1 if key == "." else -1) or camera_moved
                     elif key == "s" and image is not None:
                         path = Path(f"prt_screenshot_{time.strftime('%Y%m%d_%H%M%S')}.png")
                         iio.imwrite(path, to_srgb8(image, exposure))
@@ -332,6 +352,8 @@ def run_window(scene, options: ViewerOptions) -> int:
                                                 recorded or orbit_path(view.camera, ORBIT_FRAMES))  # fmt: skip
                         what = f"{recorded.frames} recorded views" if recorded else f"orbit of {ORBIT_FRAMES} frames"
                         print(f"camera path: {path} ({what}; render it with prt-runtime --camera-path {path} --headless)")
+            if view.playing:  # one recorded pose per drawn frame
+                camera_moved = view.step_pose(1)
             if camera_moved:
                 view.update_camera()
                 recorder.add(view.camera)

@@ -42,7 +42,8 @@ from ..runtime.errors import SpecError
 from ..runtime.files import atomic_save_npz, atomic_write_json
 from .build import _env_lights
 from .fit import FitSettings, fit_segment
-from .geometry import Geometry, _orient
+from .geometry import Geometry
+from .deform_sources import orientation
 from .network import Architecture, evaluate_numpy
 from .outdir import check_output_folder, mark_output_folder
 from .rightsize import SCENE_LIGHT, shaded_psnr
@@ -211,7 +212,7 @@ def run_deform_build(source, out_dir, spec: DeformSpec | None = None, *, name: s
     rest = np.asarray(normalised.rest, np.float64)
     frames = np.asarray(normalised.frames, np.float64)
     faces = np.asarray(normalised.faces, np.int64)
-    faces, two_sided = _orient(rest, faces)
+    faces, two_sided = orientation(rest, faces)
     roles = split_frames(len(frames), spec.holdout_every, spec.extrapolate)
     code = shape_code(rest, frames, roles["train"], spec.code_dim)
     theta = code["theta"]

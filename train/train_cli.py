@@ -104,6 +104,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also bake a SIZE x SIZE transfer texture (texture-space PRT, the runtime's texture backend) into the scene")
     p.add_argument("--texture-layout", choices=("shared", "per_object"), default="shared",
                    help="with --transfer-texture: one atlas for the scene, or one per object (texture sets)")
+    p.add_argument("--deform", default=None, metavar="SPEC",
+                   help="a deformable object (INPUT: a folder of frames, a .glb/.gltf, a mesh, or 'sheet' for fold): 'sequence', "
+                        "'gltf[:animation=walk,frames=24,start=S,end=E]', 'bend:angle=0..90,frames=16[,axis=x]', 'twist:angle=0..180', "
+                        "'fold:angle=0..175[,radius=0.08]'; --samples then counts per training frame")
+    p.add_argument("--code-dim", type=int, default=0, help="with --deform: shape-code dimensions [0: the fewest PCA components keeping 99.9%% of the offsets' variance, at most 8]")
+    p.add_argument("--holdout-every", type=int, default=4, help="with --deform: every N-th frame is held out as an unseen pose between training poses")
+    p.add_argument("--extrapolate", type=int, default=1, help="with --deform: the last N frames are held out as poses outside the training range")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     return p
 
@@ -203,6 +210,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.threads is not None and args.threads < 1:
             raise InputError(f"--threads: expected a positive integer, got {args.threads}")
+        if args.deform is not None:
+            return _deform_main(args)
         spec = _spec_from_args(args)
         check_output_folder(args.out, "scene", force=args.force)
         if args.neural_sdf:
@@ -221,6 +230,30 @@ def main(argv: list[str] | None = None) -> int:
         print(f"prt-train: interrupted; finished work is kept in {args.out}, rerun the same command to resume", file=sys.stderr)
         return 130
     print_report(report, args.out)
+    return 0
+
+
+def _deform_main(args) -> int:
+    """``--deform``: a deformable object (:mod:`prt.train.deform_build`)."""
+    from .deform_build import DeformSpec, run_deform_build
+    from .deform_sources import parse_deform
+
+    fields = {"samples": args.samples, "validation": args.validation, "rays": args.rays, "segments": args.segments, "steps": args.steps,
+              "seed": args.seed, "hidden": args.hidden, "layers": args.layers, "pos_freqs": args.pos_freqs}  # fmt: skip
+    spec = DeformSpec(**{k: v for k, v in fields.items() if v is not None}, code_dim=args.code_dim, holdout_every=args.holdout_every,
+                      extrapolate=args.extrapolate)  # fmt: skip
+    check_output_folder(args.out, "scene", force=args.force)
+    source = parse_deform(args.deform, args.input)
+    report = run_deform_build(source, args.out, spec, name=args.name, threads=args.threads, progress=not args.no_progress, force=args.force)
+    means = report["frame_errors"]["mean"]
+    print()
+    for role, psnr in means.items():
+        print(f"{role:>13}: held-out sample PSNR " + ", ".join(f"{k} {v:.1f} dB" for k, v in psnr.items()))
+    m = report["memory"]
+    print(f"weights: {m['weight_bytes']:,} bytes for {m['frames']} frames ({report['code']['dim']}-dimensional shape code)")
+    t = report["timings"]
+    print(f"time: precompute {t['precompute_s']:.1f} s, train {t['train_s']:.1f} s, export {t['export_s']:.1f} s")
+    print(f"wrote {args.out}/scene.json")
     return 0
 
 
