@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import trimesh
+from tqdm import tqdm
 
 from ..export.scene import TrainedSegment, export_scene
 from ..runtime.deformation import MAX_CODE_DIM
@@ -252,10 +253,20 @@ def run_deform_build(source, out_dir, spec: DeformSpec | None = None, *, name: s
         record_path, weights_path = out / "train" / f"seg{s:03d}.json", out / "train" / f"seg{s:03d}.npz"
         record = _cached(record_path, weights_path, key)
         if record is None:
+            bar = tqdm(total=spec.steps, desc=f"fit segment {s}/{seg.count}", unit="step", leave=False) if progress else None
+
+            def advance(step, total, train_l1, val_mae, bar=bar):
+                if bar is not None:
+                    bar.total = total
+                    bar.update(step - bar.n)
+                    bar.set_postfix(val_mae=f"{val_mae:.5f}")
+
             result = fit_segment(train["rest"][members], train["normals"][members], train["transfer"][members],
                                  vsrc["rest"][v_idx], vsrc["normals"][v_idx], vsrc["transfer"][v_idx], arch, seg.bounds[s], settings,
                                  lights=lights, codes=train["theta"][members], val_codes=vsrc["theta"][v_idx],
-                                 progress=None)  # fmt: skip
+                                 progress=advance)  # fmt: skip
+            if bar is not None:
+                bar.close()
             arrays = result.model.arrays()
             record = {"key": key, "id": s, "samples": int(len(members)), "val_mae": result.val_mae, "shaded": result.shaded,
                       "arch": {**arch.as_dict(), "bands": spec.bands}, "arch_label": arch.label(), "seconds": result.seconds,
