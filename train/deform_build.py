@@ -75,7 +75,7 @@ class DeformSpec:
     code_freqs: int = 2
     steps: int = 3000
     holdout_every: int = 4
-    extrapolate: int = 1
+    extrapolate: int = 1  # the most extreme poses (farthest from the mean pose) held out
     seed: int = 0
     chunk_size: int = 4096
     material: dict = field(default_factory=lambda: {"type": "diffuse", "albedo": [0.8, 0.8, 0.8]})
@@ -93,13 +93,18 @@ class DeformSpec:
                 raise SpecError(f"deform {name}: expected an integer in {low}..{high}, got {value!r}")
 
 
-def split_frames(count: int, holdout_every: int, extrapolate: int) -> dict[str, list[int]]:
-    """Frame indices (in the source's order) by role: ``train``, ``unseen`` (between training
-    poses: every ``holdout_every``-th from the middle of the first period, never the first frame),
-    ``extrapolated`` (the last ``extrapolate`` frames).  SpecError when fewer than 2 would train."""
-    last = list(range(max(count - extrapolate, 0), count))
-    inner = range(count - len(last))
-    unseen = [i for i in inner if holdout_every > 1 and i > 0 and i % holdout_every == holdout_every // 2] if count - len(last) > 2 else []
+def split_frames(count: int, holdout_every: int, extrapolate: int, extremeness: np.ndarray | None = None) -> dict[str, list[int]]:
+    """Frame indices by role: ``extrapolated`` (the ``extrapolate`` most extreme poses: the largest
+    ``extremeness``, e.g. the distance of a pose's offsets from the mean pose; without it the last
+    frames), ``unseen`` (between training poses: every ``holdout_every``-th of the others from the
+    middle of the first period, never the first frame) and ``train`` (the rest).  SpecError when
+    fewer than 2 would train."""
+    if extremeness is None:
+        last = list(range(max(count - extrapolate, 0), count))
+    else:
+        last = sorted(np.argsort(-np.asarray(extremeness, np.float64), kind="stable")[:extrapolate].tolist())
+    inner = [i for i in range(count) if i not in last]
+    unseen = [i for k, i in enumerate(inner) if holdout_every > 1 and k > 0 and k % holdout_every == holdout_every // 2] if len(inner) > 2 else []
     train = [i for i in inner if i not in unseen]
     if len(train) < 2:
         raise SpecError(f"deform: {count} frames leave {len(train)} to train on (holdout every {holdout_every}, {extrapolate} extrapolated); "
@@ -214,7 +219,8 @@ def run_deform_build(source, out_dir, spec: DeformSpec | None = None, *, name: s
     frames = np.asarray(normalised.frames, np.float64)
     faces = np.asarray(normalised.faces, np.int64)
     faces, two_sided = orientation(rest, faces)
-    roles = split_frames(len(frames), spec.holdout_every, spec.extrapolate)
+    offsets = (frames - rest[None]).reshape(len(frames), -1)
+    roles = split_frames(len(frames), spec.holdout_every, spec.extrapolate, np.linalg.norm(offsets - offsets.mean(axis=0), axis=1))
     code = shape_code(rest, frames, roles["train"], spec.code_dim)
     theta = code["theta"]
     name = name or Path(str(source.description.get("path", "deformable"))).stem or "deformable"

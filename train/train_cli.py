@@ -110,7 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "'fold:angle=0..175[,radius=0.08]'; --samples then counts per training frame")
     p.add_argument("--code-dim", type=int, default=0, help="with --deform: shape-code dimensions [0: the fewest PCA components keeping 99.9%% of the offsets' variance, at most 8]")
     p.add_argument("--holdout-every", type=int, default=4, help="with --deform: every N-th frame is held out as an unseen pose between training poses")
-    p.add_argument("--extrapolate", type=int, default=1, help="with --deform: the last N frames are held out as poses outside the training range")
+    p.add_argument("--extrapolate", type=int, default=1, help="with --deform: the N most extreme poses (farthest from the mean pose) are held out, outside the training range")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     return p
 
