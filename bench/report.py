@@ -30,8 +30,10 @@ JSON report (``--json``)
     the largest network segment of the first view, one thread: ``segment``, ``rows``,
     ``run_us``, ``op_us`` per op type, ``gemm_share``: the share of the run in the MLP's
     Gemms; the rest is the encoding and element-wise ops); ``vertex_baseline`` (``vertices``, ``back_vertices``,
-    ``weight_bytes``, ``coverage_agreement`` or ``note`` when skipped), ``texture_baseline``
-    (``sizes``: per ``--texture-size``, the bake's texel counts, ``bytes``, ``precompute_s``,
+    ``weight_bytes``, ``coverage_agreement``, and for a scene built with ``--bounces N``
+    ``bounces``: the interreflected vertex transfer's ``bounces``, ``rays``, ``estimator``,
+    ``weight_bytes``, ``seconds``; or ``note`` when skipped), ``texture_baseline``
+    (``bounces`` its textures carry, the scene's N or 0; ``sizes``: per ``--texture-size``, the bake's texel counts, ``bytes``, ``precompute_s``,
     ``timings_s``, UV source and note, float16-vs-float32 error, ``cached``; or ``note``), ``error_images``
     (the ``--images`` figures of this scene, one per size: view 0's reference and each
     configuration's error map; empty without ``--images``), ``measured`` (ISO time
@@ -41,24 +43,29 @@ JSON report (``--json``)
 
     ``records``: one per configuration, with ``scene``, ``backend`` (onnx, glsl, vertex, texture;
     texture records add ``texture_size`` and ``precompute_s``, and their ``network_ms`` is the fetch pass),
+    ``transfer`` (what the transfer carries: ``direct``, or ``N bounces`` of interreflection, ``1 bounce``
+    for one; the scene's for networks, texture and reference; a scene with bounces has vertex records of
+    both: direct-only and with the same N bounces, :mod:`prt.bench.vertex_prt`),
     ``precision`` (fp32, fp16, fp16-mlp, int8), ``material``, ``resolution`` (``"WxH"``),
     ``width``, ``height``, ``views``, ``fps`` (1000 / median frame ms), ``frame_ms``,
     ``stages_ms`` (median per stage), ``network_ms`` (inference / network stage; 0 for
     vertex), ``mae``, ``psnr``, ``ssim``, ``psnr_whole``, ``weight_bytes`` (ONNX initialiser
-    bytes of the models run; the fp32 models' for glsl; 16 float32 per vertex for vertex; the
+    bytes of the models run; the fp32 models' for glsl; 16 float32 per vertex for vertex, 64 with bounces; the
     float16 texture plus its per-corner UVs for texture),
     ``flops_per_fragment`` (manifest FLOPs, weighted by the covered pixels of each segment;
     the manifest counts a multiply-add as 2 and each sin, cos or tanh as about 20),
     ``covered_pixels`` (median), ``achieved_gflops`` (FLOPs of the covered pixels / network
     seconds, median over views), ``machine_gflops``, ``machine_percent``,
     ``transfer_max_abs_diff`` (transfer against the fp32 ONNX path at view 0, covered pixels),
-    ``ref_rays``, ``ref_noise_psnr``, ``label``, ``pareto`` (on the FPS-PSNR Pareto front of
+    ``ref_rays``, ``ref_noise_psnr``, ``label`` (vertex and texture records name a transfer other than
+    direct: ``vertex 2 bounces diffuse``), ``pareto`` (on the FPS-PSNR Pareto front of
     its scene, resolution and material).
 
     ``pareto``: {``"scene WxH material"``: [labels on the front, by increasing FPS]}: only
     configurations with the same reference image compete.
 
-Markdown (``--md``): the records as a table, then packing, reference noise and machine lines.
+Markdown (``--md``): the records as a table (with a ``transfer`` column), then packing, reference
+noise and machine lines.
 Plot (``--plot``): FPS (log) against PSNR, one panel per scene and resolution, one labelled
 point per configuration, the Pareto front of each material ringed and connected.
 """
@@ -79,10 +86,12 @@ from prt.runtime.files import atomic_write_bytes
 from prt.runtime.manifest import load_manifest
 
 __all__ = [
-    "REPORT_KEYS", "MACHINE_KEYS", "SCENE_KEYS", "PACKING_KEYS", "RECORD_KEYS", "ERROR_MAP_MAX",
-    "markdown", "plot", "error_figure", "scene_checkpoint", "save_figure",
+    "REPORT_KEYS", "MACHINE_KEYS", "SCENE_KEYS", "PACKING_KEYS", "RECORD_KEYS", "RECORD_FORMAT", "ERROR_MAP_MAX",
+    "markdown", "plot", "error_figure", "scene_checkpoint", "save_figure", "transfer_label",
 ]  # fmt: skip
 
+# Raised when records change (2: ``transfer``, the vertex baseline with bounces): older checkpoints are measured again.
+RECORD_FORMAT = 2
 # The report's keys (documented in the module docstring; the tests hold the output to them).
 REPORT_KEYS = ("tool", "created", "settings", "machine", "scenes", "records", "pareto", "failed")
 MACHINE_KEYS = ("cpu", "cores", "gl_renderer", "onnxruntime", "numpy", "gemm_size", "gemm_numpy_gflops",
@@ -95,7 +104,7 @@ PACKING_KEYS = (
     "packing_views", "network_profile",
 )  # fmt: skip
 RECORD_KEYS = (
-    "scene", "backend", "precision", "material", "resolution", "width", "height", "views", "fps", "frame_ms",
+    "scene", "backend", "transfer", "precision", "material", "resolution", "width", "height", "views", "fps", "frame_ms",
     "stages_ms", "network_ms", "mae", "psnr", "ssim", "psnr_whole", "weight_bytes", "flops_per_fragment",
     "covered_pixels", "achieved_gflops", "machine_gflops", "machine_percent", "transfer_max_abs_diff", "ref_rays",
     "ref_noise_psnr", "label", "pareto",
@@ -124,13 +133,19 @@ def _backend_cell(record: dict) -> str:
     return record["backend"]
 
 
+def transfer_label(bounces: int) -> str:
+    """What a record's transfer carries (its ``transfer``): ``"direct"``, ``"1 bounce"`` or ``"N bounces"``."""
+    bounces = int(bounces)
+    return "direct" if bounces <= 0 else f"{bounces} bounce{'s' if bounces > 1 else ''}"
+
+
 def _texture_lines(scene: dict) -> list[str]:
     """The texture baseline's bake per size: texels, bytes, precompute time, UVs, float16 error."""
     tb = scene.get("texture_baseline") or {}
     if "note" in tb:
         return [f"- texture baseline: {tb['note']}"]
     return [
-        f"- texture baseline {size}x{size}: {t['atlases']} atlas(es), {t['texels_covered']:,} texels covered "
+        f"- texture baseline {size}x{size} ({transfer_label(tb.get('bounces', 0))}): {t['atlases']} atlas(es), {t['texels_covered']:,} texels covered "
         f"({t['texel_utilisation']:.0%}), {t['rays']} rays, {t['bytes']:,} bytes (float16 + corner UVs), precompute "
         f"{t['precompute_s']:.1f} s (atlas {t['timings_s']['atlas_s']:.1f} s){' (cached)' if t['cached'] else ''}; "
         f"float16 vs float32: max |error| {t['float16_max_abs_error']:.2g}, RMS {t['float16_rms_error_relative']:.2g} of the RMS transfer; "
@@ -143,16 +158,16 @@ def markdown(report: dict) -> str:
     """The report as Markdown: the configurations' table, then packing, reference and machine lines."""
     machine = report["machine"]
     lines = [
-        "| scene | size | backend | precision | material | FPS | frame ms | network ms | PSNR (covered) | PSNR (whole) "
-        "| SSIM | MAE | weights (bytes) | network GFLOP/s (% of GEMM) | Pareto |",
-        "|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|:-:|",
+        "| scene | size | backend | transfer | precision | material | FPS | frame ms | network ms | PSNR (covered) "
+        "| PSNR (whole) | SSIM | MAE | weights (bytes) | network GFLOP/s (% of GEMM) | Pareto |",
+        "|---|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|:-:|",
     ]
     settings_views = report["settings"]["views"]
     for r in report["records"]:
         gflops = f"{r['achieved_gflops']:.1f} ({r['machine_percent']:.1f} %)" if r["achieved_gflops"] else "-"
         fps = f"{r['fps']:.1f}" + (f" ({r['views']} views)" if r["views"] != settings_views else "")
         lines.append(
-            f"| {r['scene']} | {r['resolution']} | {_backend_cell(r)} | {r['precision']} | {r['material']} | {fps} "
+            f"| {r['scene']} | {r['resolution']} | {_backend_cell(r)} | {r.get('transfer', '?')} | {r['precision']} | {r['material']} | {fps} "
             f"| {r['frame_ms']:.1f} | {r['network_ms']:.1f} | {r['psnr']:.2f} | {r['psnr_whole']:.2f} | {r['ssim']:.4f} "
             f"| {r['mae']:.4f} | {r['weight_bytes']:,} | {gflops} | {'*' if r.get('pareto') else ''} |"
         )
@@ -184,6 +199,10 @@ def markdown(report: dict) -> str:
         elif vb:
             lines.append(f"- vertex baseline: {vb['vertices']:,} vertices (+{vb['back_vertices']:,} back sides) x 16 float32 = "
                          f"{vb['weight_bytes']:,} bytes vs {s['weight_bytes']:,} bytes of network weights (fp32 ONNX initialisers)")  # fmt: skip
+            if "bounces" in vb:
+                b = vb["bounces"]
+                lines.append(f"- vertex baseline with {transfer_label(b['bounces'])}: x 64 float32 (direct + indirect RGB) = {b['weight_bytes']:,} "
+                             f"bytes; {b['rays']} bounce rays per vertex sample; estimator: {b['estimator']}")  # fmt: skip
     gemm = f"numpy {machine['gemm_numpy_gflops']:.1f}, onnxruntime {machine['gemm_onnxruntime_gflops']:.1f}" if "gemm_numpy_gflops" in machine else "numpy"
     if machine.get("resumed"):
         times = sorted(r["measured"] for r in machine["resumed"])
@@ -356,6 +375,7 @@ def scene_checkpoint(scene_path, settings) -> Path:
     if "texture" in settings.backends:  # (likewise)
         options["texture_sizes"] = list(settings.texture_sizes)
     options["prt"] = _prt_version()  # a new release measures again
+    options["records"] = RECORD_FORMAT  # so does a new record format
     digest.update(json.dumps(options, sort_keys=True, default=list).encode())
     return settings.cache / "results" / f"{manifest.name}-{digest.hexdigest()[:16]}.json"
 

@@ -8,7 +8,11 @@ precision, :mod:`prt.export.precision`; backend ``glsl``; the vertex-space basel
 renders all views after ``--warmup`` frames (or, under ``--config-budget``, as many views as
 the budget allows at the warm-up's frame time, at least 4, spread over the orbit; the record's
 ``views`` says how many), and is compared (:mod:`prt.bench.metrics`) with a ray-traced
-reference of the same G-buffer (:mod:`prt.bench.reference`).  Each size also measures the
+reference of the same G-buffer (:mod:`prt.bench.reference`).  Every record says which transfer it
+renders (``transfer``, :func:`prt.bench.report.transfer_label`): a scene built with ``--bounces N`` has networks,
+texture baseline and reference with N bounces, and its vertex baseline is measured twice, direct
+only and with the same N bounces (:func:`prt.bench.vertex_prt.vertex_bounce_transfer`, the build's
+bounce estimator on the vertices).  Each size also measures the
 naive-vs-packed baseline (:mod:`prt.bench.packing`); the report's format is in
 :mod:`prt.bench.report`.
 """
@@ -34,9 +38,9 @@ from prt.bench.metrics import image_metrics, mark_pareto
 from prt.bench.packing import packing_baseline
 from prt.bench.bounce_reference import cached_indirect, direct_rgb, face_albedo, higher_bounce_samples
 from prt.bench.reference import View, cached_transfer, convergence, load_scene_geometry, noise_psnr, rays_for_margin, reference_images
-from prt.bench.report import error_figure, scene_checkpoint
+from prt.bench.report import error_figure, scene_checkpoint, transfer_label
 from prt.bench.texture_prt import texture_variants
-from prt.bench.vertex_prt import VertexPRT, vertex_transfer
+from prt.bench.vertex_prt import VertexPRT, vertex_bounce_transfer, vertex_transfer
 from prt.export.precision import PRECISIONS, model_weight_bytes, variant_manifest
 from prt.runtime.backends.onnx import OnnxTransfer
 from prt.runtime.camera import Camera, orbit_views
@@ -46,7 +50,7 @@ from prt.runtime.files import atomic_write_json
 from prt.runtime.gbuffer import load_mesh
 from prt.runtime.gl import bind_framebuffer, create_context
 from prt.runtime.renderer import Renderer, Scene
-from prt.runtime.shading import Material, shade, tonemap
+from prt.runtime.shading import Material, diffuse_light_matrix, shade, tonemap
 from prt.train.transfer import make_tracer
 
 __all__ = ["MATERIALS", "GLOSSY", "Settings", "SceneBench", "budget_views", "spread", "check_scene", "run"]
@@ -169,9 +173,9 @@ def _measure_vertex(vertex, gbuffer_pass, views, material_name, material, lighti
         transfer, _ = vertex.render(camera)
         t2 = time.perf_counter()
         covered = np.flatnonzero(packed[:, 3] > 0.5)
-        rows, t = packed[covered], transfer.reshape(-1, 16)[covered]
-        if material.kind == "diffuse":  # the renderer's own float32 fast path
-            radiance = np.maximum(t @ (lighting.sh * np.asarray(material.albedo)).astype(np.float32), 0.0)
+        rows, t = packed[covered], transfer.reshape(len(packed), -1)[covered]
+        if material.kind == "diffuse":  # the renderer's own float32 fast path (direct or "direct+rgb")
+            radiance = np.maximum(t @ diffuse_light_matrix(lighting, material.albedo, t.shape[1]), 0.0)
         else:
             radiance = shade(t, rows[:, 4:7], camera.eye[None, :] - rows[:, 0:3], lighting, material)
         image = np.zeros((len(packed), 3), dtype=np.float32)
@@ -247,6 +251,7 @@ class SceneBench:
             "packing": [], "vertex_baseline": vertex_info, "texture_baseline": texture_info, "error_images": [],
         }  # fmt: skip
         self._interreflection()
+        self.vertex_bounced = self._vertex_bounces()
         self.records: list[dict] = []
         self.images: dict = defaultdict(list)  # (resolution, material) -> [(label, view 0 image, its PSNR)]
 
@@ -308,6 +313,27 @@ class SceneBench:
         info = {"vertices": n_vertices, "back_vertices": back_vertices,
                 "weight_bytes": 16 * 4 * (n_vertices + back_vertices), "rays": self.settings.ref_rays}  # fmt: skip
         return (front, back), info
+
+    def _vertex_bounces(self):
+        """The vertex baseline with the scene's N bounces ("direct+rgb"; None without bounces or vertex baseline).
+
+        Adds ``bounces`` to the ``vertex_baseline`` entry: ``bounces``, ``rays`` (bounce rays per
+        vertex sample: ``--ref-rays``, as its direct transfer), ``estimator``, ``weight_bytes``
+        (64 float32 per vertex and side), ``seconds`` (0 when cached).
+        """
+        if self.vertex_data is None or self.bounces <= 0:
+            return None
+        rays, info = self.settings.ref_rays, self.entry["vertex_baseline"]
+        front, back, seconds = vertex_bounce_transfer(self.geometry, *self.vertex_data, self.bounce_albedo, self.bounces, rays=rays,
+                                                      seed=self.settings.seed, cache=self.transfer_cache, geometry_id=self.geometry_id)  # fmt: skip
+        info["bounces"] = {
+            "bounces": self.bounces, "rays": rays, "weight_bytes": 4 * front.shape[1] * (info["vertices"] + info["back_vertices"]),
+            "estimator": "the build's bounce stage on the vertex samples: nearest vertex sample at each hit, sparse products",
+            "seconds": round(seconds, 3),
+        }  # fmt: skip
+        self.log(f"  vertex baseline, {transfer_label(self.bounces)}: {rays} bounce rays per vertex sample"
+                 f"{f' ({seconds:.1f} s)' if seconds else ' (cached)'}")  # fmt: skip
+        return front, back
 
     def _references(self, renderer, size: int) -> list:
         """The views at ``size``: G-buffers, reference images (cached transfer) and the reference's noise.
@@ -390,9 +416,12 @@ class SceneBench:
             "machine_gflops": round(self.machine_gflops, 2), "ref_rays": self.entry["reference"]["rays_by_size"][f"{size}x{size}"],
         }  # fmt: skip
 
-    def _add(self, common: dict, backend: str, precision: str, material: str, summary: dict, weight_bytes: int) -> None:
+    def _add(self, common: dict, backend: str, precision: str, material: str, summary: dict, weight_bytes: int,
+             transfer: str | None = None) -> None:
+        """One record; ``transfer`` defaults to the scene's (:func:`transfer_label` of its bounces)."""
         noise = self.entry["reference"]["noise_psnr"][common["resolution"]][material]
         image0 = summary.pop("_image0", None)
+        summary = {**summary, "transfer": transfer or transfer_label(self.bounces)}
         record = _record(common, backend, precision, material, summary, weight_bytes, noise, self.log)
         self.records.append(record)
         if image0 is not None:
@@ -433,20 +462,25 @@ class SceneBench:
         resolution = f"{size}x{size}"
         info = self.entry["vertex_baseline"]
         common = {**self._common(size, views), "flops_per_fragment": 0.0}
-        vertex = VertexPRT(self.ctx, self.geometry, *self.vertex_data, size, size)
-        try:
-            agreement = []
-            for view in views:
-                drawn = vertex.render(view.camera)[1]
-                covered = view.gbuffer.covered
-                agreement.append(np.logical_and(drawn, covered).sum() / max(covered.sum(), 1))
-            info.setdefault("coverage_agreement", {})[resolution] = round(float(np.min(agreement)), 5)
-            for name, material in self.materials.items():
-                summary = _measure_vertex(vertex, gbuffer_pass, views, name, material, lighting, self.settings)
-                summary.update(achieved_gflops=0.0, transfer_max_abs_diff=None)
-                self._add(common, "vertex", "fp32", name, summary, info["weight_bytes"])
-        finally:
-            vertex.release()
+        variants = [("direct", self.vertex_data, info["weight_bytes"])]
+        if self.vertex_bounced is not None:  # beside the direct rows: the same N bounces as the networks
+            variants.append((transfer_label(self.bounces), self.vertex_bounced, info["bounces"]["weight_bytes"]))
+        for transfer, data, weight_bytes in variants:
+            vertex = VertexPRT(self.ctx, self.geometry, *data, size, size)
+            try:
+                if transfer == "direct":
+                    agreement = []
+                    for view in views:
+                        drawn = vertex.render(view.camera)[1]
+                        covered = view.gbuffer.covered
+                        agreement.append(np.logical_and(drawn, covered).sum() / max(covered.sum(), 1))
+                    info.setdefault("coverage_agreement", {})[resolution] = round(float(np.min(agreement)), 5)
+                for name, material in self.materials.items():
+                    summary = _measure_vertex(vertex, gbuffer_pass, views, name, material, lighting, self.settings)
+                    summary.update(achieved_gflops=0.0, transfer_max_abs_diff=None)
+                    self._add(common, "vertex", "fp32", name, summary, weight_bytes, transfer)
+            finally:
+                vertex.release()
 
 
 def _record(common, backend, precision, material, summary, weight_bytes, noise_psnr, log) -> dict:
@@ -460,9 +494,11 @@ def _record(common, backend, precision, material, summary, weight_bytes, noise_p
     gflops = record.get("achieved_gflops", 0.0)
     record["machine_percent"] = round(100.0 * gflops / record["machine_gflops"], 3) if record["machine_gflops"] else None
     record["ref_noise_psnr"] = noise_psnr
-    record["label"] = f"{backend} {precision} {material}" if backend == "onnx" else f"{backend} {material}"
+    # Baselines name their transfer when it is not direct: a scene's vertex rows come both ways.
+    carries = "" if backend not in ("vertex", "texture") or record["transfer"] == "direct" else f" {record['transfer']}"
+    record["label"] = f"{backend} {precision} {material}" if backend == "onnx" else f"{backend}{carries} {material}"
     if "texture_size" in record:
-        record["label"] = f"{backend} {record['texture_size']} {material}"
+        record["label"] = f"{backend} {record['texture_size']}{carries} {material}"
     record.setdefault("transfer_max_abs_diff", None)
     log(
         f"  {record['scene']} {record['resolution']} {record['label']}: {record['fps']:.1f} FPS "

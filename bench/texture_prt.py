@@ -12,7 +12,10 @@ A scene built with ``--bounces N`` gets interreflection textures ("direct+rgb", 
 texel; :func:`prt.train.transfer_texture.scene_bounces`): their texels' bounce rays gather the
 build's own precompute samples, as the networks' training data did, so the texture and the
 networks are compared against the same bounce-aware reference.  Cached as
-``transfer_texture-<size>-r<rays>-b<N>.npz``.
+``transfer_texture-<size>-r<rays>-b<N>.npz``.  The records of those textures say so: their
+``transfer`` is the scene's ``N bounces`` and their label names it (``texture 1024 2 bounces
+diffuse``, :mod:`prt.bench.scene_bench`); the ``texture_baseline`` entry's ``bounces`` is N (0
+for direct-only textures).
 """
 
 from __future__ import annotations
@@ -36,8 +39,8 @@ def texture_variants(manifest, geometry, tracer, sizes, rays: int, cache: Path, 
     variants : dict of int to Manifest
         Texture size -> a copy of ``manifest`` with its ``transfer_texture``.
     info : dict
-        ``texture_baseline`` entry: per size, the bake's stats and timings (``precompute_s``,
-        ``cached``), or a ``note`` when skipped.
+        ``texture_baseline`` entry: ``bounces`` baked in (the scene's N, 0 without), and per size
+        the bake's stats and timings (``precompute_s``, ``cached``); or a ``note`` when skipped.
     """
     if geometry.sdf is not None:
         return {}, {"note": "skipped: SDF scene (no UV atlas)"}
@@ -45,9 +48,9 @@ def texture_variants(manifest, geometry, tracer, sizes, rays: int, cache: Path, 
     build = manifest.root / "build.json"
     if build.is_file():
         source = json.loads(build.read_text()).get("source")
-    variants, info = {}, {"sizes": {}}
     folder = Path(cache) / manifest.name
     record = getattr(manifest, "interreflection", None)
+    variants, info = {}, {"bounces": 0 if record is None else int(record.bounces), "sizes": {}}
     bounces, suffix = None, f"-b{record.bounces}" if record is not None else ""
     for size in sizes:
         path = folder / f"transfer_texture-{size}-r{rays}{suffix}.npz"

@@ -1,24 +1,47 @@
-"""The vertex-space baseline: Sloan-style per-vertex transfer (Sloan et al. 2002).
+"""The vertex-space baseline: Sloan-style per-vertex transfer (Sloan et al. 2002), direct or interreflected.
 
 Transfer ray traced at the mesh vertices (area-weighted vertex normals,
 :func:`prt.runtime.normals.vertex_normals`; open surfaces get a second set for their back
-side), interpolated by the rasteriser (4 RGBA32F targets, ``shaders/vertex_prt.vert|frag``),
-shaded like the rest; mesh scenes only.
+side), interpolated by the rasteriser (4 RGBA32F targets per pass of 16 values,
+``shaders/vertex_prt.vert|frag``), shaded like the rest; mesh scenes only.
+
+Interreflected transfer (scenes built with ``--bounces N``, Sloan et al. 2002 section 6) uses
+the build's bounce-stage estimator (:mod:`prt.train.interreflection`) with the vertices as its
+samples, so the baseline carries no information beyond its own vertices: the sample set is the
+front of every used vertex plus the back of the vertices of open faces (reversed normal); each
+shoots cosine rays (:func:`prt.train.interreflection.trace_bounce_rays`), every hit takes the
+previous bounce of the vertex sample nearest to it in (position, normal), tangent-plane aware
+(:func:`prt.train.interreflection.nearest_on_plane`), and the bounces are the sparse products of
+:func:`prt.train.interreflection.interreflect`: ``T_b = W @ T_{b-1}`` over the vertex samples,
+starting from their ray-traced direct transfer.  (Not the benchmark reference's estimator,
+:mod:`prt.bench.bounce_reference`, which traces the direct transfer afresh at every hit and
+reads higher bounces from independent samples.)  The result has the networks' "direct+rgb"
+layout (direct, indirect R, G, B: 64 values per vertex and side), drawn in 4 raster passes.
 """
 
 from __future__ import annotations
 
+import hashlib
 import time
 from pathlib import Path
 
 import moderngl
 import numpy as np
 
+from prt.bench.bounce_reference import direct_rgb
 from prt.bench.reference import cached_transfer
+from prt.runtime.files import atomic_save_npz
+from prt.runtime.gl import bind_framebuffer
 from prt.runtime.normals import vertex_normals
 from prt.shaders import assemble
+from prt.train.interreflection import interreflect, trace_bounce_rays
 
-__all__ = ["VertexPRT", "vertex_transfer"]
+__all__ = ["VertexPRT", "vertex_transfer", "vertex_samples", "vertex_indirect", "cached_vertex_indirect", "vertex_bounce_transfer",
+           "ESTIMATOR_VERSION"]
+
+# Part of the cache key of the interreflected vertex transfer: raise it when the estimator changes.
+ESTIMATOR_VERSION = "vertex-bounces-v1"
+_PASS = 16  # transfer values one raster pass writes (4 RGBA32F targets)
 
 
 class VertexPRT:
@@ -29,37 +52,44 @@ class VertexPRT:
     ctx : moderngl.Context
     geometry : prt.train.geometry.Geometry
         A mesh scene (not an SDF).
-    front, back : (V, 16) float32
+    front, back : (V, n) float32
         Transfer at each vertex for its normal and for the reversed normal (used by open
-        surfaces seen from behind).
+        surfaces seen from behind); ``n`` = 16 (direct) or 64 ("direct+rgb"), one raster pass
+        per 16 values.
     width, height : int
 
     Attributes
     ----------
     timings : dict
-        ``raster`` and ``readback`` milliseconds of the last :meth:`render`.
+        ``raster`` and ``readback`` milliseconds of the last :meth:`render` (all passes).
     """
 
     def __init__(self, ctx, geometry, front, back, width: int, height: int):
         self.ctx, self.width, self.height = ctx, int(width), int(height)
+        front, back = np.asarray(front, dtype=np.float32), np.asarray(back, dtype=np.float32)
+        if front.shape != back.shape or front.ndim != 2 or front.shape[1] % _PASS:
+            raise ValueError(f"VertexPRT: front and back must both be (V, 16 k), got {front.shape} and {back.shape}")
         faces = np.asarray(geometry.mesh.faces, dtype=np.int64)
-        record = np.dtype([("p", "<f4", 3), ("f", "<f4", 16), ("b", "<f4", 16), ("s", "<i4")])
-        corners = np.empty((len(faces), 3), dtype=record)  # unindexed: sidedness is per face
-        corners["p"] = np.asarray(geometry.mesh.vertices, dtype=np.float32)[faces]
-        corners["f"] = front[faces]
-        corners["b"] = back[faces]
-        corners["s"] = np.asarray(geometry.two_sided, dtype=np.int32)[:, None]
+        record = np.dtype([("p", "<f4", 3), ("f", "<f4", _PASS), ("b", "<f4", _PASS), ("s", "<i4")])
+        positions = np.asarray(geometry.mesh.vertices, dtype=np.float32)[faces]
+        two_sided = np.asarray(geometry.two_sided, dtype=np.int32)[:, None]
         self.program = ctx.program(vertex_shader=assemble("vertex_prt.vert"), fragment_shader=assemble("vertex_prt.frag"))
-        self.vbo = ctx.buffer(corners.tobytes())
         names = ["in_position", *(f"in_f{k}" for k in range(4)), *(f"in_b{k}" for k in range(4)), "in_two_sided"]
-        self.vao = ctx.vertex_array(self.program, [(self.vbo, "3f 4f 4f 4f 4f 4f 4f 4f 4f 1i", *names)])
+        self.vbos, self.vaos = [], []
+        for start in range(0, front.shape[1], _PASS):  # one vertex buffer per pass of 16 values
+            corners = np.empty((len(faces), 3), dtype=record)  # unindexed: sidedness is per face
+            corners["p"], corners["s"] = positions, two_sided
+            corners["f"] = front[:, start : start + _PASS][faces]
+            corners["b"] = back[:, start : start + _PASS][faces]
+            self.vbos.append(ctx.buffer(corners.tobytes()))
+            self.vaos.append(ctx.vertex_array(self.program, [(self.vbos[-1], "3f 4f 4f 4f 4f 4f 4f 4f 4f 1i", *names)]))
         self.count = 3 * len(faces)
         self.textures = [ctx.texture((self.width, self.height), 4, dtype="f4") for _ in range(4)]
         for tex in self.textures:
             tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
         self.depth = ctx.depth_texture((self.width, self.height))
         self.fbo = ctx.framebuffer(self.textures, self.depth)
-        self._staging = np.empty((4, self.height, self.width, 4), dtype=np.float32)
+        self._staging = np.empty((len(self.vaos), 4, self.height, self.width, 4), dtype=np.float32)
         self.timings: dict[str, float] = {}
 
     def render(self, camera):
@@ -67,34 +97,110 @@ class VertexPRT:
 
         Returns
         -------
-        transfer : (H, W, 16) float32, row 0 at the top
+        transfer : (H, W, n) float32, row 0 at the top
         drawn : (H, W) bool, pixels a triangle covers
         """
-        t0 = time.perf_counter()
+        raster = readback = 0.0
         self.program["u_view_projection"].write(camera.view_projection(self.width / self.height).T.astype(np.float32).tobytes())
-        self.fbo.use()  # every pass of the renderer binds its own target, so none is restored
-        self.ctx.disable(moderngl.BLEND | moderngl.CULL_FACE)
-        self.ctx.enable(moderngl.DEPTH_TEST)
-        self.fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
-        self.vao.render(moderngl.TRIANGLES, vertices=self.count)
-        self.ctx.disable(moderngl.DEPTH_TEST)
-        self.ctx.finish()
-        t1 = time.perf_counter()
-        for k in range(4):
-            self.fbo.read_into(self._staging[k], components=4, attachment=k, dtype="f4")
-        transfer = np.ascontiguousarray(self._staging[:, ::-1].transpose(1, 2, 0, 3).reshape(self.height, self.width, 16))
-        t2 = time.perf_counter()
+        for p, vao in enumerate(self.vaos):
+            t0 = time.perf_counter()
+            self.fbo.use()  # every pass of the renderer binds its own target, so none is restored
+            self.ctx.disable(moderngl.BLEND | moderngl.CULL_FACE)
+            self.ctx.enable(moderngl.DEPTH_TEST)
+            self.fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+            vao.render(moderngl.TRIANGLES, vertices=self.count)
+            self.ctx.disable(moderngl.DEPTH_TEST)
+            self.ctx.finish()
+            t1 = time.perf_counter()
+            for k in range(4):
+                self.fbo.read_into(self._staging[p, k], components=4, attachment=k, dtype="f4")
+            raster, readback = raster + (t1 - t0), readback + (time.perf_counter() - t1)
+        # (pass, target, H, W, 4) -> (H, W, pass * 16): pass-major, as the vertex arrays' columns
+        transfer = np.ascontiguousarray(self._staging[:, :, ::-1].transpose(2, 3, 0, 1, 4).reshape(self.height, self.width, -1))
         depth = np.frombuffer(self.fbo.read(attachment=-1, components=1, dtype="f4"), dtype=np.float32)
-        self.timings = {"raster": 1e3 * (t1 - t0), "readback": 1e3 * (t2 - t1)}
+        self.timings = {"raster": 1e3 * raster, "readback": 1e3 * readback}
         return transfer, depth.reshape(self.height, self.width)[::-1] < 1.0
 
     def release(self) -> None:
-        for obj in (self.vao, self.vbo, self.program, self.fbo, self.depth, *self.textures):
+        """Free the GL objects; the default framebuffer is bound first (moderngl re-binds the bound one
+        when it creates a framebuffer, and a released one there makes that fail)."""
+        bind_framebuffer(self.ctx, None)
+        for obj in (*self.vaos, *self.vbos, self.program, self.fbo, self.depth, *self.textures):
             obj.release()
 
 
+def vertex_samples(geometry) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The vertex PRT's own samples: the front of every used vertex, then the back of the open faces' vertices.
+
+    Returns
+    -------
+    points, normals : (S, 3) float32
+        Position and (front or reversed) area-weighted vertex normal of each sample.
+    front, back : (V,) int64
+        Row of each vertex's front / back sample in ``points``, -1 where it has none (an unused
+        vertex; a back side only where an open face uses the vertex).
+    """
+    vertices = np.asarray(geometry.mesh.vertices, dtype=np.float32)
+    faces = np.asarray(geometry.mesh.faces, dtype=np.int64)
+    normals = vertex_normals(vertices, faces).astype(np.float32)
+    used = np.flatnonzero(np.linalg.norm(normals, axis=1) > 0.0)
+    open_vertices = np.unique(faces[np.asarray(geometry.two_sided, dtype=bool)])
+    front, back = np.full(len(vertices), -1, np.int64), np.full(len(vertices), -1, np.int64)
+    front[used] = np.arange(len(used))
+    back[open_vertices] = len(used) + np.arange(len(open_vertices))
+    points = np.concatenate([vertices[used], vertices[open_vertices]])
+    return points, np.concatenate([normals[used], -normals[open_vertices]]), front, back
+
+
+def vertex_indirect(geometry, points, normals, direct, face_albedo, bounces: int, *, rays: int, seed: int = 0) -> np.ndarray:
+    """Indirect transfer ``T_1 + ... + T_N`` of the vertex samples by the build's bounce estimator (module docstring).
+
+    Parameters
+    ----------
+    geometry : a mesh scene
+    points, normals : (S, 3)
+        The samples (:func:`vertex_samples`); their rays gather each other's previous bounce.
+    direct : (S, n)
+        Their direct transfer.
+    face_albedo : (F, 3)
+    bounces : N >= 0
+    rays : bounce rays per sample
+
+    Returns
+    -------
+    (S, n, 3) float32
+    """
+    direct = np.asarray(direct, dtype=np.float64)
+    if int(bounces) <= 0 or len(points) == 0:
+        return np.zeros(direct.shape + (3,), dtype=np.float32)
+    found = trace_bounce_rays(geometry.mesh, points, normals, rays=int(rays), seed=int(seed))
+    return (interreflect(direct, found, face_albedo, int(bounces)) - direct[:, :, None]).astype(np.float32)
+
+
+def cached_vertex_indirect(cache: Path, geometry, points, normals, direct, face_albedo, bounces: int, *, rays: int, seed: int,
+                           geometry_id: str) -> tuple[np.ndarray, float]:  # fmt: skip
+    """:func:`vertex_indirect`, read from ``cache`` when computed before; (indirect, seconds computed).
+
+    Keyed by the samples, their direct transfer, the albedos, ``bounces``, ``rays``, ``seed``, the
+    geometry and :data:`ESTIMATOR_VERSION`.
+    """
+    digest = hashlib.sha1()
+    for part in (points, normals, direct, face_albedo):
+        digest.update(np.ascontiguousarray(part).tobytes())
+    digest.update(f"|{bounces}|{rays}|{seed}|{geometry_id}|{ESTIMATOR_VERSION}".encode())
+    path = Path(cache) / f"vertices-indirect-b{bounces}-m{rays}-s{seed}-{digest.hexdigest()[:12]}.npz"
+    if path.is_file():
+        with np.load(path) as data:
+            return data["indirect"], 0.0
+    t0 = time.perf_counter()
+    indirect = vertex_indirect(geometry, points, normals, direct, face_albedo, bounces, rays=rays, seed=seed)
+    seconds = time.perf_counter() - t0
+    atomic_save_npz(path, indirect=indirect)
+    return indirect, seconds
+
+
 def vertex_transfer(geometry, tracer, rays: int, cache: Path, geometry_id: str):
-    """Transfer at the mesh vertices: front (area-weighted normal) and back (reversed normal).
+    """Direct transfer at the mesh vertices: front (area-weighted normal) and back (reversed normal).
 
     Returns
     -------
@@ -114,3 +220,29 @@ def vertex_transfer(geometry, tracer, rays: int, cache: Path, geometry_id: str):
             cache, "vertices-back", geometry, tracer, vertices[open_vertices], -normals[open_vertices], rays, 0, geometry_id
         )
     return front, back, int(len(open_vertices))
+
+
+def vertex_bounce_transfer(geometry, front, back, face_albedo, bounces: int, *, rays: int, seed: int, cache: Path,
+                           geometry_id: str) -> tuple[np.ndarray, np.ndarray, float]:  # fmt: skip
+    """The interreflected vertex transfer in the "direct+rgb" layout, from :func:`vertex_transfer`'s direct one.
+
+    Returns
+    -------
+    front, back : (V, 64) float32
+        Direct (16), then indirect R, G, B (16 each); unused vertices get zero indirect, and
+        ``back`` equals ``front`` where no open face uses the vertex.
+    seconds : float
+        Time spent computing (0 when cached).
+    """
+    points, normals, front_row, back_row = vertex_samples(geometry)
+    direct = np.zeros((len(points), front.shape[1]), dtype=np.float32)
+    has_front, has_back = front_row >= 0, back_row >= 0
+    direct[front_row[has_front]] = front[has_front]
+    direct[back_row[has_back]] = back[has_back]
+    indirect, seconds = cached_vertex_indirect(cache, geometry, points, normals, direct, face_albedo, bounces, rays=rays, seed=seed,
+                                               geometry_id=geometry_id)  # fmt: skip
+    front_indirect = np.zeros((len(front),) + indirect.shape[1:], dtype=np.float32)
+    front_indirect[has_front] = indirect[front_row[has_front]]
+    back_indirect = front_indirect.copy()
+    back_indirect[has_back] = indirect[back_row[has_back]]
+    return direct_rgb(front, front_indirect), direct_rgb(back, back_indirect), seconds
