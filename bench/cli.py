@@ -82,7 +82,13 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def main(argv=None) -> int:
-    """``prt-bench``: measure, print the Markdown table, write the reports asked for; the exit status."""
+    """``prt-bench``: measure, print the Markdown table, write the reports asked for; the exit status.
+    ``prt-bench deform SCENE...``: deformable scenes (:mod:`prt.bench.deform_bench`)."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["deform"]:
+        from .deform_bench import main as deform_main
+
+        return deform_main(argv[1:])
     args = parse_args(argv)
     cache = args.cache
     if cache is None and args.json is not None:

@@ -95,7 +95,7 @@ def load_scene_geometry(manifest):
     build = manifest.root / "build.json"
     if build.is_file():
         source = json.loads(build.read_text()).get("source")
-        if source and Path(source).is_file():
+        if isinstance(source, str) and source and Path(source).is_file():  # a deformable build records a dict
             again = load_geometry(source)
             matches = mesh_checksum(again.mesh.vertices, again.mesh.faces) == checksum
     return geometry, {"type": "mesh", "source": str(path), "checksum": checksum, "matches_build_source": matches}

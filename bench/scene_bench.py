@@ -526,6 +526,8 @@ def check_scene(path, settings: Settings) -> Scene:
     """
     scene = Scene.load(path)
     manifest = scene.manifest
+    if scene.deformation is not None:  # its reference is traced per pose, at the posed points
+        raise InputError(f"{manifest.path}: a deformable scene; measure it with prt-bench deform {manifest.path.parent}")
     if manifest.geometry.type == "mesh":
         load_mesh(manifest.geometry.path)
     if "glsl" in settings.backends:

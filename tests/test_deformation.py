@@ -213,3 +213,11 @@ def test_train_refuses_bad_deform_input_with_one_line(tmp_path):
     out = tmp_path / "never"
     code = main([glb, "--deform", "gltf:animation=dance", "-o", str(out), "--no-progress"])
     assert code == 2 and not out.exists()
+
+
+def test_static_bench_sends_deformable_scenes_to_the_deform_bench(bent_scene, tmp_path, capsys):
+    from prt.bench.cli import main
+
+    code = main([str(bent_scene[0]), "--views", "1", "--size", "32", "--json", str(tmp_path / "r.json")])
+    err = capsys.readouterr().err
+    assert code == 2 and "prt-bench deform" in err and not (tmp_path / "r.json").exists()

@@ -58,10 +58,14 @@ TARGET_GLOSSY = 38.0
 
 
 def _pick(records, scene, backend="onnx", precision="fp32", material="diffuse", texture_size=None):
+    """The record of ``scene``'s configuration; a baseline (vertex, texture) with the networks' transfer
+    (the same N bounces: a scene with bounces has direct-only baseline rows too)."""
+    network = next((r for r in records if (r["scene"], r["backend"]) == (scene, "onnx")), None)
+    transfer = None if network is None else network.get("transfer")
     for r in records:
         if (r["scene"], r["backend"], r["precision"], r["material"]) == (scene, backend, precision, material) and (
             texture_size is None or r.get("texture_size") == texture_size
-        ):
+        ) and (transfer is None or r.get("transfer", transfer) == transfer):
             return r
     return None
 
