@@ -38,6 +38,7 @@ import trimesh
 from tqdm import tqdm
 
 from ..export.scene import TrainedSegment, export_scene
+from ..runtime.camera import DEFAULT_CAMERA
 from ..runtime.deformation import MAX_CODE_DIM
 from ..runtime.errors import SpecError
 from ..runtime.files import atomic_save_npz, atomic_write_json
@@ -308,7 +309,8 @@ def run_deform_build(source, out_dir, spec: DeformSpec | None = None, *, name: s
     lights_sh = lights[SCENE_LIGHT]
     export_scene(out, name=name, geometry=geometry,
                  segmentation={"roots": {int(k): v for k, v in seg.roots.items()}, "nodes": seg.nodes, "leaf_segment": np.asarray(seg.leaf_segment, np.int64)},
-                 segments=trained, sh_bands=spec.bands, lighting_sh=lights_sh, material=spec.material, camera=spec.camera,
+                 segments=trained, sh_bands=spec.bands, lighting_sh=lights_sh, material=spec.material,
+                 camera=spec.camera or default_camera(frames, faces),
                  deformation=deformation)  # fmt: skip
     export_s = time.perf_counter() - t0
     report = {
@@ -325,6 +327,25 @@ def run_deform_build(source, out_dir, spec: DeformSpec | None = None, *, name: s
     }
     atomic_write_json(out / "build.json", report)
     return report
+
+
+def default_camera(frames: np.ndarray, faces: np.ndarray) -> dict:
+    """The manifest camera of a deformable object: of a few views around and above it (the default
+    camera's distance), the one that sees the most surface over all poses (area facing it), so a
+    flat sheet is seen from above and a standing figure from the front."""
+    distance = float(np.linalg.norm(DEFAULT_CAMERA["eye"]))
+    best, eye = -1.0, None
+    for elevation in (10.0, 35.0, 60.0):
+        for azimuth in (0.0, 30.0, -30.0):
+            e, a = np.radians(elevation), np.radians(azimuth)
+            d = np.array([np.cos(e) * np.sin(a), np.sin(e), np.cos(e) * np.cos(a)])
+            seen = 0.0
+            for v in frames:
+                cross = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])  # 2 x area x normal
+                seen += float(np.abs(cross @ d).sum())  # two-sided: either side may face the camera
+            if seen > best * (1 + 1e-6):
+                best, eye = seen, d * distance
+    return {"eye": [round(float(x), 4) for x in eye], "target": [0.0, 0.0, 0.0]}
 
 
 def _load_key(out: Path, f: int) -> str:
