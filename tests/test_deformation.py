@@ -83,6 +83,12 @@ def test_shape_code_spans_the_training_frames():
     np.testing.assert_allclose(rebuilt, frames, atol=1e-5)  # every frame, also the held-out ones: the modes span them
     with pytest.raises(SpecError, match="give more frames"):
         split_frames(3, 2, 2)
+    from prt.train.deform_build import DeformSpec
+
+    with pytest.raises(SpecError, match="extrapolate_from"):
+        DeformSpec(extrapolate_from="middle").check()
+    with pytest.raises(SpecError, match="code_dim"):
+        DeformSpec(code_dim=99).check()
 
 
 def _box_arm():

@@ -76,7 +76,8 @@ class DeformSpec:
     code_freqs: int = 2
     steps: int = 3000
     holdout_every: int = 4
-    extrapolate: int = 1  # the most extreme poses (farthest from the mean pose) held out
+    extrapolate: int = 1  # poses held out past the training range: the most extreme ones (farthest from the mean pose)
+    extrapolate_from: str = "extreme"  # or "first" / "last": the first or last frames of the source's order
     seed: int = 0
     chunk_size: int = 4096
     material: dict = field(default_factory=lambda: {"type": "diffuse", "albedo": [0.8, 0.8, 0.8]})
@@ -92,6 +93,8 @@ class DeformSpec:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
                 raise SpecError(f"deform {name}: expected an integer in {low}..{high}, got {value!r}")
+        if self.extrapolate_from not in ("extreme", "first", "last"):
+            raise SpecError(f"deform extrapolate_from: expected extreme, first or last, got {self.extrapolate_from!r}")
 
 
 def split_frames(count: int, holdout_every: int, extrapolate: int, extremeness: np.ndarray | None = None) -> dict[str, list[int]]:
@@ -221,7 +224,9 @@ def run_deform_build(source, out_dir, spec: DeformSpec | None = None, *, name: s
     faces = np.asarray(normalised.faces, np.int64)
     faces, two_sided = orientation(rest, faces)
     offsets = (frames - rest[None]).reshape(len(frames), -1)
-    roles = split_frames(len(frames), spec.holdout_every, spec.extrapolate, np.linalg.norm(offsets - offsets.mean(axis=0), axis=1))
+    extremeness = {"extreme": np.linalg.norm(offsets - offsets.mean(axis=0), axis=1), "last": np.arange(len(frames), dtype=float),
+                   "first": -np.arange(len(frames), dtype=float)}[spec.extrapolate_from]  # fmt: skip
+    roles = split_frames(len(frames), spec.holdout_every, spec.extrapolate, extremeness)
     code = shape_code(rest, frames, roles["train"], spec.code_dim)
     theta = code["theta"]
     name = name or Path(str(source.description.get("path", "deformable"))).stem or "deformable"

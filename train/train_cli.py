@@ -111,6 +111,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--code-dim", type=int, default=0, help="with --deform: shape-code dimensions [0: the fewest PCA components keeping 99.9%% of the offsets' variance, at most 8]")
     p.add_argument("--holdout-every", type=int, default=4, help="with --deform: every N-th frame is held out as an unseen pose between training poses")
     p.add_argument("--extrapolate", type=int, default=1, help="with --deform: the N most extreme poses (farthest from the mean pose) are held out, outside the training range")
+    p.add_argument("--extrapolate-from", choices=("extreme", "first", "last"), default="extreme",
+                   help="with --deform: which poses --extrapolate holds out: the most extreme (farthest from the mean pose), or the source's first or last frames")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     return p
 
@@ -241,7 +243,7 @@ def _deform_main(args) -> int:
     fields = {"samples": args.samples, "validation": args.validation, "rays": args.rays, "segments": args.segments, "steps": args.steps,
               "seed": args.seed, "hidden": args.hidden, "layers": args.layers, "pos_freqs": args.pos_freqs}  # fmt: skip
     spec = DeformSpec(**{k: v for k, v in fields.items() if v is not None}, code_dim=args.code_dim, holdout_every=args.holdout_every,
-                      extrapolate=args.extrapolate)  # fmt: skip
+                      extrapolate=args.extrapolate, extrapolate_from=args.extrapolate_from)  # fmt: skip
     check_output_folder(args.out, "scene", force=args.force)
     source = parse_deform(args.deform, args.input)
     report = run_deform_build(source, args.out, spec, name=args.name, threads=args.threads, progress=not args.no_progress, force=args.force)
