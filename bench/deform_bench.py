@@ -600,8 +600,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--vertex-subdivide", type=int, default=0, metavar="L",
                    help="split the baselines' triangles L times at their edge midpoints (default 0: the scene's vertices)")
     p.add_argument("--train-frames", type=int, default=3, help="training frames measured for comparison (default 3)")
-    p.add_argument("--lights", nargs="+", default=["scene", "venice_sunset"],
-                   help="'scene' (the manifest's light), bundled env-map names, venice_sunset, or .hdr/.exr paths")
+    p.add_argument("--lights", nargs="+", default=None,
+                   help="'scene' (the manifest's light), bundled env-map names, venice_sunset, or .hdr/.exr paths "
+                        "(default: scene, and venice_sunset where the shared data has it)")
     p.add_argument("--repeats", type=int, default=15, help="frames of each kind timed (default 15)")
     p.add_argument("--warmup", type=int, default=2, help="untimed rounds first (default 2)")
     p.add_argument("--lmm-components", type=int, default=0, help="PCA components of the LMM (default 0: keep --lmm-keep of the variance)")
@@ -624,6 +625,10 @@ def parse_args(argv=None) -> argparse.Namespace:
 def main(argv=None) -> int:
     """``prt-bench deform``: measure, print the Markdown, write the reports asked for; the exit status."""
     args = parse_args(argv)
+    if args.lights is None:  # the sunlit map lives in the shared data, which a user's clone lacks
+        args.lights = ["scene", "venice_sunset"] if (SHARED_ENVMAPS / "venice_sunset_1k.hdr").is_file() else ["scene"]
+        if len(args.lights) == 1:
+            print(f"prt-bench deform: {SHARED_ENVMAPS} has no venice_sunset_1k.hdr; measuring under the scene's light only", file=sys.stderr)
     cache = args.cache if args.cache is not None or args.json is None else args.json.parent / f"{args.json.stem}_cache"
     settings = Settings(size=args.size, ref_rays=args.ref_rays, vertex_rays=args.vertex_rays, vertex_subdivide=args.vertex_subdivide, train_frames=args.train_frames,
                         lights=tuple(args.lights), repeats=args.repeats, warmup=args.warmup, lmm_components=args.lmm_components,
