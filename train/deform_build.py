@@ -167,9 +167,7 @@ def _load_frame(path: Path, key: str) -> dict | None:
             if str(data["key"]) != key:
                 return None
             return {k: data[k] for k in data.files if k != "key"}
-    except (OSError, ValueError, KeyError, EOFError):
-        return None
-    except Exception:  # a damaged file (zipfile, zlib): recomputed
+    except Exception:  # missing, foreign or damaged (OSError, KeyError, zipfile, zlib): recomputed
         return None
 
 
@@ -256,9 +254,7 @@ def run_deform_build(source, out_dir, spec: DeformSpec | None = None, *, name: s
     data_key = _hash(DEFORM_FORMAT, [_load_key(out, f) for f in sorted(data)], spec.segments, arch.as_dict(), settings.cache_key())
     for s in range(seg.count):
         members = seg.members[s]
-        vmask = valid_home == s
-        if not vmask.any():  # a segment without held-out samples validates on its own training samples
-            vmask = np.zeros(len(valid_home), bool)
+        vmask = valid_home == s  # a segment without held-out samples validates on some of its own training samples
         v_idx = np.flatnonzero(vmask) if vmask.any() else members[: max(1, len(members) // 20)]
         vsrc = valid if vmask.any() else train
         key = _hash(data_key, s)
