@@ -172,15 +172,16 @@ def _load_frame(path: Path, key: str) -> dict | None:
 
 
 def _precompute_frames(out: Path, spec: DeformSpec, rest, frames, faces, two_sided, roles, source, *, threads, progress, log) -> dict:
-    """Samples and ray-traced transfer of every frame (cached per frame)."""
+    """Samples and ray-traced transfer of every frame (cached per frame), and each frame's cache key."""
     folder = out / "precompute" / "frames"
     folder.mkdir(parents=True, exist_ok=True)
-    data = {}
+    data, keys = {}, {}
     for role, indices in roles.items():
         for f in indices:
             key = _hash(DEFORM_FORMAT, spec.samples if role == "train" else 0, spec.validation, spec.rays, spec.bands, spec.seed,
                         spec.chunk_size, _digest(frames[f]), _digest(faces))  # fmt: skip
             path = folder / f"f{f:04d}.npz"
+            keys[f] = key
             found = _load_frame(path, key)
             if found is not None:
                 data[f] = found
@@ -198,7 +199,7 @@ def _precompute_frames(out: Path, spec: DeformSpec, rest, frames, faces, two_sid
             atomic_save_npz(path, key=np.array(key), **parts)
             data[f] = parts
             log(f"frame {f} ({role}): {sum(len(v) for k, v in parts.items() if k.endswith('_rest')):,} samples traced in {time.perf_counter() - t0:.1f} s")
-    return data
+    return data, keys
 
 
 def _digest(a: np.ndarray) -> str:
@@ -234,7 +235,7 @@ def run_deform_build(source, out_dir, spec: DeformSpec | None = None, *, name: s
     mark_output_folder(out, "scene")
 
     t0 = time.perf_counter()
-    data = _precompute_frames(out, spec, rest, frames, faces, two_sided, roles, name, threads=threads, progress=progress, log=log)
+    data, frame_keys = _precompute_frames(out, spec, rest, frames, faces, two_sided, roles, name, threads=threads, progress=progress, log=log)
     precompute_s = time.perf_counter() - t0
 
     def stack(part: str, indices: list[int]):
@@ -251,7 +252,7 @@ def run_deform_build(source, out_dir, spec: DeformSpec | None = None, *, name: s
     settings = FitSettings(steps=spec.steps, seed=spec.seed)
     t0 = time.perf_counter()
     trained, records = [], []
-    data_key = _hash(DEFORM_FORMAT, [_load_key(out, f) for f in sorted(data)], spec.segments, arch.as_dict(), settings.cache_key())
+    data_key = _hash(DEFORM_FORMAT, [frame_keys[f] for f in sorted(data)], spec.segments, arch.as_dict(), settings.cache_key())
     for s in range(seg.count):
         members = seg.members[s]
         vmask = valid_home == s  # a segment without held-out samples validates on some of its own training samples
@@ -347,14 +348,6 @@ def default_camera(frames: np.ndarray, faces: np.ndarray) -> dict:
             if seen > best * (1 + 1e-6):
                 best, eye = seen, d * distance
     return {"eye": [round(float(x), 4) for x in eye], "target": [0.0, 0.0, 0.0]}
-
-
-def _load_key(out: Path, f: int) -> str:
-    try:
-        with np.load(out / "precompute" / "frames" / f"f{f:04d}.npz", allow_pickle=False) as data:
-            return str(data["key"])
-    except Exception:
-        return ""
 
 
 def _cached(record_path: Path, weights_path: Path, key: str) -> dict | None:
