@@ -3,7 +3,7 @@
 usage: prt-runtime [scene.json] [--backend onnx|glsl] [--size W[xH]] [--headless] [--frames N]
                    [--out DIR] [--envmap NAME|PATH] [--material diffuse|glossy] [--exponent E]
                    [--camera-path PATH.json] [--format png|exr|mp4] [--fps F]
-                   [--background envmap|black] [--target-fps F]
+                   [--background envmap|black] [--target-fps F] [--interpolate TOL]
                    [--object-albedo NAME=R,G,B ...]
 
 Without a scene it opens the bundled demo scene (Spot).  With a display (and pygame installed:
@@ -21,6 +21,7 @@ import os
 import sys
 from pathlib import Path
 
+from .interpolation import DEFAULT_TOLERANCE as DEFAULT_INTERPOLATE, check_tolerance
 from .backends import ALL_BACKENDS, BACKENDS
 from .envmaps import BUNDLED_ENVMAPS
 from .checks import finite_array, positive_int
@@ -54,6 +55,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--exposure", type=float, default=1.0, help="exposure before tone mapping")
     p.add_argument("--providers", default=None, help="comma-separated ONNX Runtime providers (default: CUDA if present, then CPU)")
     p.add_argument("--threads", type=int, default=None, help="CPU threads of the ONNX backend")
+    p.add_argument("--interpolate", type=float, default=DEFAULT_INTERPOLATE, metavar="TOL",
+                   help=f"onnx backend: run the networks on a coarse pixel grid and interpolate where the transfer of the neighbours agrees within TOL (relative; default {DEFAULT_INTERPOLATE}); 0: every pixel runs its network")
     p.add_argument("--animate", action="store_true", help="headless, deformable scenes: --frames frames at the scene camera playing the recorded poses (instead of an orbit)")
     p.add_argument("--pose", type=int, default=None, metavar="FRAME", help="headless, deformable scenes: render the orbit at this recorded frame")
     p.add_argument("--camera-path", type=Path, default=None, help="headless: render the views of this camera-path JSON (saved by the viewer's c / o keys)")
@@ -91,6 +94,7 @@ def options_from_args(args: argparse.Namespace) -> ViewerOptions:
         width=width, height=height, backend=args.backend, envmap=args.envmap, material=args.material,
         exponent=args.exponent, exposure=args.exposure,
         providers=args.providers.split(",") if args.providers else None, threads=args.threads,
+        interpolate=check_tolerance(args.interpolate, "--interpolate"),
         background=None if args.background is None else args.background == "envmap", target_fps=target_fps or None,
     )  # fmt: skip
 

@@ -50,6 +50,7 @@ from .deformation import Deformation
 from .gbuffer import PACKED_SEGMENT, GBufferPass, load_mesh
 from .gl import ShaderCompileError, bind_framebuffer, compile_program, create_context, draw_fullscreen
 from .manifest import Manifest, load_manifest
+from .interpolation import check_tolerance
 from .albedo_textures import AlbedoTextures
 from .materials import MaterialTable, load_albedo_textures, object_materials, shade_objects
 from .shading import GLSL_DEFINES, GLSL_FILES, Lighting, Material, diffuse_light_matrix, shade, shader_uniforms, to_srgb8
@@ -128,6 +129,10 @@ class Renderer:
     providers : ONNX Runtime execution providers (default: CUDA where present, else CPU)
     threads : CPU threads for the ONNX backend (default: all cores)
     ctx : an existing moderngl context (e.g. a window's); default: a headless EGL context
+    interpolate : relative transfer tolerance of screen-space interpolation for the ONNX backend (e.g. 0.05;
+        :mod:`prt.runtime.interpolation`): the networks run on every fourth pixel of every fourth row
+        and where interpolating from neighbours is unsafe, the rest is interpolated.  None (the
+        default) or 0: every covered pixel runs its network.
 
     Every argument is checked: a wrong type raises :class:`~prt.runtime.errors.ArgumentTypeError`,
     a wrong value (a size the GL driver cannot allocate, ``threads < 1``) an
@@ -148,7 +153,8 @@ class Renderer:
     """
 
     def __init__(self, scene: Scene, width: int = 512, height: int = 512, backend: str = BACKENDS[0], *,
-                 providers=None, threads: int | None = None, ctx: moderngl.Context | None = None):
+                 providers=None, threads: int | None = None, ctx: moderngl.Context | None = None,
+                 interpolate: float | None = None):
         self._owner = threading.get_ident()
         self._closed = True  # until the resources exist
         if not isinstance(scene, Scene):
@@ -158,6 +164,7 @@ class Renderer:
         if threads is not None:
             threads = positive_int(threads, "Renderer: threads (CPU threads of the ONNX backend)")
         providers = _check_providers(providers)
+        interpolate = check_tolerance(interpolate, "Renderer: interpolate")
         if ctx is not None and not isinstance(ctx, moderngl.Context):
             raise ArgumentTypeError(f"Renderer: ctx must be a moderngl.Context, got {type(ctx).__name__}")
         m = scene.manifest
@@ -175,7 +182,7 @@ class Renderer:
         try:
             make_current(self.ctx)  # another renderer's context may be current
             _check_size(self.ctx, width, height)
-            self._backend_options = {"providers": providers, "threads": threads}
+            self._backend_options = {"providers": providers, "threads": threads, "interpolate": interpolate}
             self._backends = self._resources.backends  # created on first use, kept while switching
             self.gbuffer = self._resources.keep(GBufferPass(self.ctx, m, self.width, self.height))
             size = (self.width, self.height)
@@ -230,7 +237,8 @@ class Renderer:
         self._material_gl: dict = {}  # the per-object shade program, its VAO and table texture
         self.backend = backend
         self.timings: dict[str, float] = {}
-        self.stats = {"frames": 0, "network_runs": 0, "relight_frames": 0}
+        # network_fraction: share of the last network frame's covered pixels that ran a network (screen-space interpolation: < 1)
+        self.stats = {"frames": 0, "network_runs": 0, "relight_frames": 0, "network_fraction": 1.0}
         self._transfer_valid = False
         self._transfer_on_cpu = True
         self._closed = False
@@ -496,6 +504,7 @@ class Renderer:
         backend = self._backend()
         result = backend.run(self.gbuffer, self._t_fbo)
         timings.update({"gbuffer": 1e3 * (t1 - t0), **backend.timings})
+        self.stats["network_fraction"] = float(getattr(backend, "fraction", 1.0))
         if result is not None:
             self._take_cpu_transfer(result)
             rows = self.gbuffer.read_material()

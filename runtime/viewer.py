@@ -68,11 +68,13 @@ class ViewerOptions:
     background: bool | None = None
     target_fps: float | None = 30.0
     object_albedo: tuple = ()  # ((object name, (r, g, b)), ...): per-object albedo overrides
+    interpolate: float | None = None  # the ONNX backend's screen-space interpolation tolerance (runtime/interpolation.py); None: every pixel
 
     def renderer(self, scene, ctx: moderngl.Context | None = None, size: tuple[int, int] | None = None) -> Renderer:
         """A :class:`Renderer` of ``scene`` at this size (or ``size``) and backend, with the options applied."""
         width, height = size or (self.width, self.height)
-        r = Renderer(scene, width, height, backend=self.backend, providers=self.providers, threads=self.threads, ctx=ctx)
+        r = Renderer(scene, width, height, backend=self.backend, providers=self.providers, threads=self.threads, ctx=ctx,
+                     interpolate=self.interpolate)  # fmt: skip
         try:
             self.apply(r)
         except BaseException:

@@ -64,6 +64,10 @@ class TransferBackend(ABC):
         Execution providers, for backends that run an inference engine (others ignore it).
     threads : int, optional
         CPU threads, for backends that run on the CPU (others ignore it).
+    interpolate : float, optional
+        Relative transfer tolerance of screen-space interpolation (:mod:`prt.runtime.interpolation`): the
+        networks run on a coarse grid and interpolation fills the rest where it is safe.  The
+        ONNX backend uses it; backends that evaluate every pixel on the GPU ignore it.
 
     Attributes
     ----------
@@ -74,7 +78,7 @@ class TransferBackend(ABC):
 
     name: str = ""
 
-    def __init__(self, ctx: moderngl.Context, manifest: Manifest, *, providers=None, threads: int | None = None):
+    def __init__(self, ctx: moderngl.Context, manifest: Manifest, *, providers=None, threads: int | None = None, interpolate: float | None = None):
         self.ctx = ctx
         self.manifest = manifest
         self.timings: dict[str, float] = {}

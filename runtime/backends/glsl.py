@@ -53,7 +53,7 @@ class GlslBackend(TransferBackend):
 
     name = "glsl"
 
-    def __init__(self, ctx, manifest, *, providers=None, threads: int | None = None):
+    def __init__(self, ctx, manifest, *, providers=None, threads: int | None = None, interpolate: float | None = None):
         super().__init__(ctx, manifest)
         self.blocks = manifest.transfer_width // 4  # vec4 blocks per fragment: 4, or 16 with interreflection
         networks, cases, self._weights, per_segment = [], [], [], []

@@ -33,6 +33,7 @@ import numpy as np
 from .. import sh
 from ..checks import positive_int
 from ..errors import InputError
+from ..interpolation import TransferInterpolator, check_tolerance
 from ..onnxfile import read_model
 from .base import CpuTransfer, TransferBackend
 
@@ -299,14 +300,19 @@ class OnnxBackend(TransferBackend):
 
     name = "onnx"
 
-    def __init__(self, ctx, manifest, *, providers=None, threads: int | None = None):
+    def __init__(self, ctx, manifest, *, providers=None, threads: int | None = None, interpolate: float | None = None):
         super().__init__(ctx, manifest)
         self.engine = OnnxTransfer(manifest, providers=providers, threads=threads)
+        self.interpolate = check_tolerance(interpolate, "interpolate")
+        self.fraction = 1.0  # share of the covered pixels of the last frame that ran a network
+        self._sampler = TransferInterpolator(self.interpolate, self.engine.threads) if self.interpolate is not None else None
 
     def run(self, gbuffer, target) -> CpuTransfer:
         t0 = time.perf_counter()
         position, normal = gbuffer.read_targets()  # (H, W, 4) each, top row first, no copy
         t1 = time.perf_counter()
+        if self.interpolate is not None:
+            return self._run_interpolated(position, normal, 1e3 * (t1 - t0))
         height, width = position.shape[:2]
         # The segment channel, top row first (a contiguous copy); ids are exact small integers.
         wide = self.engine.segment_count > 1 << 15
@@ -326,11 +332,31 @@ class OnnxBackend(TransferBackend):
         self.timings = {"readback": 1e3 * (t1 - t0), "pack": 1e3 * (t2 - t1), **self.engine.timings}
         return CpuTransfer(order, transfer, x, segment[order])
 
+    def _run_interpolated(self, position, normal, readback_ms: float) -> CpuTransfer:
+        """The networks on a coarse grid and where interpolation is unsafe (:mod:`prt.runtime.interpolation`)."""
+        network = [0.0]
+
+        def infer(rows: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+            if len(offsets) - 1 > self.engine.segment_count:
+                raise InputError(f"segment {len(offsets) - 2} appears in the G-buffer but the scene has no such segment")
+            t = time.perf_counter()
+            out = self.engine.infer_sorted(rows, offsets)
+            network[0] += time.perf_counter() - t
+            return out
+
+        timings: dict[str, float] = {}
+        result = self._sampler.run(position, normal, infer, self.engine.n, timings)
+        self.fraction = result.fraction
+        self.timings = {"readback": readback_ms, "pack": timings["pack"], "inference": 1e3 * network[0], "interpolate": timings["interpolate"]}
+        return CpuTransfer(result.covered, result.transfer, result.inputs, result.segment)
+
     def set_code(self, theta) -> None:
         self.engine.set_code(theta)
 
     def release(self) -> None:
         self.engine.close()
+        if self._sampler is not None:
+            self._sampler.close()
 
 
 def _check_signature(sess, path, n_out: int) -> str:

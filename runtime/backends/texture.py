@@ -106,7 +106,7 @@ class TextureBackend(TransferBackend):
     name = "texture"
     requires = "transfer_texture"  # not in BACKENDS (which render every scene), only ALL_BACKENDS
 
-    def __init__(self, ctx, manifest, *, providers=None, threads: int | None = None):
+    def __init__(self, ctx, manifest, *, providers=None, threads: int | None = None, interpolate: float | None = None):
         super().__init__(ctx, manifest)
         info = manifest.transfer_texture
         if info is None or manifest.geometry.type != "mesh":
