@@ -4,7 +4,7 @@ usage::
 
     prt-bench scene.json [more scenes] [--json out.json] [--md out.md]
         [--plot out.png] [--views 30] [--size 512 [256 ...]] [--ref-rays 1024] [--warmup 3]
-        [--precisions fp32 fp16 fp16-mlp int8] [--backends onnx glsl vertex texture] [--texture-size N ...] [--cache DIR]
+        [--precisions fp32 fp16 fp16-mlp int8] [--interpolate TOL ...] [--backends onnx glsl vertex texture] [--texture-size N ...] [--cache DIR]
         [--gemm-size 4096] [--blas-threads N] [--config-budget SECONDS] [--packing-views N]
         [--images DIR] [--fresh] [--cluster auto|ADDRESS]
 
@@ -53,6 +53,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "backend at k = 128 on llvmpipe) measures fewer views, at least 4, spread over the orbit; "
                         "its record's 'views' says how many (default: every view)")  # fmt: skip
     p.add_argument("--precisions", nargs="+", choices=PRECISIONS, default=list(PRECISIONS))
+    p.add_argument("--interpolate", type=float, nargs="+", default=[], metavar="TOL",
+                   help="also measure the fp32 ONNX backend with screen-space interpolation at these tolerances (prt-runtime --interpolate)")
     p.add_argument("--backends", nargs="+", choices=("onnx", "glsl", "vertex", "texture"), default=["onnx", "glsl", "vertex"],
                    help="texture: the texture-space baseline (transfer textures baked at --texture-size)")
     p.add_argument("--texture-size", type=int, nargs="+", default=[1024], metavar="N",
@@ -78,6 +80,9 @@ def parse_args(argv=None) -> argparse.Namespace:
         p.error(f"--config-budget must be a positive number of seconds, got {args.config_budget}")
     if "fp32" not in args.precisions:
         args.precisions = ["fp32", *args.precisions]  # the other precisions are compared with it
+    for tol in args.interpolate:
+        if not 0 < tol <= 1:
+            p.error(f"--interpolate: tolerances must be in (0, 1], got {tol}")
     return args
 
 
@@ -97,6 +102,7 @@ def main(argv=None) -> int:
         views=args.views, sizes=tuple(args.size), ref_rays=args.ref_rays, ref_rays_max=args.ref_rays_max, warmup=args.warmup, config_budget=args.config_budget,
         packing_views=args.packing_views,
         precisions=tuple(dict.fromkeys(args.precisions)), backends=tuple(args.backends), cache=cache,
+        interpolate=tuple(dict.fromkeys(args.interpolate)),
         texture_sizes=tuple(dict.fromkeys(args.texture_size)),
         gemm_size=args.gemm_size, blas_threads=args.blas_threads, fresh=args.fresh, images=args.images,
     )  # fmt: skip

@@ -46,7 +46,9 @@ JSON report (``--json``)
     ``transfer`` (what the transfer carries: ``direct``, or ``N bounces`` of interreflection, ``1 bounce``
     for one; the scene's for networks, texture and reference; a scene with bounces has vertex records of
     both: direct-only and with the same N bounces, :mod:`prt.bench.vertex_prt`),
-    ``precision`` (fp32, fp16, fp16-mlp, int8), ``material``, ``resolution`` (``"WxH"``),
+    ``precision`` (fp32, fp16, fp16-mlp, int8), ``interpolate`` (the ONNX rows' screen-space interpolation tolerance,
+    ``--interpolate``; None: every pixel ran its network), ``network_fraction`` (median share of the covered
+    pixels that ran a network), ``material``, ``resolution`` (``"WxH"``),
     ``width``, ``height``, ``views``, ``fps`` (1000 / median frame ms), ``frame_ms``,
     ``stages_ms`` (median per stage), ``network_ms`` (inference / network stage; 0 for
     vertex), ``mae``, ``psnr``, ``ssim``, ``psnr_whole``, ``weight_bytes`` (ONNX initialiser
@@ -130,6 +132,8 @@ def _backend_cell(record: dict) -> str:
     """The backend column: the texture baseline names its texture size."""
     if "texture_size" in record:
         return f"texture {record['texture_size']}^2"
+    if record.get("interpolate"):  # screen-space interpolation: its tolerance and the share of pixels that ran a network
+        return f"{record['backend']} interpolate {record['interpolate']:g} ({100 * record.get('network_fraction', 1.0):.0f} % inferred)"
     return record["backend"]
 
 
@@ -374,6 +378,8 @@ def scene_checkpoint(scene_path, settings) -> Path:
         options["images"] = str(settings.images)
     if "texture" in settings.backends:  # (likewise)
         options["texture_sizes"] = list(settings.texture_sizes)
+    if getattr(settings, "interpolate", ()):  # (likewise)
+        options["interpolate"] = list(settings.interpolate)
     options["prt"] = _prt_version()  # a new release measures again
     options["records"] = RECORD_FORMAT  # so does a new record format
     digest.update(json.dumps(options, sort_keys=True, default=list).encode())

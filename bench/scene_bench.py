@@ -72,6 +72,7 @@ class Settings:
     config_budget: float | None = None  # seconds of frames per configuration (slow ones measure fewer views)
     packing_views: int | None = None  # views of the naive-vs-packed baseline (None: all), spread over the orbit
     precisions: tuple = PRECISIONS
+    interpolate: tuple = ()  # tolerances of extra fp32 ONNX rows with screen-space interpolation (runtime/interpolation.py)
     backends: tuple = ("onnx", "glsl", "vertex")
     texture_sizes: tuple = (1024,)  # transfer texture sizes of the texture baseline (backend "texture")
     cache: Path | None = None
@@ -138,7 +139,7 @@ def _measure_renderer(renderer, views, material_name, material, settings, transf
         renderer.render()
         warm_s = time.perf_counter() - t0
     measured = budget_views(views, settings.config_budget, warm_s)
-    stages, metrics, gflops, frames = defaultdict(list), defaultdict(list), [], []
+    stages, metrics, gflops, frames, fractions = defaultdict(list), defaultdict(list), [], [], []
     transfer0 = None
     for k, view in enumerate(measured):
         renderer.set_camera_object(view.camera)
@@ -146,6 +147,7 @@ def _measure_renderer(renderer, views, material_name, material, settings, transf
         for name, ms in renderer.timings.items():
             stages[name].append(ms)
         frames.append(renderer.timings["frame"])
+        fractions.append(renderer.stats["network_fraction"])
         network_ms = renderer.timings.get("inference", renderer.timings.get("network", 0.0))
         if network_ms > 0:
             gflops.append(view.flops / (network_ms * 1e-3) / 1e9)
@@ -157,6 +159,7 @@ def _measure_renderer(renderer, views, material_name, material, settings, transf
     summary = _summarise(stages, metrics, gflops, frames)
     summary["network_ms"] = summary["stages_ms"].get("inference", summary["stages_ms"].get("network", 0.0))
     summary["views"] = len(measured)
+    summary["network_fraction"] = round(float(np.median(fractions)), 4)  # covered pixels that ran a network (< 1 with screen-space interpolation)
     summary["_image0"] = image0  # for the error maps; not part of the record
     if transfer_fp32 is not None:
         summary["transfer_max_abs_diff"] = float(np.abs(transfer0 - transfer_fp32).max(initial=0.0))
@@ -429,20 +432,22 @@ class SceneBench:
 
     def _network_records(self, size: int, views: list) -> None:
         """The ONNX backend at every precision, then the GLSL backend, each with both materials."""
-        configs = [("onnx", p) for p in self.settings.precisions] if "onnx" in self.settings.backends else []
+        onnx = "onnx" in self.settings.backends
+        configs = [("onnx", p, None) for p in self.settings.precisions] if onnx else []
+        configs += [("onnx", "fp32", tol) for tol in self.settings.interpolate] if onnx else []
         if "glsl" in self.settings.backends:
-            configs.append(("glsl", "fp32"))
+            configs.append(("glsl", "fp32", None))
         common = self._common(size, views)
         transfer_fp32 = None  # view 0's transfer on the fp32 ONNX path, what the others are compared with
-        for backend, precision in configs:
+        for backend, precision, tol in configs:
             scene = Scene(self.variants[precision]) if backend == "onnx" else self.scene
-            with Renderer(scene, size, size, backend=backend, ctx=self.ctx) as renderer:
+            with Renderer(scene, size, size, backend=backend, ctx=self.ctx, interpolate=tol) as renderer:
                 for name, material in self.materials.items():
                     summary, transfer0 = _measure_renderer(renderer, views, name, material, self.settings, transfer_fp32)
-                    if (backend, precision) == ("onnx", "fp32"):
+                    if (backend, precision, tol) == ("onnx", "fp32", None):
                         transfer_fp32 = transfer0
                         summary["transfer_max_abs_diff"] = 0.0
-                    self._add(common, backend, precision, name, summary, self.weights[precision])
+                    self._add(common, backend, precision, name, {**summary, "interpolate": tol}, self.weights[precision])
 
     def _texture_records(self, size: int, views: list) -> None:
         """The texture baseline at each texture size with both materials (:mod:`prt.bench.texture_prt`)."""
@@ -496,7 +501,8 @@ def _record(common, backend, precision, material, summary, weight_bytes, noise_p
     record["ref_noise_psnr"] = noise_psnr
     # Baselines name their transfer when it is not direct: a scene's vertex rows come both ways.
     carries = "" if backend not in ("vertex", "texture") or record["transfer"] == "direct" else f" {record['transfer']}"
-    record["label"] = f"{backend} {precision} {material}" if backend == "onnx" else f"{backend}{carries} {material}"
+    interpolate = f" interpolate {record['interpolate']:g}" if record.get("interpolate") else ""
+    record["label"] = f"{backend} {precision}{interpolate} {material}" if backend == "onnx" else f"{backend}{carries} {material}"
     if "texture_size" in record:
         record["label"] = f"{backend} {record['texture_size']}{carries} {material}"
     record.setdefault("transfer_max_abs_diff", None)

@@ -65,7 +65,7 @@ def _pick(records, scene, backend="onnx", precision="fp32", material="diffuse", 
     for r in records:
         if (r["scene"], r["backend"], r["precision"], r["material"]) == (scene, backend, precision, material) and (
             texture_size is None or r.get("texture_size") == texture_size
-        ) and (transfer is None or r.get("transfer", transfer) == transfer):
+        ) and (transfer is None or r.get("transfer", transfer) == transfer) and not r.get("interpolate"):
             return r
     return None
 

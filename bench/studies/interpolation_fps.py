@@ -1,0 +1,101 @@
+"""Frame rate of the demo with screen-space transfer interpolation against every-pixel inference,
+as ratios in one run.
+
+usage: python bench/studies/interpolation_fps.py [--scene scene.json] [--size 512] [--views 30]
+                                                 [--rounds 3] [--tolerances 0 0.05 0.1 0.2] [--json OUT]
+
+One renderer per tolerance (0: every covered pixel runs its network), all on one GL context, the
+scene's light and background as ``make demo`` draws them; the orbit's views are rendered round
+after round, the renderers taking turns at each view so that machine noise hits them alike.
+Reported per tolerance: the median frame time and FPS, the median stage times, the share of
+covered pixels that ran a network, the speed-up over tolerance 0, and the PSNR of its frames
+against tolerance 0's (the interpolation's own error; the error against the ray-traced reference
+is ``prt-bench --interpolate``'s, see README "The demo").
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from prt.runtime.camera import orbit_views
+from prt.runtime.files import atomic_write_bytes
+from prt.runtime.gl import create_context
+from prt.runtime.renderer import Renderer, Scene
+
+
+def psnr(image: np.ndarray, reference: np.ndarray) -> float:
+    """Over the given pixels, peak: the reference's largest value."""
+    mse = float(np.mean((image - reference) ** 2))
+    return float("inf") if mse == 0 else 10.0 * np.log10(float(reference.max()) ** 2 / mse)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--scene", type=Path, default=None, help="scene.json (default: the bundled demo)")
+    p.add_argument("--size", type=int, default=512)
+    p.add_argument("--views", type=int, default=30)
+    p.add_argument("--rounds", type=int, default=3)
+    p.add_argument("--warmup", type=int, default=3)
+    p.add_argument("--tolerances", type=float, nargs="+", default=[0.0, 0.05, 0.1, 0.2])
+    p.add_argument("--json", type=Path, default=None)
+    args = p.parse_args(argv)
+    tolerances = sorted(set(args.tolerances) | {0.0})
+    scene = Scene.load(args.scene)
+    ctx = create_context()
+    renderers = {t: Renderer(scene, args.size, args.size, ctx=ctx, interpolate=t or None) for t in tolerances}
+    cameras = orbit_views(next(iter(renderers.values())).camera, args.views)
+    try:
+        for r in renderers.values():
+            for i in range(args.warmup):
+                r.set_camera_object(cameras[0].orbit(-0.01 * (i + 1)))
+                r.render()
+        frames = {t: [] for t in tolerances}
+        stages = {t: {} for t in tolerances}
+        fractions = {t: [] for t in tolerances}
+        errors = {t: [] for t in tolerances}
+        for _ in range(args.rounds):
+            for camera in cameras:
+                images = {}
+                for t, r in renderers.items():
+                    r.set_camera_object(camera)
+                    t0 = time.perf_counter()
+                    images[t] = r.render()
+                    frames[t].append(1e3 * (time.perf_counter() - t0))
+                    for k, v in r.timings.items():
+                        stages[t].setdefault(k, []).append(v)
+                    fractions[t].append(r.stats["network_fraction"])
+                covered = renderers[0.0].gbuffer_image().covered  # (not timed) the pixels the networks shade
+                for t in tolerances:
+                    errors[t].append(psnr(images[t][covered], images[0.0][covered]))
+    finally:
+        for r in renderers.values():
+            r.close()
+        ctx.release()
+    base = float(np.median(frames[0.0]))
+    rows = []
+    for t in tolerances:
+        ms = float(np.median(frames[t]))
+        rows.append({
+            "tolerance": t, "frame_ms": round(ms, 2), "fps": round(1e3 / ms, 2), "speedup": round(base / ms, 3),
+            "network_fraction": round(float(np.median(fractions[t])), 4),
+            "psnr_vs_every_pixel_db": None if t == 0 else round(float(np.median(errors[t])), 2),
+            "psnr_vs_every_pixel_min_db": None if t == 0 else round(float(np.min(errors[t])), 2),
+            "stages_ms": {k: round(float(np.median(v)), 2) for k, v in stages[t].items() if k != "frame"},
+        })  # fmt: skip
+        print(f"tolerance {t:g}: {1e3 / ms:.1f} FPS ({ms:.1f} ms, {base / ms:.2f}x), networks on {100 * rows[-1]['network_fraction']:.0f} % "
+              f"of the covered pixels" + ("" if t == 0 else f", {rows[-1]['psnr_vs_every_pixel_db']} dB against every pixel") +
+              "; " + ", ".join(f"{k} {v}" for k, v in rows[-1]["stages_ms"].items()))  # fmt: skip
+    if args.json is not None:
+        report = {"scene": str(scene.path), "size": args.size, "views": args.views, "rounds": args.rounds, "rows": rows,
+                  "command": "python bench/studies/interpolation_fps.py " + " ".join(argv if argv is not None else __import__("sys").argv[1:])}  # fmt: skip
+        atomic_write_bytes(args.json, (json.dumps(report, indent=1) + "\n").encode())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
