@@ -3,6 +3,7 @@ as ratios in one run.
 
 usage: python bench/studies/interpolation_fps.py [--scene scene.json] [--size 512] [--views 30]
                                                  [--rounds 3] [--tolerances 0 0.05 0.1 0.2] [--json OUT]
+                                                 [--figure OUT.png]
 
 One renderer per tolerance (0: every covered pixel runs its network), all on one GL context, the
 scene's light and background as ``make demo`` draws them; the orbit's views are rendered round
@@ -10,7 +11,8 @@ after round, the renderers taking turns at each view so that machine noise hits 
 Reported per tolerance: the median frame time and FPS, the median stage times, the share of
 covered pixels that ran a network, the speed-up over tolerance 0, and the PSNR of its frames
 against tolerance 0's (the interpolation's own error; the error against the ray-traced reference
-is ``prt-bench --interpolate``'s, see README "The demo").
+is ``prt-bench --interpolate``'s, see README "The demo").  ``--figure``: view 0 at every pixel, with
+the default tolerance, the pixels that ran a network, and the tone-mapped difference x 20.
 """
 
 from __future__ import annotations
@@ -34,6 +36,35 @@ def psnr(image: np.ndarray, reference: np.ndarray) -> float:
     return float("inf") if mse == 0 else 10.0 * np.log10(float(reference.max()) ** 2 / mse)
 
 
+def figure(exact: Renderer, camera, path: Path) -> None:
+    """Every pixel | interpolated (the default tolerance) | pixels that ran a network | |difference| x 20."""
+    import imageio.v3 as iio
+
+    from prt.runtime.interpolation import DEFAULT_TOLERANCE, TransferInterpolator
+    from prt.runtime.shading import to_srgb8
+
+    exact.set_camera_object(camera)
+    full = to_srgb8(exact.render())
+    engine = exact._backend().engine
+    position, normal = (a.copy() for a in exact.gbuffer.read_targets())
+    with Renderer(exact.scene, exact.width, exact.height, ctx=exact.ctx, interpolate=DEFAULT_TOLERANCE) as r:
+        r.set_camera_object(camera)
+        interpolated = to_srgb8(r.render())
+    sampler = TransferInterpolator(DEFAULT_TOLERANCE)
+    try:
+        result = sampler.run(position, normal, engine.infer_sorted, engine.n)
+    finally:
+        sampler.close()
+    mask = np.zeros(exact.width * exact.height, np.uint8)
+    mask[result.covered] = 90
+    mask[result.covered[result.inferred]] = 255
+    mask = np.repeat(mask.reshape(exact.height, exact.width, 1), 3, axis=2)
+    diff = np.clip(20 * np.abs(full.astype(np.int16) - interpolated.astype(np.int16)), 0, 255).astype(np.uint8)
+    data = iio.imwrite("<bytes>", np.concatenate([full, interpolated, mask, diff], axis=1), extension=".png")
+    atomic_write_bytes(path, data)
+    print(f"figure: {path} ({100 * result.fraction:.0f} % of the covered pixels ran a network at tolerance {DEFAULT_TOLERANCE})")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--scene", type=Path, default=None, help="scene.json (default: the bundled demo)")
@@ -43,6 +74,7 @@ def main(argv=None) -> int:
     p.add_argument("--warmup", type=int, default=3)
     p.add_argument("--tolerances", type=float, nargs="+", default=[0.0, 0.05, 0.1, 0.2])
     p.add_argument("--json", type=Path, default=None)
+    p.add_argument("--figure", type=Path, default=None)
     args = p.parse_args(argv)
     tolerances = sorted(set(args.tolerances) | {0.0})
     scene = Scene.load(args.scene)
@@ -72,6 +104,8 @@ def main(argv=None) -> int:
                 covered = renderers[0.0].gbuffer_image().covered  # (not timed) the pixels the networks shade
                 for t in tolerances:
                     errors[t].append(psnr(images[t][covered], images[0.0][covered]))
+        if args.figure is not None:
+            figure(renderers[0.0], cameras[0], args.figure)
     finally:
         for r in renderers.values():
             r.close()
