@@ -51,7 +51,7 @@ def report(tiny_scene, tmp_path_factory):
     paths = {"json": out / "r.json", "md": out / "r.md", "plot": out / "r.png"}
     argv = [str(tiny_scene), "--size", str(SIZE), "--views", str(VIEWS), "--ref-rays", "64", "--warmup", "1",
             "--gemm-size", "256", "--json", str(paths["json"]), "--md", str(paths["md"]), "--plot", str(paths["plot"]),
-            "--images", str(out / "images")]  # fmt: skip
+            "--images", str(out / "images"), "--interpolate", "0.1"]  # fmt: skip
     assert cli.main(argv) == 0
     return json.loads(paths["json"].read_text()), paths
 
@@ -88,7 +88,7 @@ def test_an_interrupted_run_resumes_from_its_scene_checkpoints(report, tiny_scen
     out = paths["json"].parent
     argv = [str(tiny_scene), "--size", str(SIZE), "--views", str(VIEWS), "--ref-rays", "64", "--warmup", "1",
             "--gemm-size", "256", "--cache", str(out / "r_cache"), "--json", str(tmp_path / "again.json"),
-            "--images", str(out / "images")]  # fmt: skip
+            "--images", str(out / "images"), "--interpolate", "0.1"]  # fmt: skip
     capsys.readouterr()
     assert cli.main(argv) == 0
     assert "kept in" in capsys.readouterr().out
@@ -103,9 +103,10 @@ def test_an_interrupted_run_resumes_from_its_scene_checkpoints(report, tiny_scen
     assert [r["frame_ms"] for r in fresh["records"]] != [r["frame_ms"] for r in data["records"]]
     # Other settings, or changed scene files, key another checkpoint.
     settings = scene_bench.Settings(views=VIEWS, sizes=(SIZE,), ref_rays=64, warmup=1, gemm_size=256, cache=out / "r_cache",
-                           images=out / "images")  # fmt: skip
+                           images=out / "images", interpolate=(0.1,))  # fmt: skip
     assert report_format.scene_checkpoint(tiny_scene, settings) == checkpoint
     assert report_format.scene_checkpoint(tiny_scene, dataclasses.replace(settings, warmup=2)) != checkpoint
+    assert report_format.scene_checkpoint(tiny_scene, dataclasses.replace(settings, interpolate=(0.2,))) != checkpoint
     assert report_format.scene_checkpoint(tiny_scene, dataclasses.replace(settings, cache=tmp_path)).name == checkpoint.name
     copy = tmp_path / "scene"
     shutil.copytree(tiny_scene.parent, copy)
@@ -225,10 +226,26 @@ def test_precision_variants_stay_close_to_fp32(tiny_scene, tmp_path):
 def test_variant_records_match_fp32_transfer(report):
     data, _ = report
     for r in data["records"]:
+        if r["backend"] == "onnx" and r.get("interpolate"):
+            continue  # interpolated pixels differ: test_interpolated_rows_are_labelled_and_close
         if r["backend"] == "onnx":
             assert r["transfer_max_abs_diff"] < TOLERANCE.get(r["precision"], 1e-6), r["label"]
         elif r["backend"] == "glsl":
             assert r["transfer_max_abs_diff"] < 1e-4  # the same networks in the fragment shader
+
+
+def test_interpolated_rows_are_labelled_and_close(report):
+    """--interpolate adds fp32 ONNX rows that ran fewer networks, within 1 dB of every pixel's PSNR."""
+    data, paths = report
+    rows = {(r["material"], r.get("interpolate")): r for r in data["records"] if r["backend"] == "onnx" and r["precision"] == "fp32"}
+    for material in ("diffuse", "glossy"):
+        exact, interp = rows[(material, None)], rows[(material, 0.1)]
+        assert exact["network_fraction"] == 1.0
+        assert 0 < interp["network_fraction"] <= 1.0  # at 40x40 most pixels lie next to an edge (256x256: tests/test_interpolation.py)
+        assert interp["label"] == f"onnx fp32 interpolate 0.1 {material}"
+        assert abs(interp["psnr"] - exact["psnr"]) < 1.0, (interp["psnr"], exact["psnr"])
+        assert interp["transfer_max_abs_diff"] < 0.5
+    assert "interpolate 0.1" in paths["md"].read_text()
 
 
 def test_network_profile_splits_the_run_into_ops(report):
