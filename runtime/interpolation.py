@@ -454,7 +454,7 @@ class TransferInterpolator:
         self._coeffs = unshadowed_monomials().astype(np.float32)
         self._pool = ThreadPoolExecutor(max_workers=self.threads, thread_name_prefix="interpolate") if self.threads > 1 else None
         # Two sets of frame-sized arrays used in turn: a frame's result stays intact while the next is
-        # computed, and no frame pays for fresh pages (which cost a quarter of the stage here).
+        # computed, and frames do not pay for fresh pages.
         self._buffers: list[dict] = [{}, {}]
         self._turn = 0
 
