@@ -51,6 +51,8 @@ from typing import Callable
 
 import numpy as np
 
+from .segmentation import segment_sort
+
 __all__ = [
     "TransferInterpolator",
     "interpolate_transfer",
@@ -188,10 +190,8 @@ def _fill(transfer: np.ndarray, inferred: np.ndarray, which: np.ndarray, inputs,
     """Run the networks on rows ``which`` (grouped by segment for ``infer``) and store their transfer."""
     if len(which):
         ids = segment[which]
-        small = np.uint8 if ids.max() < 1 << 8 else np.uint16 if ids.max() < 1 << 16 else np.int64
-        order = np.argsort(ids.astype(small), kind="stable")  # a counting (radix) sort for small ints
+        order, offsets = segment_sort(ids, int(ids.max()) + 1)
         which = which[order]
-        offsets = np.searchsorted(ids[order], np.arange(int(ids.max()) + 2)).astype(np.int64)
         transfer[which] = infer(inputs[which], offsets)
         inferred[which] = True
 
@@ -286,9 +286,9 @@ def _compile():
     # after each kernel, which slowed the ONNX Runtime call that follows by half.)
 
     @numba.njit(cache=True, nogil=True)
-    def prepare(position, normal, rows, segment_image, row_counts, first, step):
+    def prepare(normal, segment_image, row_counts, first, step):
         """Covered pixels' segment ids, counted per image row (rows first, first + step, ...)."""
-        height, width = rows.shape
+        height, width = segment_image.shape
         for y in range(first, height, step):
             count = 0
             for x in range(width):
@@ -498,7 +498,7 @@ class TransferInterpolator:
                  "inputs": np.empty((height * width, 6), np.float32), "segment": np.empty(height * width, np.int32),
                  "unshadowed": np.empty((height * width, DIRECT), np.float32)}  # fmt: skip
         rows, counts, starts = b["rows"], b["counts"], b["starts"]
-        self._bands(prepare, 1, position, normal, rows, b["segment_image"], counts)
+        self._bands(prepare, 1, normal, b["segment_image"], counts)
         np.cumsum(counts[:-1], out=starts[1:])
         m = int(counts.sum())
         covered, inputs, segment, unshadowed = b["covered"][:m], b["inputs"][:m], b["segment"][:m], b["unshadowed"][:m]

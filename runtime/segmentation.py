@@ -8,6 +8,10 @@ From ``roots[object_id]`` the descent goes left when ``point[axis] <= split`` an
 otherwise, down to a leaf ``i``; the segment is ``leaf_segment[i]``.  Points of an object
 with no root go to the segment whose box is nearest (Euclidean distance to the box, 0
 inside it; ties to the lowest id).
+
+:func:`segment_sort` groups pixels or rows by segment (a counting sort; the ONNX backend's
+packing and the screen-space interpolation's refused pixels), with its plain twin
+:func:`segment_sort_reference`.
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ from .errors import InputError
 if TYPE_CHECKING:
     from .manifest import Manifest
 
-__all__ = ["kd_arrays", "assign_segments", "segment_of"]
+__all__ = ["kd_arrays", "assign_segments", "segment_of", "segment_sort", "segment_sort_reference"]
 
 
 def kd_arrays(nodes: list[dict]) -> tuple[np.ndarray, ...]:
@@ -95,3 +99,41 @@ def segment_of(manifest: Manifest, points: Any, object_ids: Any) -> np.ndarray:
 
     seg = manifest.segmentation
     return assign_segments(kd_arrays(seg["nodes"]), seg["roots"], seg["leaf_segment"], manifest.bounds, points, ids)
+
+
+def segment_sort(segment: np.ndarray, n_segments: int) -> tuple[np.ndarray, np.ndarray]:
+    """The covered pixels grouped by segment: a stable counting sort, O(N).
+
+    Parameters
+    ----------
+    segment : (P,) int, segment id per pixel, -1 on background
+    n_segments : ids must lie in ``0 .. n_segments - 1``
+
+    Returns
+    -------
+    order : (M,) int64, the covered pixels (segment >= 0), segment by segment, ascending within each
+    offsets : (n_segments + 1,) int64, segment ``s`` is ``order[offsets[s]:offsets[s + 1]]``
+
+    Raises
+    ------
+    InputError
+        If an id is ``n_segments`` or more.
+    """
+    covered = np.flatnonzero(segment >= 0)
+    seg = segment[covered]
+    if len(seg) and int(seg.max()) >= n_segments:
+        raise InputError(f"segment {int(seg.max())} appears in the G-buffer but the scene has no such segment")
+    # NumPy's stable argsort is a radix (counting) sort for 8- and 16-bit integers.
+    small = np.uint8 if n_segments <= 1 << 8 else np.uint16 if n_segments <= 1 << 16 else np.int64
+    order = np.argsort(seg.astype(small), kind="stable")
+    offsets = np.searchsorted(seg[order], np.arange(n_segments + 1)).astype(np.int64)
+    return covered[order], offsets
+
+
+def segment_sort_reference(segment: np.ndarray, n_segments: int) -> tuple[np.ndarray, np.ndarray]:
+    """Plain twin of :func:`segment_sort` (one ``flatnonzero`` pass per segment), for tests."""
+    parts = [np.flatnonzero(segment == s) for s in range(n_segments)]
+    if np.any(segment >= n_segments):
+        raise InputError(f"segment {int(segment.max())} appears in the G-buffer but the scene has no such segment")
+    offsets = np.concatenate([[0], np.cumsum([len(p) for p in parts])]).astype(np.int64)
+    return (np.concatenate(parts) if parts else np.zeros(0, np.int64)).astype(np.int64), offsets

@@ -35,6 +35,7 @@ from ..checks import positive_int
 from ..errors import InputError
 from ..interpolation import TransferInterpolator, check_tolerance
 from ..onnxfile import read_model
+from ..segmentation import segment_sort, segment_sort_reference
 from .base import CpuTransfer, TransferBackend
 
 __all__ = ["OnnxBackend", "OnnxTransfer", "default_providers", "segment_sort", "segment_sort_reference"]
@@ -46,44 +47,6 @@ def default_providers() -> list[str]:
 
     available = ort.get_available_providers()
     return [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in available]
-
-
-def segment_sort(segment: np.ndarray, n_segments: int) -> tuple[np.ndarray, np.ndarray]:
-    """The covered pixels grouped by segment: a stable counting sort, O(N).
-
-    Parameters
-    ----------
-    segment : (P,) int, segment id per pixel, -1 on background
-    n_segments : ids must lie in ``0 .. n_segments - 1``
-
-    Returns
-    -------
-    order : (M,) int64, the covered pixels (segment >= 0), segment by segment, ascending within each
-    offsets : (n_segments + 1,) int64, segment ``s`` is ``order[offsets[s]:offsets[s + 1]]``
-
-    Raises
-    ------
-    InputError
-        If an id is ``n_segments`` or more.
-    """
-    covered = np.flatnonzero(segment >= 0)
-    seg = segment[covered]
-    if len(seg) and int(seg.max()) >= n_segments:
-        raise InputError(f"segment {int(seg.max())} appears in the G-buffer but the scene has no such segment")
-    # NumPy's stable argsort is a radix (counting) sort for 8- and 16-bit integers.
-    small = np.uint8 if n_segments <= 1 << 8 else np.uint16 if n_segments <= 1 << 16 else np.int64
-    order = np.argsort(seg.astype(small), kind="stable")
-    offsets = np.searchsorted(seg[order], np.arange(n_segments + 1)).astype(np.int64)
-    return covered[order], offsets
-
-
-def segment_sort_reference(segment: np.ndarray, n_segments: int) -> tuple[np.ndarray, np.ndarray]:
-    """Plain twin of :func:`segment_sort` (one ``flatnonzero`` pass per segment), for tests."""
-    parts = [np.flatnonzero(segment == s) for s in range(n_segments)]
-    if np.any(segment >= n_segments):
-        raise InputError(f"segment {int(segment.max())} appears in the G-buffer but the scene has no such segment")
-    offsets = np.concatenate([[0], np.cumsum([len(p) for p in parts])]).astype(np.int64)
-    return (np.concatenate(parts) if parts else np.zeros(0, np.int64)).astype(np.int64), offsets
 
 
 class OnnxTransfer:
