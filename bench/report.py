@@ -56,8 +56,9 @@ JSON report (``--json``)
     float16 texture plus its per-corner UVs for texture),
     ``flops_per_fragment`` (manifest FLOPs, weighted by the covered pixels of each segment;
     the manifest counts a multiply-add as 2 and each sin, cos or tanh as about 20),
-    ``covered_pixels`` (median), ``achieved_gflops`` (FLOPs of the covered pixels / network
-    seconds, median over views), ``machine_gflops``, ``machine_percent``,
+    ``covered_pixels`` (median), ``achieved_gflops`` (FLOPs of the covered pixels that ran a
+    network / network seconds, median over views; with ``interpolate``, the covered pixels' FLOPs x
+    the network fraction), ``machine_gflops``, ``machine_percent``,
     ``transfer_max_abs_diff`` (transfer against the fp32 ONNX path at view 0, covered pixels),
     ``ref_rays``, ``ref_noise_psnr``, ``label`` (vertex and texture records name a transfer other than
     direct: ``vertex 2 bounces diffuse``), ``pareto`` (on the FPS-PSNR Pareto front of

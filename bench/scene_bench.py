@@ -149,8 +149,8 @@ def _measure_renderer(renderer, views, material_name, material, settings, transf
         frames.append(renderer.timings["frame"])
         fractions.append(renderer.stats["network_fraction"])
         network_ms = renderer.timings.get("inference", renderer.timings.get("network", 0.0))
-        if network_ms > 0:
-            gflops.append(view.flops / (network_ms * 1e-3) / 1e9)
+        if network_ms > 0:  # with interpolation only that share of the covered pixels ran (segments weighted alike)
+            gflops.append(view.flops * fractions[-1] / (network_ms * 1e-3) / 1e9)
         for name, value in image_metrics(tonemap(image), view.references[material_name], view.gbuffer.covered).items():
             metrics[name].append(value)
         if k == 0:
