@@ -151,24 +151,11 @@ DIRECT = 16
 
 def unshadowed_monomials() -> np.ndarray:
     """(10, 16) float64 ``C`` with ``unshadowed_transfer(n) = [1, x, y, z, xx, yy, zz, xy, yz, xz] @ C``
-    (band 3 of the clamped cosine vanishes, so degree 2 spans it); fitted to the definition once."""
-    global _MONOMIALS
-    if _MONOMIALS is None:
-        from .sh import unshadowed_transfer
+    (:func:`prt.runtime.sh.unshadowed_quadratic` with its constant row first)."""
+    from .sh import unshadowed_quadratic
 
-        normals = np.random.default_rng(0).normal(size=(256, 3))
-        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-        x, y, z = normals.T
-        mono = np.stack([np.ones_like(x), x, y, z, x * x, y * y, z * z, x * y, y * z, x * z], axis=1)
-        target = unshadowed_transfer(normals, 4, np.float64).astype(np.float64)
-        fit = np.linalg.lstsq(mono, target, rcond=None)[0]
-        if np.abs(mono @ fit - target).max() > 1e-6:  # the SH code changed its convention
-            raise RuntimeError("unshadowed transfer is not a degree-2 polynomial of the normal")
-        _MONOMIALS = np.ascontiguousarray(fit)
-    return _MONOMIALS
-
-
-_MONOMIALS = None
+    c0, w = unshadowed_quadratic(4)
+    return np.ascontiguousarray(np.vstack([c0, w]))
 
 
 def _unshadowed_reference(normals: np.ndarray, n: int) -> np.ndarray:

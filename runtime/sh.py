@@ -70,6 +70,8 @@ __all__ = [
     "clamped_cosine",
     "unshadowed_transfer",
     "unshadowed_coeff_scale",
+    "unshadowed_quadratic",
+    "QUADRATIC_TERMS",
     "zonal_to_band_factors",
     "phong_lobe",
     "band_factors_to_coeff_scale",
@@ -736,6 +738,44 @@ def unshadowed_transfer(normals, bands: int = 4, dtype=np.float64) -> np.ndarray
 def unshadowed_coeff_scale(bands: int = 4) -> np.ndarray:
     """(bands**2,) float64 per-coefficient factors ``s`` with ``unshadowed_transfer(n) = s * Y(n)``."""
     return band_factors_to_coeff_scale(zonal_to_band_factors(clamped_cosine(bands)) / np.pi)
+
+
+QUADRATIC_TERMS = ("x", "y", "z", "xx", "yy", "zz", "xy", "yz", "zx")
+"""The monomials of a unit normal ``n = (x, y, z)`` that :func:`unshadowed_quadratic` weighs, in order."""
+
+
+def unshadowed_quadratic(bands: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """The unshadowed transfer as a quadratic of the unit normal: ``(c0, W)`` with
+    ``unshadowed_transfer(n) = c0 + q(n) @ W``, ``q(n)`` the :data:`QUADRATIC_TERMS` of ``n``.
+
+    Exact up to 4 bands: the clamped cosine's band 3 vanishes, and bands 0-2 of the SH basis are
+    polynomials of degree <= 2; from band 4 on the transfer is not a quadratic (ValueError).
+    Used where the transfer is split into this known part and a learnt or interpolated residual
+    (:mod:`prt.train.network`, :mod:`prt.runtime.interpolation`).
+
+    Returns
+    -------
+    c0 : (bands**2,) float64
+    W : (9, bands**2) float64
+    """
+    bands = _check_bands(bands)
+    if bands > 4:
+        raise ValueError(f"the unshadowed transfer is a quadratic of the normal only up to 4 bands, not {bands}")
+    return tuple(a.copy() for a in _unshadowed_quadratic(bands))
+
+
+@functools.lru_cache(maxsize=None)
+def _unshadowed_quadratic(bands: int) -> tuple[np.ndarray, np.ndarray]:
+    normals = np.random.default_rng(0).normal(size=(256, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    x, y, z = normals.T
+    terms = np.stack([np.ones_like(x), x, y, z, x * x, y * y, z * z, x * y, y * z, z * x], axis=1)
+    target = basis(normals, bands) * unshadowed_coeff_scale(bands)
+    fit = np.linalg.lstsq(terms, target, rcond=None)[0]
+    if np.abs(terms @ fit - target).max() > 1e-9:  # the basis changed its convention
+        raise RuntimeError("the unshadowed transfer is not a quadratic of the normal")
+    fit[np.abs(fit) < 1e-12] = 0.0  # exact zeros where a coefficient has no such term
+    return fit[0], fit[1:]
 
 
 def white_furnace_transfer(bands: int = 4) -> np.ndarray:
