@@ -368,3 +368,17 @@ def test_windows():
     assert sh.apply_window(np.ones(9), [1, 0.5, 0.25]).tolist() == [1] + [0.5] * 3 + [0.25] * 5
     with pytest.raises(ValueError):
         sh.apply_window(c, sh.window(3))
+
+
+@pytest.mark.parametrize("bands", [1, 2, 3, 4])
+def test_unshadowed_transfer_is_the_quadratic_of_the_normal(bands):
+    """c0 + q(n) @ W equals the definition at normals it was not fitted on; band 4 on is refused."""
+    n = np.random.default_rng(7).normal(size=(300, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    c0, w = sh.unshadowed_quadratic(bands)
+    x, y, z = n.T
+    q = np.stack([x, y, z, x * x, y * y, z * z, x * y, y * z, z * x], axis=1)
+    assert len(sh.QUADRATIC_TERMS) == 9 and w.shape == (9, bands * bands)
+    np.testing.assert_allclose(c0 + q @ w, sh.basis(n, bands) * sh.unshadowed_coeff_scale(bands), atol=1e-12)
+    with pytest.raises(ValueError, match="4 bands"):
+        sh.unshadowed_quadratic(5)
