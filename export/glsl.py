@@ -164,6 +164,7 @@ class _Network:
     hidden: int  # vec4 blocks per hidden layer
     outputs: int  # vec4 blocks of output
     coefficients: int
+    quad: np.ndarray | None = None  # (9, coefficients) out_normal_quad of a residual network, else None
 
     @property
     def texels(self) -> int:
@@ -406,6 +407,9 @@ def _network(onnx_path) -> _Network:
         tensors.append(_Tensor(f"{prefix}_bias", "vec4", _vec4_items(arrays[f"{prefix}_bias"])))
     tensors.append(_Tensor("out_scale", "vec4", _vec4_items(arrays["out_scale"])))
     tensors.append(_Tensor("out_offset", "vec4", _vec4_items(arrays["out_offset"])))
+    quad = arrays.get("out_normal_quad")
+    if quad is not None and quad.shape != (9, coefficients):
+        raise ValueError(f"{onnx_path}: out_normal_quad should be {(9, coefficients)}, found {quad.shape}")
     return _Network(
         tensors=tensors,
         architecture=dict(arch),
@@ -415,7 +419,32 @@ def _network(onnx_path) -> _Network:
         hidden=math.ceil(hidden / 4),
         outputs=math.ceil(coefficients / 4),
         coefficients=coefficients,
+        quad=None if quad is None else np.asarray(quad, np.float32),
     )
+
+
+_QUAD_TERMS = ("q.x", "q.y", "q.z", "q2.x", "q2.y", "q2.z", "qx.x", "qx.y", "qx.z")  # prt.runtime.sh.QUADRATIC_TERMS
+
+
+def residual_lines(network: _Network) -> list[str]:
+    """Statements that add a residual network's ``q(n) @ out_normal_quad`` to ``t`` (none for
+    another network): the constant matrix's non-zero entries as literals, the same for every
+    residual network of a layout (it is the unshadowed transfer's), so the compact form's
+    function still depends on the architecture alone."""
+    if network.quad is None:
+        return []
+    lines = ["    // residual network: + the unshadowed transfer's quadratic part, q(n) @ out_normal_quad",
+             f"    vec3 q = normal / max(length(normal), {_literal(NORMAL_EPS)});",
+             "    vec3 q2 = q * q, qx = q * q.yzx;"]  # fmt: skip
+    for block in range(network.outputs):
+        items = []
+        for k in range(4 * block, min(4 * block + 4, network.coefficients)):
+            terms = [f"{_literal(w)} * {_QUAD_TERMS[i]}" for i, w in enumerate(network.quad[:, k]) if w != 0.0]
+            items.append(" + ".join(terms) if terms else "0.0")
+        items += ["0.0"] * (4 - len(items))
+        if any(item != "0.0" for item in items):
+            lines.append(f"    t[{block}] += vec4({', '.join(items)});")
+    return lines
 
 
 def _feature_order(pos_freqs: int, normal_freqs: int) -> tuple[np.ndarray, int]:
@@ -514,6 +543,7 @@ def _source(network: _Network, fn: str, layout: str) -> str:
         )
         if last:
             forward.append(f"    {fn}_out({x}, t);")
+            forward += residual_lines(network)
         else:
             forward += [f"    vec4 h{i}[{n_out}];", f"    {fn}_{name}({x}, h{i});"]
     padding = 4 * network.outputs - network.coefficients

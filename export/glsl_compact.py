@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .glsl import _groups_doc, _literal, _network, _template, _texture
+from .glsl import _groups_doc, _literal, _network, _template, _texture, residual_lines
 from .grid_onnx import TABLE_WIDTH, grid_input_lines, grid_level_lines, mlp_layer_lines, table_texture
 from .onnx_model import LEAKY_SLOPE, NORMAL_EPS, POSITION_CLIP
 
@@ -110,6 +110,7 @@ def freq_source(onnx_path) -> str:
         w = offsets["out_weight" if last else f"layer{i}_weight"]
         if last:
             forward.append(f"    FN_{kind}(base + {w}, {in_bound}, outputs, {x}, t);")
+            forward += residual_lines(network)
         else:
             forward += [f"    vec4 h{i}[{n_out}];", f"    FN_{kind}(base + {w}, {in_bound}, hidden, {x}, h{i});"]
             x = f"h{i}"
@@ -145,7 +146,7 @@ def freq_source(onnx_path) -> str:
         outputs=network.outputs,
         forward="\n".join(forward),
     )
-    readable = f"k{arch['hidden']}_l{layers}_p{arch['pos_freqs']}_n{arch['normal_freqs']}_o{network.coefficients}"
+    readable = f"k{arch['hidden']}_l{layers}_p{arch['pos_freqs']}_n{arch['normal_freqs']}_o{network.coefficients}" + ("_res" if network.quad is not None else "")
     return _rename(text, _name("freq", readable, text))
 
 

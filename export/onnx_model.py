@@ -10,7 +10,9 @@ Graph (opset 17), one input and one output, dynamic batch ``N``:
                "direct+rgb" layout of interreflection: direct, then indirect R, G, B)
 
 The encoding is part of the graph (Split, Sub/Mul/Clip, ReduceL2/Max/Div, MatMul, Sin, Cos,
-Concat), then ``layers`` x (Gemm, LeakyRelu), Gemm, Tanh, Mul, Add.  Initialiser names match
+Concat), then ``layers`` x (Gemm, LeakyRelu), Gemm, Tanh, Mul, Add; a residual network's
+(:class:`prt.train.network.Architecture`, ``residual``) then adds ``q(n) @ out_normal_quad``
+(Mul, Gather, Mul, Concat, MatMul, Add; ``q(n) = [n, n * n, n * n.yzx]`` of the unit normal).  Initialiser names match
 :meth:`prt.train.network.TransferMLP.arrays`; the GLSL generator reads the weights back from
 the file by those names.  Metadata (``metadata_props``) records the format, SH bands,
 architecture, encoding and output scale, so a file explains itself.
@@ -95,7 +97,16 @@ def build_model(arrays: dict[str, np.ndarray], architecture: dict, *, name: str 
     add("Gemm", [h, "out_weight", "out_bias"], ["out_pre"])
     add("Tanh", ["out_pre"], ["out_tanh"])
     add("Mul", ["out_tanh", "out_scale"], ["out_scaled"])
-    add("Add", ["out_scaled", "out_offset"], ["transfer"])
+    residual = "out_normal_quad" in arrays
+    add("Add", ["out_scaled", "out_offset"], ["out_shifted" if residual else "transfer"])
+    if residual:  # q(n) = [n, n * n, n * n.yzx] @ out_normal_quad: the unshadowed transfer's quadratic part
+        inits.append(numpy_helper.from_array(np.array([1, 2, 0], dtype=np.int64), "quad_roll"))
+        add("Mul", ["n_enc", "n_enc"], ["n_squares"])
+        add("Gather", ["n_enc", "quad_roll"], ["n_rolled"], axis=1)
+        add("Mul", ["n_enc", "n_rolled"], ["n_products"])
+        add("Concat", ["n_enc", "n_squares", "n_products"], ["n_quad"], axis=1)
+        add("MatMul", ["n_quad", "out_normal_quad"], ["unshadowed"])
+        add("Add", ["out_shifted", "unshadowed"], ["transfer"])
     graph = helper.make_graph(
         nodes,
         name,
@@ -116,7 +127,7 @@ def build_model(arrays: dict[str, np.ndarray], architecture: dict, *, name: str 
                 "normal": f"n / max(|n|, {NORMAL_EPS}); sin/cos of (n @ enc_normal_freq)",
                 "features": "[p, sin_p, cos_p, n, sin_n, cos_n]",
                 "activation": f"leaky_relu({LEAKY_SLOPE})",
-                "output": "tanh(z) * out_scale + out_offset",
+                "output": "tanh(z) * out_scale + out_offset" + (" + [n, n * n, n * n.yzx] @ out_normal_quad (residual network)" if residual else ""),
             }
         ),
         "prt.output_scale": json.dumps(np.asarray(arrays["out_scale"]).tolist()),

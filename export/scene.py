@@ -117,6 +117,8 @@ def export_segment(out: Path, segment: TrainedSegment, glsl_layout: str = "auto"
     save_model(build_model(segment.arrays, arch, name=f"segment{s}"), info.model)
     write_segment_glsl(info, glsl_layout)  # the runtime uploads the weights; it cannot read ONNX initialisers
     info.architecture = {k: arch[k] for k in _ARCHITECTURE_FIELDS}
+    if arch.get("residual"):  # the graph adds the unshadowed transfer back (prt.train.network): informative
+        info.architecture["residual"] = "unshadowed"
     if "code_weight" in segment.arrays:  # shape-conditioned: the code rows, and where the first bias sits among the texels
         if info.glsl_weights is None or not _compact_line(info.glsl):
             raise ValueError(f"segment {s}: a shape-conditioned network needs the compact GLSL layout (glsl_layout 'auto')")

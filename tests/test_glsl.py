@@ -32,6 +32,7 @@ CASES = {
     "k18-l3-f1-n1": (Architecture(hidden=18, layers=3, pos_freqs=1, normal_freqs=1), ("const", "texture")),
     "k12-l1-f6-n2-bands3": (Architecture(hidden=12, layers=1, pos_freqs=6, normal_freqs=2, bands=3), ("const", "texture")),
     "k64-l4-f6-n2": (Architecture(hidden=64, layers=4, pos_freqs=6, normal_freqs=2), ("auto", "texture")),
+    "k18-l3-f1-n1-residual": (Architecture(hidden=18, layers=3, pos_freqs=1, normal_freqs=1, residual=True), ("const", "texture")),
 }
 
 

@@ -14,7 +14,8 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import torch
 
-from .network import Architecture, TransferMLP, target_scaling
+from ..export.onnx_model import NORMAL_EPS
+from .network import Architecture, TransferMLP, normal_quadratic, residual_terms, target_scaling
 
 __all__ = [
     "FitSettings",
@@ -291,12 +292,17 @@ def fit_segment(
         raise ValueError(f"transfer has {np.shape(transfer)[1]} columns, the network {arch.outputs} outputs ({arch.layout})")
     torch.manual_seed(settings.seed)
     gen = torch.Generator().manual_seed(settings.seed)
-    scale, offset = target_scaling(transfer)
-    model = TransferMLP(arch, bounds, scale, offset)
+    target = transfer
+    if arch.residual:  # the network learns T - U(n); its graph adds U back (prt.train.network)
+        c0, w_u = residual_terms(arch)
+        n_unit = np.asarray(normals, np.float64) / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), NORMAL_EPS)
+        target = (np.asarray(transfer, np.float64) - (c0 + normal_quadratic(n_unit) @ w_u)).astype(np.float32)
+    scale, offset = target_scaling(target)
+    model = TransferMLP(arch, bounds, scale, offset + c0 if arch.residual else offset)
     if (codes is None) != (arch.code_dim == 0) or (codes is None) != (val_codes is None):
         raise ValueError(f"a network with code_dim {arch.code_dim} needs {'codes' if arch.code_dim else 'no codes'} for training and validation")
     x = _as_input(points, normals, codes)
-    y = torch.from_numpy(np.ascontiguousarray(transfer, dtype=np.float32))
+    y = torch.from_numpy(np.ascontiguousarray(target, dtype=np.float32))  # the scaled tanh output's target
     xv = _as_input(val_points, val_normals, val_codes)
     yv = np.asarray(val_transfer, dtype=np.float32)
     # L1 on the transfer itself, computed through the scaled tanh output

@@ -7,6 +7,16 @@
     h  = leaky_relu(W_0 f + b_0); h = leaky_relu(W_i h + b_i), i < layers
     T  = tanh(W_out h + b_out) * out_scale + out_offset   (bands^2 coefficients)
 
+A *residual* network (``Architecture.residual``, ``prt-train --residual``) learns the direct
+transfer's residual from the unshadowed transfer of its normal, ``U(n) = c0 + q(n) @ W_u``
+(:func:`prt.runtime.sh.unshadowed_quadratic`; ``q`` the quadratic terms of ``n``); the graph adds
+it back (``c0`` folded into ``out_offset``, ``W_u`` the constant ``out_normal_quad``):
+
+    T  = tanh(W_out h + b_out) * out_scale + out_offset + q(n) @ out_normal_quad
+
+Where little is occluded the residual is small and smooth, and the network spends its capacity
+on the shadows instead of the cosine lobe (``docs/benchmarks/residual_fit.md``).
+
 With interreflection (``layout = "direct+rgb"``, ``prt-train --bounces N``) the output is
 ``4 bands^2`` wide: the direct transfer, then the indirect transfer of the R, G and B channels
 (``bands^2`` each): ``[T_direct, T_ind_R, T_ind_G, T_ind_B]``.
@@ -31,7 +41,8 @@ from torch import nn
 from ..export.onnx_model import LEAKY_SLOPE, NORMAL_EPS, POSITION_CLIP
 from ..runtime.deformation import code_features, code_frequencies
 
-__all__ = ["Architecture", "TransferMLP", "evaluate_numpy", "mlp_numpy", "frequency_matrix", "target_scaling", "TARGET_RANGE", "LAYOUTS", "layout_width"]
+__all__ = ["Architecture", "TransferMLP", "evaluate_numpy", "mlp_numpy", "frequency_matrix", "target_scaling", "TARGET_RANGE", "LAYOUTS", "layout_width",
+           "residual_terms", "normal_quadratic"]
 
 TARGET_RANGE = 0.9  # scaled targets live in [-0.9, 0.9], where tanh' >= 0.19
 # Output layouts: "direct" (bands^2, the paper's), "direct+rgb" (direct + indirect R, G, B:
@@ -56,6 +67,7 @@ class Architecture:
     layout: str = "direct"  # see LAYOUTS
     code_dim: int = 0  # deformable scenes: the shape code's dimensions (prt.runtime.deformation)
     code_freqs: int = 0  # sin/cos frequencies of each code component
+    residual: bool = False  # learns T - U(n), the graph adds U back (module docstring); up to 4 bands
 
     @property
     def input_dim(self) -> int:
@@ -78,11 +90,12 @@ class Architecture:
         mlp = 2 * (d * k + (self.layers - 1) * k * k + k * o) + self.layers * k + 2 * o
         n_trig = 6 * (self.pos_freqs + self.normal_freqs)
         encoding = 9 + 3 * n_trig + 20 * n_trig
-        return int(mlp + encoding + 20 * o)  # tanh of each output
+        quad = 6 + 2 * 9 * self.bands * self.bands if self.residual else 0  # q(n), then q @ W_u on the direct part
+        return int(mlp + encoding + 20 * o + quad)  # tanh of each output
 
     def weight_count(self) -> int:
         k, d, o = self.hidden, self.input_dim + self.code_features, self.outputs
-        return d * k + k + (self.layers - 1) * (k * k + k) + k * o + o
+        return d * k + k + (self.layers - 1) * (k * k + k) + k * o + o + (9 * o if self.residual else 0)  # out_normal_quad: stored, not learnt
 
     def as_dict(self) -> dict:
         """Fields and ``input_dim``; ``layout`` and ``outputs`` only when not "direct" (so the
@@ -94,11 +107,37 @@ class Architecture:
             out["outputs"] = self.outputs
         if not self.code_dim:  # a static network's record is what it was before shape codes
             del out["code_dim"], out["code_freqs"]
+        if not self.residual:  # nor a plain one's before residual networks
+            del out["residual"]
         return out
 
     def label(self) -> str:
         code = f"-c{self.code_dim}f{self.code_freqs}" if self.code_dim else ""
-        return f"k{self.hidden}-l{self.layers}-f{self.pos_freqs}" + ("" if self.layout == "direct" else f"-{self.layout}") + code
+        return (f"k{self.hidden}-l{self.layers}-f{self.pos_freqs}" + ("" if self.layout == "direct" else f"-{self.layout}") + code
+                + ("-res" if self.residual else ""))  # fmt: skip
+
+
+def residual_terms(arch: Architecture) -> tuple[np.ndarray, np.ndarray]:
+    """``(c0, W_u)`` of a residual network's outputs: (outputs,) and (9, outputs) float32, the
+    unshadowed transfer's in the direct part (the first bands^2 outputs) and 0 in the indirect."""
+    from ..runtime.sh import unshadowed_quadratic
+
+    if arch.bands > 4:
+        raise ValueError(f"a residual network needs at most 4 SH bands (the unshadowed transfer is then a quadratic of the normal), not {arch.bands}")
+    c0, w = unshadowed_quadratic(arch.bands)
+    nd = arch.bands * arch.bands
+    c0_out = np.zeros(arch.outputs, np.float32)
+    w_out = np.zeros((9, arch.outputs), np.float32)
+    c0_out[:nd], w_out[:, :nd] = c0, w
+    return c0_out, w_out
+
+
+def normal_quadratic(n):
+    """The quadratic terms ``q(n)`` (N, 9) of unit normals ``n`` (N, 3), torch or numpy alike:
+    ``[x, y, z, xx, yy, zz, xy, yz, zx]`` (:data:`prt.runtime.sh.QUADRATIC_TERMS`)."""
+    rolled = n[:, [1, 2, 0]]
+    parts = [n, n * n, n * rolled]
+    return torch.cat(parts, dim=1) if isinstance(n, torch.Tensor) else np.concatenate(parts, axis=1)
 
 
 def frequency_matrix(freqs: int) -> np.ndarray:
@@ -115,6 +154,7 @@ class TransferMLP(nn.Module):
     shape code (``arch.code_dim`` = d > 0) ``x`` (N, 6 + d) = [rest position, deformed normal, theta]."""
 
     def __init__(self, arch: Architecture, bounds: np.ndarray, out_scale: np.ndarray, out_offset: np.ndarray):
+        """``out_offset``: the whole output's (a residual network's includes ``c0`` of :func:`residual_terms`)."""
         super().__init__()
         self.arch = arch
         bounds = np.asarray(bounds, dtype=np.float64)
@@ -126,6 +166,8 @@ class TransferMLP(nn.Module):
         self.register_buffer("normal_freq", torch.from_numpy(frequency_matrix(arch.normal_freqs)))
         self.register_buffer("out_scale", torch.tensor(out_scale, dtype=torch.float32))
         self.register_buffer("out_offset", torch.tensor(out_offset, dtype=torch.float32))
+        if arch.residual:
+            self.register_buffer("out_normal_quad", torch.from_numpy(residual_terms(arch)[1]))
         if arch.code_dim and arch.layers < 1:
             raise ValueError("a shape-conditioned network needs at least one hidden layer (the code enters its bias)")
         if arch.code_dim:
@@ -164,7 +206,16 @@ class TransferMLP(nn.Module):
         return self.trunk(self.encode(x))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return torch.tanh(self.preactivation(x)) * self.out_scale + self.out_offset
+        out = torch.tanh(self.preactivation(x)) * self.out_scale + self.out_offset
+        if self.arch.residual:
+            out = out + self.unshadowed_part(x)
+        return out
+
+    def unshadowed_part(self, x: torch.Tensor) -> torch.Tensor:
+        """``q(n) @ out_normal_quad``: what a residual network adds to its scaled tanh output."""
+        n = x[:, 3:6]
+        n = n / torch.clamp(torch.linalg.vector_norm(n, dim=1, keepdim=True), min=NORMAL_EPS)
+        return normal_quadratic(n) @ self.out_normal_quad
 
     def arrays(self) -> dict[str, np.ndarray]:
         """Every constant of the graph as float32 numpy, keyed by its ONNX initialiser name."""
@@ -178,6 +229,8 @@ class TransferMLP(nn.Module):
             "out_weight": self.out.weight.T,
             "out_bias": self.out.bias,
         }
+        if self.arch.residual:
+            out["out_normal_quad"] = self.out_normal_quad
         for i, layer in enumerate(self.hidden):
             out[f"layer{i}_weight"] = layer.weight.T  # (in, out): x @ W
             out[f"layer{i}_bias"] = layer.bias
@@ -207,7 +260,10 @@ def evaluate_numpy(arrays: dict[str, np.ndarray], points: np.ndarray, normals: n
         g = code_features(np.asarray(codes, np.float32).reshape(len(p), -1), arrays["enc_code_freq"])
         arrays = {**arrays, "layer0_weight": np.concatenate([arrays["layer0_weight"], arrays["code_weight"]])}
         features = np.concatenate([features, g], axis=1)
-    return mlp_numpy(arrays, features)
+    out = mlp_numpy(arrays, features)
+    if "out_normal_quad" in arrays:  # a residual network: the unshadowed transfer's quadratic part
+        out = (out + normal_quadratic(n) @ arrays["out_normal_quad"]).astype(np.float32)
+    return out
 
 
 def mlp_numpy(arrays: dict[str, np.ndarray], features: np.ndarray) -> np.ndarray:

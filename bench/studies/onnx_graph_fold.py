@@ -12,7 +12,8 @@ that computes the same function with fewer, larger operations:
 - every angle (position and normal, sine and cosine) from one Gemm of ``[p, n]``, with the
   cosines' pi/2 phase in the bias (cos x = sin(x + pi/2)), then one Sin;
 - layer 0's weight rows permuted to the new feature order;
-- the output's ``* out_scale + out_offset`` as one 16x16 diagonal Gemm.
+- the output's ``* out_scale + out_offset`` as one 16x16 diagonal Gemm (a residual network's
+  ``q(n) @ out_normal_quad`` after it, as exported).
 
 For every network segment of a scene built by ``prt-train`` (``precompute/`` beside
 ``scene.json``) both graphs run one slice of ``--rows`` surface points on one thread,
@@ -100,7 +101,17 @@ def folded_model(arrays: dict[str, np.ndarray], architecture: dict) -> bytes:
     const("out_offset", arrays["out_offset"])
     add("Gemm", [h, "out_weight", "out_bias"], ["out_pre"])
     add("Tanh", ["out_pre"], ["out_tanh"])
-    add("Gemm", ["out_tanh", "out_scale_diag", "out_offset"], ["transfer"])
+    residual = "out_normal_quad" in arrays
+    add("Gemm", ["out_tanh", "out_scale_diag", "out_offset"], ["out_shifted" if residual else "transfer"])
+    if residual:  # + q(n) @ out_normal_quad, the normal's roll as a permutation MatMul
+        const("roll", np.eye(3, dtype=np.float32)[:, [1, 2, 0]])
+        const("out_normal_quad", arrays["out_normal_quad"])
+        add("Mul", ["n_enc", "n_enc"], ["n_squares"])
+        add("MatMul", ["n_enc", "roll"], ["n_rolled"])
+        add("Mul", ["n_enc", "n_rolled"], ["n_products"])
+        add("Concat", ["n_enc", "n_squares", "n_products"], ["n_quad"], axis=1)
+        add("MatMul", ["n_quad", "out_normal_quad"], ["unshadowed"])
+        add("Add", ["out_shifted", "unshadowed"], ["transfer"])
     graph = helper.make_graph(
         nodes, "folded",
         [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["N", 6])],
