@@ -198,8 +198,57 @@ def test_default_builds_record_their_rule_too(tmp_path):
     assert proc.returncode == 0, proc.stderr
     for seg in load_manifest(out / "scene.json").segments:
         assert seg.sizing["rule"] == "fixed"
-        if seg.kind == "network":
-            assert seg.sizing["chosen"] == "k16-l2-f6" and len(seg.sizing["tried"]) == 1
+        if seg.kind == "network":  # residual networks (the default "auto" where the segment is mostly unoccluded) say so
+            assert seg.sizing["chosen"] == "k16-l2-f6" + ("-res" if seg.architecture.get("residual") else "") and len(seg.sizing["tried"]) == 1
+
+
+def test_residual_modes_choose_per_segment_and_the_record_says_why(tmp_path):
+    """--residual auto makes residual networks exactly of the segments whose mean visibility is
+    >= RESIDUAL_VISIBILITY (the training record keeps it), on makes all, off none; a residual
+    build's ONNX and GLSL backends render alike."""
+    from prt.runtime.renderer import Renderer, Scene
+    from prt.train.rightsize import RESIDUAL_VISIBILITY
+
+    flags = {}
+    for mode in ("auto", "on", "off"):
+        out = tmp_path / mode
+        proc = subprocess.run([sys.executable, "-m", "prt.train.train_cli", str(DATA / "spot.obj"), "-o", str(out), "--samples", "3000",
+                               "--rays", "16", "--steps", "20", "--batch", "1024", "--segments", "4", "--bounces", "0", "--hidden", "16",
+                               "--layers", "2", "--no-progress", "--threads", "1", "--no-analytic", "--residual", mode],
+                              capture_output=True, text=True)  # fmt: skip
+        assert proc.returncode == 0, proc.stderr
+        segments = load_manifest(out / "scene.json").segments
+        records = {s.id: json.loads((out / "train" / f"seg{s.id:03d}.json").read_text()) for s in segments}
+        flags[mode] = {s.id: s.architecture.get("residual") == "unshadowed" for s in segments}
+        for s in segments:
+            r = records[s.id]["residual"]
+            assert r["mode"] == mode and r["used"] == flags[mode][s.id]
+            if mode == "auto":
+                assert r["used"] == (r["mean_visibility"] >= RESIDUAL_VISIBILITY), r
+        if mode == "auto":
+            visibility = [records[i]["residual"]["mean_visibility"] for i in records]
+            scene = Scene.load(out / "scene.json")
+            images = [np.asarray(Renderer(scene, backend=b, width=48, height=48).render(), np.float64) for b in ("onnx", "glsl")]
+            assert np.abs(images[0] - images[1]).max() < 1e-4
+    assert all(flags["on"].values()) and not any(flags["off"].values())
+    assert all(v > 0.5 for v in visibility)  # Spot's parts see most of their lobe (4 segments, all >= 0.86 here)
+
+
+def test_residual_choice_follows_the_mean_visibility():
+    """The rule on transfers whose DC coefficient is a known share of the unshadowed one."""
+    from prt.runtime.sh import unshadowed_transfer
+    from prt.train.rightsize import RESIDUAL_VISIBILITY, residual_choice
+
+    normals = np.random.default_rng(0).normal(size=(500, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    u = unshadowed_transfer(normals, 4)
+    for share in (0.3, RESIDUAL_VISIBILITY - 0.01, RESIDUAL_VISIBILITY + 0.01, 1.0):
+        use, visibility = residual_choice("auto", u * share, normals, 4)
+        assert abs(visibility - share) < 1e-5 and use == (share >= RESIDUAL_VISIBILITY)
+        assert residual_choice("on", u * share, normals, 4)[0] and not residual_choice("off", u * share, normals, 4)[0]
+    assert not residual_choice("auto", unshadowed_transfer(normals, 5), normals, 5)[0]  # band 4: not a quadratic
+    with pytest.raises(SpecError, match="residual"):
+        spec_from_dict({"geometry": "x.obj", "residual": "maybe"})
 
 
 def test_a_spec_naming_no_rule_gets_the_default_rule_and_flags_replace_it(tmp_path):

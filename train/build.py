@@ -42,7 +42,7 @@ from .network import Architecture
 from .outdir import check_output_folder, mark_output_folder
 from .interreflection import BOUNCE_RAYS, bounce_stage
 from .bounce_depth import auto_bounces
-from .rightsize import SCENE_LIGHT, SegmentJob, candidates, segment_task
+from .rightsize import RESIDUAL_MODES, SCENE_LIGHT, SegmentJob, candidates, segment_task
 from .precompute import SPEC_LIMITS, DamagedPrecompute, PrecomputeSettings, SpecLimits, check_settings, load_precompute, run_precompute
 
 __all__ = ["BuildSpec", "SpecLimits", "SPEC_LIMITS", "load_spec", "spec_from_dict", "run_build", "ENV_LIGHTS"]
@@ -77,6 +77,9 @@ class BuildSpec:
     patience: int = 10
     bf16: bool | None = False  # bf16 autocast: about 2x faster on AVX512-BF16, about 9 % higher error
     loss: str = "l1"  # fitting loss (prt.train.fit.LOSSES): L1 on the coefficients, or "relative" (over each sample's brightness)
+    # frequency networks learn the direct transfer's residual from the unshadowed transfer of the
+    # normal (prt.train.network): "auto" per segment by its mean visibility (prt.train.rightsize), "on", "off"
+    residual: str = "auto"
     # validation coefficient MAE a right-sized network must reach (None: DEFAULT_TARGET; a spec
     # that names no sizing rule gets DEFAULT_MATCH, see spec_from_dict)
     target: float | None = None
@@ -310,6 +313,10 @@ def spec_from_dict(data: dict) -> BuildSpec:
         raise SpecError(f"glsl_layout: expected 'auto', 'const' or 'texture', got {spec.glsl_layout!r}")
     if spec.loss not in LOSSES:
         raise SpecError(f"loss: expected one of {', '.join(map(repr, LOSSES))}, got {spec.loss!r}")
+    if spec.residual not in RESIDUAL_MODES:
+        raise SpecError(f"residual: expected one of {', '.join(map(repr, RESIDUAL_MODES))}, got {spec.residual!r}")
+    if spec.residual == "on" and spec.bands > 4:
+        raise SpecError(f"residual: 'on' needs at most 4 SH bands (the unshadowed transfer is then a quadratic of the normal), not {spec.bands}")
     if spec.encoding not in ("freq", "grid", "auto"):
         raise SpecError(f"encoding: expected 'freq' (the paper's frequency-encoded MLP), 'grid' (a multiresolution feature grid) or 'auto' "
                         f"(right-sized over both), got {spec.encoding!r}")  # fmt: skip
@@ -470,6 +477,7 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
     for seg in seg_json["segments"]:
         s = seg["id"]
         key = _hash(data_key, s, fit_settings.cache_key(), [a.as_dict() for a in archs], spec.target, spec.analytic, TRAIN_FORMAT,
+                    *([spec.residual] if spec.residual != "off" else []),
                     *([spec.match, spec.match_tolerance] if spec.match is not None else []),
                     *([spec.target_db, spec.material] if spec.target_db is not None else []))  # fmt: skip
         record_path = out / "train" / f"seg{s:03d}.json"

@@ -21,11 +21,17 @@ was chosen and why (``sizing``: the rule, its target, the measured value, the si
 
 Fits read back from the fit cache carry only their arrays, so the PSNR is computed from the
 arrays in numpy (:func:`predict_numpy`), for new and cached fits alike.
+
+Before sizing, :func:`residual_choice` decides whether the segment's frequency networks learn
+the direct transfer's residual from the unshadowed transfer (``Architecture.residual``; the
+spec's ``residual``: "auto" by the segment's mean visibility, "on", "off"); every size tried,
+and a ``match`` reference, is then that kind of network.
 """
 
 from __future__ import annotations
 
 import json
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,9 +42,10 @@ from ..runtime.shading import tonemap
 from .fit import FitSettings, fit_segment, right_size, right_size_matching, shaded_error, total_transfer, transfer_error
 from .grid_encoding import GridArchitecture, fit_grid_segment
 from .grid_encoding import evaluate_numpy as grid_evaluate
+from .network import Architecture
 from .network import evaluate_numpy as freq_evaluate
 
-__all__ = ["RULES", "PSNR_CAP", "shaded_psnr", "predict_numpy", "candidates", "search_cheapest", "weight_bytes", "train_segment", "SegmentJob",
+__all__ = ["RULES", "RESIDUAL_MODES", "RESIDUAL_VISIBILITY", "residual_choice", "PSNR_CAP", "shaded_psnr", "predict_numpy", "candidates", "search_cheapest", "weight_bytes", "train_segment", "SegmentJob",
            "segment_task", "validation_split", "SCENE_LIGHT"]  # fmt: skip
 
 RULES = ("fixed", "target_mae", "match", "target_db")
@@ -50,6 +57,33 @@ DEFAULT_ALBEDO = (0.7, 0.7, 0.7)  # the spec's default material
 # images', with no stable offset (docs/benchmarks/rightsize_auto.md): a conservative,
 # view-independent bound, not a prediction of a view's PSNR.
 SCENE_LIGHT = "potsdamer"
+RESIDUAL_MODES = ("auto", "on", "off")
+RESIDUAL_VISIBILITY = 0.8
+"""``residual: "auto"``: a segment whose samples see at least this share of their cosine lobe on
+average learns the residual.  In the study (``docs/benchmarks/residual_fit.md``, 20 segments of
+the bunny, the daffodil and the Cornell box, same size, seed and steps) every segment at >= 0.80
+fitted better as a residual (+0.4 to +2.8 dB), every one at <= 0.797 worse or the same (-2.7 to
++0.1 dB): where most of the lobe is occluded, the cosine lobe is no longer the part to subtract."""
+
+
+def residual_choice(mode: str, transfer: np.ndarray, normals: np.ndarray, bands: int) -> tuple[bool, float]:
+    """Whether a segment's networks learn the residual from the unshadowed transfer, and the
+    segment's mean visibility (the mean of its samples' DC coefficient over the unshadowed one's).
+
+    ``mode``: "on", "off", or "auto" (:data:`RESIDUAL_VISIBILITY`); beyond 4 bands the unshadowed
+    transfer is not a quadratic of the normal, so "auto" says no ("on" is refused by the spec)."""
+    u00 = float(unshadowed_transfer(np.array([[0.0, 0.0, 1.0]]), bands)[0, 0])  # the same for every normal
+    visibility = float(np.mean(np.asarray(transfer[:, 0], np.float64))) / u00 if len(transfer) else 0.0
+    if mode == "on":
+        return True, visibility
+    if mode == "off" or bands > 4:
+        return False, visibility
+    return visibility >= RESIDUAL_VISIBILITY, visibility
+
+
+def _as_residual(arch, use: bool):
+    """``arch`` as a residual network where ``use`` and it is a frequency network (grids are not)."""
+    return dataclasses.replace(arch, residual=True) if use and isinstance(arch, Architecture) else arch
 
 
 def shaded_psnr(pred, truth, lights: dict, n: int, albedo=DEFAULT_ALBEDO, exposure: float = 1.0) -> dict[str, float]:
@@ -244,6 +278,12 @@ def train_segment(spec, s, samples, valid, member_idx, archs, fit_settings, ligh
                                                   f"unshadowed transfer already meets the validation MAE target {spec.target} ({mae:.5f})")}  # fmt: skip
 
     log(f"segment {s}: {len(train_idx):,} training samples ({base['margin_samples']:,} margin), {len(vt):,} held out")
+    use, visibility = residual_choice(getattr(spec, "residual", "off"), t, n, spec.bands)
+    base["residual"] = {"mode": getattr(spec, "residual", "off"), "mean_visibility": round(visibility, 4), "used": use}
+    if use:
+        log(f"segment {s}: mean visibility {visibility:.3f}: the networks learn the residual from the unshadowed transfer")
+        archs = [_as_residual(a, True) for a in archs]
+        reference = None if reference is None else _as_residual(reference, True)
     scores = {}
 
     def fit(arch):

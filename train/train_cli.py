@@ -85,6 +85,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--loss", choices=("l1", "relative"), default=None,
                    help="fitting loss: L1 on the transfer coefficients, or each sample's L1 over its brightness (DC of its transfer, "
                         "floor 0.05): dim regions (a room's interior) fit to the same relative error as bright ones [l1]")
+    p.add_argument("--residual", choices=("auto", "on", "off"), default=None,
+                   help="frequency networks learn the direct transfer's residual from the unshadowed transfer of the normal (the graph adds "
+                        "it back): auto per segment where its samples see >= 80 %% of their cosine lobe on average, on, off [auto]")
     p.add_argument("--bf16", action="store_true", help="train the MLP layers under bf16 autocast (about 2x faster where the CPU has native bf16, slightly less accurate)")
     p.add_argument("--bounces", type=_bounce_count, default=None, metavar="N",
                    help=f"diffuse interreflection: N bounces of light between surfaces, albedos from the mesh's own materials (0: direct light only; "
@@ -148,6 +151,7 @@ def _spec_from_args(args):
         "encoding": args.encoding,
         "grid": args.grid,
         "loss": args.loss,
+        "residual": args.residual,
     }
     data = spec.to_dict() | named
     data.update({k: v for k, v in overrides.items() if v is not None})
