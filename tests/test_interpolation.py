@@ -263,3 +263,24 @@ def test_cli_refuses_a_bad_tolerance(tmp_path):
     assert out.returncode == 2
     assert out.stderr.strip().count("\n") == 0 and "--interpolate" in out.stderr, out.stderr
     assert not (tmp_path / "f").exists()
+
+
+def test_frame_rate_study_compares_two_builds_in_one_run(tmp_path):
+    """bench/studies/interpolation_fps.py --against: both scenes' renderers take turns; one row per
+    (scene, tolerance), speed-ups over the first scene's every-pixel frames, PSNR against each scene's own."""
+    import json
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    demo = root / "runtime" / "data" / "demo" / "scene.json"
+    out = tmp_path / "fps.json"
+    proc = subprocess.run([sys.executable, str(root / "bench" / "studies" / "interpolation_fps.py"), "--size", "48", "--views", "2",
+                           "--rounds", "1", "--warmup", "1", "--tolerances", "0.1", "--against", str(demo), "--json", str(out)],
+                          capture_output=True, text=True)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    rows = json.loads(out.read_text())["rows"]
+    assert [(r["scene"] == str(demo), r["tolerance"]) for r in rows] == [(True, 0.0), (True, 0.1)] * 2
+    assert rows[0]["speedup"] == 1.0 and all(r["speedup"] > 0 and r["fps"] > 0 for r in rows)
+    assert rows[0]["psnr_vs_every_pixel_db"] is None and rows[2]["psnr_vs_every_pixel_db"] is None
+    assert rows[1]["psnr_vs_every_pixel_db"] > 30 and rows[3]["psnr_vs_every_pixel_db"] > 30
+    assert 0 < rows[1]["network_fraction"] <= 1 and rows[0]["network_fraction"] == 1.0
