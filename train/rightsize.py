@@ -24,8 +24,9 @@ arrays in numpy (:func:`predict_numpy`), for new and cached fits alike.
 
 Before sizing, :func:`residual_choice` decides whether the segment's frequency networks learn
 the direct transfer's residual from the unshadowed transfer (``Architecture.residual``; the
-spec's ``residual``: "auto" by the segment's mean visibility, "on", "off"); every size tried,
-and a ``match`` reference, is then that kind of network.
+spec's ``residual``: "on", "off", or "auto": where the segment's mean visibility is high, both
+kinds fitted at one size and the lower validation MAE kept); every size tried, and a ``match``
+reference, is then that kind of network.
 """
 
 from __future__ import annotations
@@ -60,18 +61,23 @@ SCENE_LIGHT = "potsdamer"
 RESIDUAL_MODES = ("auto", "on", "off")
 RESIDUAL_VISIBILITY = 0.8
 """``residual: "auto"``: a segment whose samples see at least this share of their cosine lobe on
-average learns the residual.  In the study (``docs/benchmarks/residual_fit.md``, 20 segments of
-the bunny, the daffodil and the Cornell box, same size, seed and steps) every segment at >= 0.80
-fitted better as a residual (+0.4 to +2.8 dB), every one at <= 0.797 worse or the same (-2.7 to
-+0.1 dB): where most of the lobe is occluded, the cosine lobe is no longer the part to subtract."""
+average is fitted both ways at one size (the ``match`` reference, else the first frequency size),
+and keeps the kind with the lower validation MAE; a segment below it stays plain without the
+extra fit.  In the study (``docs/benchmarks/residual_fit.md``, 20 segments of the bunny, the
+daffodil and the Cornell box, same size, seed and steps) every segment at >= 0.80 fitted better
+as a residual (+0.4 to +2.8 dB), every one at <= 0.797 worse or the same (-2.7 to +0.1 dB): where
+most of the lobe is occluded, the cosine lobe is no longer the part to subtract.  Visibility is not
+enough on its own: the demo's flat ground (0.86; one normal, so nothing for the residual to take
+away) fitted 7 % worse as a residual, and its images lost 1.2 dB (``residual_networks.md``)."""
 
 
 def residual_choice(mode: str, transfer: np.ndarray, normals: np.ndarray, bands: int) -> tuple[bool, float]:
-    """Whether a segment's networks learn the residual from the unshadowed transfer, and the
+    """Whether a segment's networks may learn the residual from the unshadowed transfer, and the
     segment's mean visibility (the mean of its samples' DC coefficient over the unshadowed one's).
 
-    ``mode``: "on", "off", or "auto" (:data:`RESIDUAL_VISIBILITY`); beyond 4 bands the unshadowed
-    transfer is not a quadratic of the normal, so "auto" says no ("on" is refused by the spec)."""
+    ``mode``: "on", "off", or "auto" (:data:`RESIDUAL_VISIBILITY`; :func:`train_segment` then
+    fits both kinds once and keeps the better); beyond 4 bands the unshadowed transfer is not a
+    quadratic of the normal, so "auto" says no ("on" is refused by the spec)."""
     u00 = float(unshadowed_transfer(np.array([[0.0, 0.0, 1.0]]), bands)[0, 0])  # the same for every normal
     visibility = float(np.mean(np.asarray(transfer[:, 0], np.float64))) / u00 if len(transfer) else 0.0
     if mode == "on":
@@ -278,12 +284,8 @@ def train_segment(spec, s, samples, valid, member_idx, archs, fit_settings, ligh
                                                   f"unshadowed transfer already meets the validation MAE target {spec.target} ({mae:.5f})")}  # fmt: skip
 
     log(f"segment {s}: {len(train_idx):,} training samples ({base['margin_samples']:,} margin), {len(vt):,} held out")
-    use, visibility = residual_choice(getattr(spec, "residual", "off"), t, n, spec.bands)
-    base["residual"] = {"mode": getattr(spec, "residual", "off"), "mean_visibility": round(visibility, 4), "used": use}
-    if use:
-        log(f"segment {s}: mean visibility {visibility:.3f}: the networks learn the residual from the unshadowed transfer")
-        archs = [_as_residual(a, True) for a in archs]
-        reference = None if reference is None else _as_residual(reference, True)
+    mode = getattr(spec, "residual", "off")
+    use, visibility = residual_choice(mode, t, n, spec.bands)
     scores = {}
 
     def fit(arch):
@@ -320,6 +322,21 @@ def train_segment(spec, s, samples, valid, member_idx, archs, fit_settings, ligh
     def worst(label):  # the target's measure: the scene's lighting (every map's when it is absent)
         psnr = scores[label]
         return psnr[SCENE_LIGHT] if SCENE_LIGHT in psnr else min(psnr.values(), default=PSNR_CAP)
+
+    base["residual"] = {"mode": mode, "mean_visibility": round(visibility, 4)}
+    probe = reference if reference is not None else next((a for a in archs if isinstance(a, Architecture)), None)
+    if mode == "auto" and use and probe is not None:  # both kinds at the probe size: the lower validation MAE decides
+        plain, residual = fit(probe), fit(_as_residual(probe, True))
+        use = residual.val_mae < plain.val_mae
+        base["residual"]["val_mae"] = {"plain": plain.val_mae, "residual": residual.val_mae, "size": probe.label()}
+        log(f"segment {s}: mean visibility {visibility:.3f}; validation MAE {plain.val_mae:.5f} plain, {residual.val_mae:.5f} residual: "
+            f"{'residual' if use else 'plain'} networks")  # fmt: skip
+    elif use:
+        log(f"segment {s}: mean visibility {visibility:.3f}: the networks learn the residual from the unshadowed transfer")
+    base["residual"]["used"] = bool(use and probe is not None)
+    if use:
+        archs = [_as_residual(a, True) for a in archs]
+        reference = None if reference is None else _as_residual(reference, True)
 
     if rule == "target_db":
         result, tried, met = search_cheapest(fit, archs, lambda r: worst(r.arch.label()), spec.target_db, log=log)
