@@ -767,8 +767,7 @@ def unshadowed_quadratic(bands: int = 4) -> tuple[np.ndarray, np.ndarray]:
 @functools.lru_cache(maxsize=None)
 def _unshadowed_quadratic(bands: int) -> tuple[np.ndarray, np.ndarray]:
     normals = np.random.default_rng(0).normal(size=(256, 3))
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    x, y, z = normals.T
+    x, y, z = (normals := normals / np.linalg.norm(normals, axis=1, keepdims=True)).T
     terms = np.stack([np.ones_like(x), x, y, z, x * x, y * y, z * z, x * y, y * z, z * x], axis=1)
     target = basis(normals, bands) * unshadowed_coeff_scale(bands)
     fit = np.linalg.lstsq(terms, target, rcond=None)[0]
