@@ -21,6 +21,7 @@ import math
 import sys
 from pathlib import Path
 
+from prt.bench.bounce_reference import HIT_RAYS, HIT_TRANSFER_RAYS
 from prt.bench.report import markdown, plot
 from prt.bench.scene_bench import Settings, run
 from prt.export.precision import PRECISIONS
@@ -44,6 +45,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--ref-rays", type=int, default=1024, help="rays per pixel of the reference (default 1024)")
     p.add_argument("--ref-rays-max", type=int, default=4096, metavar="N",
                    help="more reference rays, up to N, where the reference's noise is not 6 dB above the best PSNR (default 4096)")
+    p.add_argument("--ref-hit-rays", type=int, default=HIT_RAYS, metavar="N",
+                   help=f"scenes with bounces: bounce rays per pixel of the reference's indirect light (default {HIT_RAYS}); its noise "
+                        "is usually the reference's floor there")  # fmt: skip
+    p.add_argument("--ref-hit-transfer-rays", type=int, default=HIT_TRANSFER_RAYS, metavar="N",
+                   help=f"scenes with bounces: rays of the direct transfer traced at each bounce hit (default {HIT_TRANSFER_RAYS})")
     p.add_argument("--warmup", type=int, default=3, help="frames before timing each configuration (default 3)")
     p.add_argument("--packing-views", type=int, default=None, metavar="N",
                    help="views of the naive-vs-packed baseline, spread over the orbit (default: all; the naive path "
@@ -71,8 +77,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="measure every scene again (default: a scene measured earlier with the same files and "
                         "settings is taken from its checkpoint in the cache, so an interrupted run resumes)")  # fmt: skip
     args = p.parse_args(argv)
-    if args.views < 1 or min(args.size) < 1 or args.ref_rays < 1 or args.warmup < 0:
-        p.error("--views, --size and --ref-rays must be positive, --warmup >= 0")
+    if args.views < 1 or min(args.size) < 1 or args.ref_rays < 1 or args.warmup < 0 or args.ref_hit_rays < 1 or args.ref_hit_transfer_rays < 1:
+        p.error("--views, --size, --ref-rays and --ref-hit-(transfer-)rays must be positive, --warmup >= 0")
     for flag, value in (("--gemm-size", args.gemm_size), ("--blas-threads", args.blas_threads), ("--packing-views", args.packing_views)):
         if value is not None and value < 1:
             p.error(f"{flag} must be positive, got {value}")
@@ -105,6 +111,7 @@ def main(argv=None) -> int:
         interpolate=tuple(dict.fromkeys(args.interpolate)),
         texture_sizes=tuple(dict.fromkeys(args.texture_size)),
         gemm_size=args.gemm_size, blas_threads=args.blas_threads, fresh=args.fresh, images=args.images,
+        ref_hit_rays=args.ref_hit_rays, ref_hit_transfer_rays=args.ref_hit_transfer_rays,
     )  # fmt: skip
     try:
         with open_executor(args.cluster) as executor:

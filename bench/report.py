@@ -84,6 +84,7 @@ from pathlib import Path
 
 import numpy as np
 
+from prt.bench.bounce_reference import HIT_RAYS, HIT_TRANSFER_RAYS
 from prt.bench.metrics import image_metrics, pareto_front
 from prt.runtime.files import atomic_write_bytes
 from prt.runtime.manifest import load_manifest
@@ -381,6 +382,9 @@ def scene_checkpoint(scene_path, settings) -> Path:
         options["texture_sizes"] = list(settings.texture_sizes)
     if getattr(settings, "interpolate", ()):  # (likewise)
         options["interpolate"] = list(settings.interpolate)
+    for key, default in (("ref_hit_rays", HIT_RAYS), ("ref_hit_transfer_rays", HIT_TRANSFER_RAYS)):  # (likewise)
+        if getattr(settings, key, default) != default:
+            options[key] = getattr(settings, key)
     options["prt"] = _prt_version()  # a new release measures again
     options["records"] = RECORD_FORMAT  # so does a new record format
     digest.update(json.dumps(options, sort_keys=True, default=list).encode())

@@ -36,7 +36,7 @@ from threadpoolctl import threadpool_limits
 from prt.bench.machine import busy_seconds, cpu_name, machine_gemm, other_cpu_share
 from prt.bench.metrics import image_metrics, mark_pareto
 from prt.bench.packing import packing_baseline
-from prt.bench.bounce_reference import cached_indirect, direct_rgb, face_albedo, higher_bounce_samples
+from prt.bench.bounce_reference import HIT_RAYS, HIT_TRANSFER_RAYS, cached_indirect, direct_rgb, face_albedo, higher_bounce_samples
 from prt.bench.reference import View, cached_transfer, convergence, load_scene_geometry, noise_psnr, rays_for_margin, reference_images
 from prt.bench.report import error_figure, scene_checkpoint, transfer_label
 from prt.bench.texture_prt import texture_variants
@@ -81,6 +81,8 @@ class Settings:
     blas_threads: int | None = None
     fresh: bool = False  # re-measure scenes a checkpoint already holds
     images: Path | None = None  # folder for the error-map figures (None: none)
+    ref_hit_rays: int = HIT_RAYS  # interreflection reference: bounce rays per pixel (bench/bounce_reference.py)
+    ref_hit_transfer_rays: int = HIT_TRANSFER_RAYS  # and rays of the direct transfer at each hit
 
 
 def _materials(manifest) -> dict:
@@ -270,7 +272,8 @@ class SceneBench:
         self.bounce_albedo = face_albedo(record.get("albedos") or {}, self.geometry)
         self.higher = higher_bounce_samples(self.geometry, self.tracer, self.bounce_albedo, self.bounces, rays=self.settings.ref_rays,
                                             seed=self.settings.seed, cache=self.transfer_cache, geometry_id=self.geometry_id, log=self.log)  # fmt: skip
-        self.entry["reference"]["interreflection"] = {"bounces": self.bounces, "gi_off_psnr": {},
+        self.entry["reference"]["interreflection"] = {"bounces": self.bounces, "gi_off_psnr": {}, "hit_rays": self.settings.ref_hit_rays,
+                                                      "hit_transfer_rays": self.settings.ref_hit_transfer_rays,
                                                       "note": "PSNR of the direct-only reference against the N-bounce one at view 0: what GI changes"}  # fmt: skip
 
     def _with_bounces(self, transfer, tag, points, normals, seed):
@@ -278,7 +281,8 @@ class SceneBench:
         if self.bounces <= 0:
             return transfer, 0.0
         indirect, spent = cached_indirect(self.transfer_cache, tag, self.geometry, self.tracer, points, normals, self.bounce_albedo,
-                                          self.bounces, higher=self.higher, seed=seed, geometry_id=self.geometry_id)  # fmt: skip
+                                          self.bounces, higher=self.higher, seed=seed, geometry_id=self.geometry_id,
+                                          hit_rays=self.settings.ref_hit_rays, rays=self.settings.ref_hit_transfer_rays)  # fmt: skip
         return direct_rgb(transfer, indirect), spent
 
     def run(self) -> tuple[dict, list]:

@@ -107,6 +107,8 @@ def test_an_interrupted_run_resumes_from_its_scene_checkpoints(report, tiny_scen
     assert report_format.scene_checkpoint(tiny_scene, settings) == checkpoint
     assert report_format.scene_checkpoint(tiny_scene, dataclasses.replace(settings, warmup=2)) != checkpoint
     assert report_format.scene_checkpoint(tiny_scene, dataclasses.replace(settings, interpolate=(0.2,))) != checkpoint
+    assert report_format.scene_checkpoint(tiny_scene, dataclasses.replace(settings, ref_hit_rays=512)) != checkpoint  # the bounce reference
+    assert report_format.scene_checkpoint(tiny_scene, dataclasses.replace(settings, ref_hit_transfer_rays=16)) != checkpoint
     assert report_format.scene_checkpoint(tiny_scene, dataclasses.replace(settings, cache=tmp_path)).name == checkpoint.name
     copy = tmp_path / "scene"
     shutil.copytree(tiny_scene.parent, copy)

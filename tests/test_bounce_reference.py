@@ -66,3 +66,16 @@ def test_no_bounce_is_zero_and_albedos_must_name_every_object(bowl):
         face_albedo({"floor": [1, 1, 1]}, geometry)
     with pytest.raises(ValueError, match="higher-bounce"):
         indirect_transfer(geometry, tracer, points, normals, albedo, 2)
+
+
+def test_more_hit_rays_with_fewer_rays_each_is_less_noisy_at_the_same_cost(bowl):
+    """The spread of the indirect DC over points that all see the same light (the integrating
+    sphere): 512 hits x 16 rays is below 64 x 128 (prt-bench --ref-hit-rays / --ref-hit-transfer-rays)."""
+    geometry, tracer, points, normals = bowl
+    albedo = face_albedo({"bowl": ALBEDO}, geometry)
+    higher = higher_bounce_samples(geometry, tracer, albedo, 1, rays=64, count=2000, log=lambda *_: None)
+    spread = {}
+    for hits, rays in ((64, 128), (512, 16)):
+        indirect = indirect_transfer(geometry, tracer, points, normals, albedo, 1, higher=higher, seed=5, hit_rays=hits, rays=rays)
+        spread[hits] = float(indirect[:, 0, 0].std())
+    assert spread[512] < 0.8 * spread[64], spread
