@@ -40,6 +40,7 @@ from torch import nn
 
 from ..export.onnx_model import LEAKY_SLOPE, NORMAL_EPS, POSITION_CLIP
 from ..runtime.deformation import code_features, code_frequencies
+from ..runtime.sh import unshadowed_quadratic
 
 __all__ = ["Architecture", "TransferMLP", "evaluate_numpy", "mlp_numpy", "frequency_matrix", "target_scaling", "TARGET_RANGE", "LAYOUTS", "layout_width",
            "residual_terms", "normal_quadratic"]
@@ -120,8 +121,6 @@ class Architecture:
 def residual_terms(arch: Architecture) -> tuple[np.ndarray, np.ndarray]:
     """``(c0, W_u)`` of a residual network's outputs: (outputs,) and (9, outputs) float32, the
     unshadowed transfer's in the direct part (the first bands^2 outputs) and 0 in the indirect."""
-    from ..runtime.sh import unshadowed_quadratic
-
     if arch.bands > 4:
         raise ValueError(f"a residual network needs at most 4 SH bands (the unshadowed transfer is then a quadratic of the normal), not {arch.bands}")
     c0, w = unshadowed_quadratic(arch.bands)

@@ -31,8 +31,8 @@ reference, is then that kind of network.
 
 from __future__ import annotations
 
-import json
 import dataclasses
+import json
 from dataclasses import dataclass
 
 import numpy as np
