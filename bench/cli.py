@@ -77,8 +77,10 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="measure every scene again (default: a scene measured earlier with the same files and "
                         "settings is taken from its checkpoint in the cache, so an interrupted run resumes)")  # fmt: skip
     args = p.parse_args(argv)
-    if args.views < 1 or min(args.size) < 1 or args.ref_rays < 1 or args.warmup < 0 or args.ref_hit_rays < 1 or args.ref_hit_transfer_rays < 1:
-        p.error("--views, --size, --ref-rays and --ref-hit-(transfer-)rays must be positive, --warmup >= 0")
+    if args.views < 1 or min(args.size) < 1 or args.ref_rays < 1 or args.warmup < 0:
+        p.error("--views, --size and --ref-rays must be positive, --warmup >= 0")
+    if args.ref_hit_rays < 1 or args.ref_hit_transfer_rays < 1:
+        p.error("--ref-hit-rays and --ref-hit-transfer-rays must be positive")
     for flag, value in (("--gemm-size", args.gemm_size), ("--blas-threads", args.blas_threads), ("--packing-views", args.packing_views)):
         if value is not None and value < 1:
             p.error(f"{flag} must be positive, got {value}")
