@@ -286,9 +286,11 @@ def train_segment(spec, s, samples, valid, member_idx, archs, fit_settings, ligh
     log(f"segment {s}: {len(train_idx):,} training samples ({base['margin_samples']:,} margin), {len(vt):,} held out")
     mode = getattr(spec, "residual", "off")
     use, visibility = residual_choice(mode, t, n, spec.bands)
-    scores = {}
+    scores, done = {}, {}
 
     def fit(arch):
+        if arch in done:  # fitted in this call already (the residual probe, then the sizing rule)
+            return done[arch]
         cached = fits.get(arch) if fits is not None else None
         if cached is not None:
             log(f"  {arch.label():>12}: fitted before on this precompute (cached)")
@@ -298,6 +300,7 @@ def train_segment(spec, s, samples, valid, member_idx, archs, fit_settings, ligh
             if fits is not None:
                 fits.put(result)
         scores[arch.label()] = psnr_of(predict_numpy(arch, result.model.arrays(), vp, vn))
+        done[arch] = result
         return result
 
     def _fit(arch):
