@@ -127,7 +127,8 @@ def cached_transfer(cache: Path, tag: str, geometry, tracer, points, normals, ra
     """
     points = np.ascontiguousarray(points, dtype=np.float32)
     normals = np.ascontiguousarray(normals, dtype=np.float32)
-    digest = hashlib.sha1(points.tobytes() + normals.tobytes() + f"|{rays}|{seed}|{geometry_id}|v1".encode())
+    rule = getattr(tracer, "origin_rule", "")  # SDFs: how ray origins leave the surface (older caches traced otherwise)
+    digest = hashlib.sha1(points.tobytes() + normals.tobytes() + f"|{rays}|{seed}|{geometry_id}|v1{'|' + rule if rule else ''}".encode())
     path = cache / f"{tag}-r{rays}-s{seed}-{digest.hexdigest()[:12]}.npz"
     if path.is_file():
         with np.load(path) as data:

@@ -116,6 +116,7 @@ class EmbreeTracer:
     """Occlusion queries against a triangle mesh with Embree (both faces of a triangle block)."""
 
     offset = MESH_RAY_OFFSET
+    origin_rule = ""  # part of cache keys where it is not empty: how origins leave the surface
 
     def __init__(self, mesh):
         triangles = np.ascontiguousarray(
@@ -135,6 +136,10 @@ class EmbreeTracer:
     def __reduce__(self):
         # An Embree scene cannot be pickled: send the triangles, rebuild once per process.
         return _embree_tracer, (self._triangles, self.identity)
+
+    def origins(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        """Ray origins (S, 3) float32 of surface points with unit normals: ``offset`` along the normal."""
+        return np.asarray(points, dtype=np.float32) + self.offset * np.asarray(normals, dtype=np.float32)
 
     def occluded(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         """origins, dirs : (K, 3) float32 -> (K,) bool, True where the ray hits anything."""
@@ -166,10 +171,17 @@ class SDFTracer:
     """
 
     offset = SDF_RAY_OFFSET
+    origin_rule = "lift-v1"  # :meth:`prt.train.sdf.SDF.start_points`
 
     def __init__(self, sdf):
         self._sdf = sdf
-        self.identity = "sdf:" + hashlib.sha1(sdf.glsl().encode()).hexdigest()
+        # the origin rule is part of the identity: builds cached before it trace again
+        self.identity = f"sdf:{self.origin_rule}:" + hashlib.sha1(sdf.glsl().encode()).hexdigest()
+
+    def origins(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        """Ray origins (S, 3) float32: ``offset`` along the normal, further where the field is still
+        below the hit threshold there (:meth:`prt.train.sdf.SDF.start_points`)."""
+        return self._sdf.start_points(points, normals, self.offset)
 
     def occluded(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         """origins, dirs : (K, 3) float32 -> (K,) bool, True where the ray hits the scene."""
@@ -183,6 +195,7 @@ class MixedTracer:
         parts = geometry.mixed
         keep = ~parts.proxy_faces
         self.offset = SDF_RAY_OFFSET  # the sphere tracer's start offset; ample for Embree too
+        self.origin_rule = ""
         self.mesh = None
         if keep.any():
             import trimesh
@@ -191,8 +204,16 @@ class MixedTracer:
             self.mesh = EmbreeTracer(trimesh.Trimesh(np.asarray(geometry.mesh.vertices), faces, process=False))
         union = parts.union()
         self.sdf = SDFTracer(union) if union is not None else None
+        if self.sdf is not None:
+            self.origin_rule = self.sdf.origin_rule
         ids = [t.identity for t in (self.mesh, self.sdf) if t is not None]
         self.identity = "mixed:" + hashlib.sha1("|".join(ids).encode()).hexdigest()
+
+    def origins(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        """Ray origins (S, 3) float32: the SDF objects' rule (:meth:`SDFTracer.origins`) when the scene has any."""
+        if self.sdf is None:
+            return np.asarray(points, dtype=np.float32) + self.offset * np.asarray(normals, dtype=np.float32)
+        return self.sdf.origins(points, normals)
 
     def occluded(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         """origins, dirs : (K, 3) float32 -> (K,) bool, True where a mesh or an SDF object blocks the ray."""
@@ -237,7 +258,7 @@ class TransferIntegrator:
         frames32 = frames.astype(np.float32)
         # world direction of local ray j at sample s: frames[s] @ d[j]  -> (S, M, 3)
         dirs = np.matmul(self._local_dirs32[None], frames32.transpose(0, 2, 1))
-        origins = np.asarray(points, dtype=np.float32) + self.tracer.offset * frames32[:, :, 2]
+        origins = self.tracer.origins(points, frames32[:, :, 2])
         return np.repeat(origins, self.rays, axis=0), dirs.reshape(-1, 3), frames
 
     def integrate(self, hit: np.ndarray, frames: np.ndarray) -> np.ndarray:

@@ -208,6 +208,45 @@ class SDF:
 
     # ----- visibility ----------------------------------------------------------------
 
+    def start_points(self, points, normals, offset: float, margin: float = 4e-4, most: float = 0.02) -> np.ndarray:
+        """Ray origins for surface points: ``points + offset * normals``, moved further out along the
+        normal where the field there is still below ``margin``.
+
+        A fixed offset is not enough where the field grows slowly: a neural SDF divided by its
+        Lipschitz bound has gradients of 0.03 to 0.4, so 2e-3 along the normal can leave the origin
+        below :meth:`sphere_trace`'s hit threshold (1e-4), and every ray from it "hits" at once (a
+        lit ear tip came out black).  Such origins take up to three Newton steps along the normal
+        (the field's slope along it from :meth:`gradient`) to ``margin`` (4x the threshold), at
+        most ``most`` further out in all.  An exact distance (slope 1) never moves.
+
+        Returns
+        -------
+        (N, 3) float32
+        """
+        p = np.asarray(points, dtype=np.float64)
+        n = np.asarray(normals, dtype=np.float64)
+        origins = p + float(offset) * n
+        moved = np.zeros(len(p))
+        todo = np.arange(len(p))
+        f = self.evaluate(origins)
+        for _ in range(3):
+            low = f < margin
+            todo, f = todo[low], f[low]
+            if todo.size == 0:
+                break
+            slope = np.einsum("ij,ij->i", self.gradient(origins[todo]), n[todo])
+            grows = slope > 1e-3  # where the field does not grow outwards, stay
+            todo, f, slope = todo[grows], f[grows], slope[grows]
+            step = np.clip((margin - f) / np.maximum(slope, 1e-3), 0.0, most - moved[todo])
+            trial = origins[todo] + step[:, None] * n[todo]
+            f_trial = self.evaluate(trial)
+            better = f_trial > f  # a step that lands nearer another surface (an occluder) is refused
+            todo, f = todo[better], f_trial[better]
+            origins[todo] = trial[better]
+            moved[todo] += step[better]
+        return origins.astype(np.float32)
+
+
     def sphere_trace(
         self,
         origins,
