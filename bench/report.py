@@ -180,7 +180,9 @@ def markdown(report: dict) -> str:
     lines.append("")
     for s in report["scenes"]:
         ref = s["reference"]
-        lines.append(f"**{s['scene']}**: reference {ref['rays']} rays per pixel; its noise (two seeds, view 0): "
+        used = sorted(set((ref.get("rays_by_size") or {}).values()) | ({ref["rays"]} if not ref.get("rays_by_size") else set()))
+        rays = " / ".join(f"{r}" for r in used) + (f" (asked {ref['rays']}; raised for the noise margin)" if used != [ref["rays"]] else "")
+        lines.append(f"**{s['scene']}**: reference {rays} rays per pixel; its noise (two seeds, view 0): "
                      + "; ".join(f"{res}: " + ", ".join(f"{m} {db:.1f} dB" for m, db in d.items()) for res, d in ref["noise_psnr"].items()))  # fmt: skip
         for res, c in ref.get("convergence", {}).items():
             gaps = ", ".join(f"{m} {c['noise_psnr'][m]:.1f} vs {c['best_psnr'][m]:.1f} dB ({c['margin_db'][m]:+.1f})" for m in c["margin_db"])
