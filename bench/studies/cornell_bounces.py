@@ -1,7 +1,8 @@
 """The Cornell box direct-only, with 1 and 2 bounces, and the path-traced reference: docs/cornell_bounces.png.
 
 usage: python bench/studies/cornell_bounces.py [MESH] [--work DIR] [--samples N] [--rays R] [--steps S]
-           [--bounces 0 1 2] [--hidden 32 --layers 3] [--size 256] [--views 3] [--ref-rays 256] [--envmap studio] [--exposure 2]
+           [--bounces 0 1 2] [--hidden 32 --layers 3] [--size 256] [--views 3] [--ref-rays 256] [--ref-hit-rays 64]
+           [--ref-hit-transfer-rays N] [--noise] [--envmap studio] [--exposure 2]
            [--json docs/benchmarks/cornell_bounces.json] [--figure docs/cornell_bounces.png]
 
 MESH defaults to the shared Cornell box (the tests/data copy with its MTL colours).  For every N
@@ -35,7 +36,7 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 
-from prt.bench.bounce_reference import cached_indirect, face_albedo, higher_bounce_samples
+from prt.bench.bounce_reference import HIT_RAYS, cached_indirect, face_albedo, higher_bounce_samples
 from prt.bench.metrics import image_metrics
 from prt.bench.reference import cached_transfer, load_scene_geometry
 from prt.runtime.camera import Camera, orbit_views
@@ -111,12 +112,19 @@ def main(argv=None) -> int:
     p.add_argument("--views", type=int, default=3)
     p.add_argument("--frames", type=int, default=5)
     p.add_argument("--ref-rays", type=int, default=256)
+    p.add_argument("--ref-hit-rays", type=int, default=HIT_RAYS, help="bounce rays per pixel of the indirect reference (prt-bench's --ref-hit-rays)")
+    p.add_argument("--ref-hit-transfer-rays", type=int, default=None,
+                   help="rays per bounce hit of the indirect reference [min(--ref-rays, 128)] (prt-bench's --ref-hit-transfer-rays)")
+    p.add_argument("--noise", action="store_true", help="also trace view 0's reference with a second seed: the reference's own noise (PSNR)")
     p.add_argument("--envmap", default="studio")
     p.add_argument("--exposure", type=float, default=2.0, help="the box is lit through its open side only")
     p.add_argument("--json", type=Path, default=ROOT / "docs" / "benchmarks" / "cornell_bounces.json")
     p.add_argument("--figure", type=Path, default=ROOT / "docs" / "cornell_bounces.png")
     args = p.parse_args(argv)
 
+    if args.ref_hit_rays < 1 or (args.ref_hit_transfer_rays is not None and args.ref_hit_transfer_rays < 1):
+        p.error("--ref-hit-rays and --ref-hit-transfer-rays must be >= 1")
+    hit_transfer_rays = args.ref_hit_transfer_rays or min(args.ref_rays, 128)
     args.size_flags = ["--hidden", str(args.hidden), "--layers", str(args.layers)] if args.hidden else []
     args.work.mkdir(parents=True, exist_ok=True)
     cache = args.work / "reference"
@@ -135,7 +143,7 @@ def main(argv=None) -> int:
     cameras = orbit_views(Camera.from_manifest(scenes[top].manifest.camera), args.views)
     result = {"mesh": str(args.mesh), "envmap": args.envmap, "exposure": args.exposure, "size": args.size, "views": args.views,
               "samples": args.samples, "rays": args.rays, "steps": args.steps, "network": args.size_flags or "right-sized",
-              "ref_rays": args.ref_rays, "command": "python bench/studies/cornell_bounces.py " + " ".join(sys.argv[1:]), "builds": {}}  # fmt: skip
+              "ref_rays": args.ref_rays, "ref_hit_rays": args.ref_hit_rays, "ref_hit_transfer_rays": hit_transfer_rays, "command": "python bench/studies/cornell_bounces.py " + " ".join(sys.argv[1:]), "builds": {}}  # fmt: skip
     panels, pixels, refs = {}, {}, {}
     for n in args.bounces:
         psnr, ssim, frame_ms, bleed_render, bleed_ref, gi_off = [], [], [], [], [], []
@@ -166,19 +174,25 @@ def main(argv=None) -> int:
                     raise SystemExit(f"view {v}: the builds' G-buffers differ (not one mesh?)")
                 _, direct, objects, rec_albedo = pixels[v]
                 lighting = r.lighting.sh.astype(np.float64)  # (16, 3)
-                for m in {0, n, top} - {k for (w, k) in refs if w == v}:
-                    indirect = cached_indirect(cache, f"v{v}-{args.size}", geometry, tracer, pts, nrm, albedo, m, geometry_id=info["checksum"],
-                                               higher=higher if m >= 2 else None, rays=min(args.ref_rays, 128))[0] if m > 0 else 0.0  # fmt: skip
-                    t = direct.astype(np.float64)[:, :, None] + indirect
-                    ref = np.zeros(cov.shape + (3,), np.float32)
-                    ref[cov] = np.maximum(rec_albedo * np.einsum("pkc,kc->pc", t, lighting), 0)
-                    refs[(v, m)] = ref
+                for m in {0, n, top} - {k[1] for k in refs if k[0] == v and len(k) == 2}:
+                    for seed in (0, 1) if (args.noise and v == 0) else (0,):
+                        d = direct if seed == 0 else cached_transfer(cache, f"v{v}-{args.size}", geometry, tracer, pts, nrm, args.ref_rays, seed, info["checksum"])[0]
+                        indirect = cached_indirect(cache, f"v{v}-{args.size}", geometry, tracer, pts, nrm, albedo, m, geometry_id=info["checksum"],
+                                                   higher=higher if m >= 2 else None, seed=seed, hit_rays=args.ref_hit_rays,
+                                                   rays=hit_transfer_rays)[0] if m > 0 else 0.0  # fmt: skip
+                        t = d.astype(np.float64)[:, :, None] + indirect
+                        ref = np.zeros(cov.shape + (3,), np.float32)
+                        ref[cov] = np.maximum(rec_albedo * np.einsum("pkc,kc->pc", t, lighting), 0)
+                        refs[(v, m) if seed == 0 else (v, m, "seed1")] = ref
                 metrics = image_metrics(tonemap(image, args.exposure), tonemap(refs[(v, n)], args.exposure), cov)
                 psnr.append(metrics["psnr"])
                 ssim.append(metrics["ssim"])
                 gi_off.append(image_metrics(tonemap(image, args.exposure), tonemap(refs[(v, top)], args.exposure), cov)["psnr"])
                 bleed_render.append(bleeding(image[cov], objects, pts, names))
                 bleed_ref.append(bleeding(refs[(v, n)][cov], objects, pts, names))
+                if v == 0 and (0, n, "seed1") in refs:  # the reference against its second seed (the higher bounces' samples shared)
+                    noise = image_metrics(tonemap(refs[(0, n, "seed1")], args.exposure), tonemap(refs[(0, n)], args.exposure), cov)["psnr"]
+                    result.setdefault("reference_noise_view0", {})[str(n)] = round(noise, 2)
                 if v == 0:
                     panels[n] = to_srgb8(image, args.exposure)
                     panels["reference"] = to_srgb8(refs[(v, top)], args.exposure)
