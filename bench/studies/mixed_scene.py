@@ -106,7 +106,7 @@ def cross_shadows(geometry, samples_per_object: int = 3000, rays: int = 64, seed
     import trimesh
 
     from prt.train.sampling import sample_surface
-    from prt.train.transfer import SDF_RAY_OFFSET, EmbreeTracer, SDFTracer, cosine_directions, orthonormal_frames
+    from prt.train.transfer import EmbreeTracer, SDFTracer, cosine_directions, make_tracer, orthonormal_frames
 
     names, parts = geometry.object_names, geometry.mixed
     s = sample_surface(geometry, samples_per_object * len(names) * 4, seed=seed)
@@ -118,12 +118,13 @@ def cross_shadows(geometry, samples_per_object: int = 3000, rays: int = 64, seed
         else:
             faces = np.asarray(geometry.mesh.faces)[(geometry.object_ids == c) & ~parts.proxy_faces]
             casters[name] = EmbreeTracer(trimesh.Trimesh(np.asarray(geometry.mesh.vertices), faces, process=False))
+    scene_tracer = make_tracer(geometry)  # its ray origins: lifted off slow SDF fields as in the precompute
     table = {}
     for r, receiver in enumerate(names):
         idx = np.flatnonzero(s.object_ids == r)[:samples_per_object]
         frames = orthonormal_frames(s.normals[idx].astype(np.float64))
         dirs = np.einsum("sij,mj->smi", frames, local).reshape(-1, 3).astype(np.float32)
-        origins = np.repeat(s.points[idx] + SDF_RAY_OFFSET * s.normals[idx], rays, axis=0).astype(np.float32)
+        origins = np.repeat(scene_tracer.origins(s.points[idx], s.normals[idx]), rays, axis=0)  # the precompute's rule
         table[receiver] = {}
         for caster, tracer in casters.items():
             blocked = tracer.occluded(origins, dirs).reshape(len(idx), rays).mean(axis=1)
