@@ -246,7 +246,6 @@ class SDF:
             moved[todo] += step[better]
         return origins.astype(np.float32)
 
-
     def sphere_trace(
         self,
         origins,
