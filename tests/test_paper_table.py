@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-REPORT = ROOT / "docs" / "benchmarks" / "paper.json"
+REPORT = ROOT / "docs" / "benchmarks" / "paper_2026-11-22_direct.json"  # the 1M-sample direct run (k = 64, 128, right-sized)
 
 
 @pytest.fixture(scope="module")
@@ -86,17 +86,18 @@ def test_says_which_scenes_came_from_checkpoints(paper_table, report):
 
 
 def test_texture_columns_appear_when_the_run_measured_texture_prt(paper_table, report):
-    assert "texture" not in paper_table.summary(report).splitlines()[0]  # the recorded run has none
     edited = copy.deepcopy(report)
+    edited["records"] = [r for r in edited["records"] if r["backend"] != "texture"]
+    assert "texture" not in paper_table.summary(edited).splitlines()[0]  # a run without texture PRT has no column
     for mesh, psnr in (("bunny", 49.2), ("spot", 50.0)):
         for material, delta in (("diffuse", 0.0), ("glossy", 0.5)):
             record = dict(_record(edited, f"{mesh}-k64", "vertex", material=material))
             record.update(backend="texture", precision="fp16", texture_size=512, psnr=psnr + delta, weight_bytes=3 * 2**20)
             edited["records"].append(record)
     table = paper_table.summary(edited).splitlines()
-    assert table[0].split(" | ")[5] == "texture 512^2"
-    assert _line("\n".join(table), "| bunny").split(" | ")[5] == "49.2 / 49.7 (3.0 MiB)"
-    assert _line("\n".join(table), "| teapot").split(" | ")[5] == "-"
+    assert table[0].split(" | ")[6] == "texture 512^2"
+    assert _line("\n".join(table), "| bunny").split(" | ")[6] == "49.2 / 49.7 (3.0 MiB)"
+    assert _line("\n".join(table), "| teapot").split(" | ")[6] == "-"
 
 
 def test_default_build_verdicts_against_vertex_prt_and_k128(paper_table, report):
@@ -121,3 +122,28 @@ def test_summary_only_rewrites_the_summary_and_keeps_the_rest(paper_table, repor
     text = doc.read_text()
     assert "old summary" not in text and text.startswith("# T\n\nMade by `x`.") and text.endswith("## Every configuration\n\n| a |\n")
     assert "- default (right-sized) against per-vertex PRT" in text
+
+
+def test_table_names_each_mesh_transfer_and_shows_only_the_sizes_built(paper_table, report):
+    edited = copy.deepcopy(report)
+    for r in edited["records"]:
+        if r["scene"].startswith("bunny-") and r["backend"] == "onnx":
+            r["transfer"] = "2 bounces"
+    rows = paper_table.summary(edited).splitlines()
+    assert rows[0].split(" | ")[1] == "transfer"
+    assert _line("\n".join(rows), "| bunny").split(" | ")[1] == "2 bounces"
+    assert _line("\n".join(rows), "| spot").split(" | ")[1] == _record(report, "spot-k64").get("transfer", "direct")
+    # a run without k = 128 builds has no k = 128 column (and no k = 128 verdict)
+    edited["records"] = [r for r in edited["records"] if not r["scene"].endswith("-k128")]
+    text = paper_table.summary(edited)
+    assert "k = 128 |" not in text.splitlines()[0] and "k = 64 |" in text.splitlines()[0]
+    assert not any(line.startswith("- default (right-sized) against k = 128") for line in text.splitlines())
+
+
+def test_build_times_list_every_build_and_their_sum(paper_table):
+    builds = {"bunny-k64": {"command": "a", "seconds": 600.0, "shares_precompute_of": None},
+              "bunny-right-sized": {"command": "b", "seconds": 300.0, "shares_precompute_of": "k64"}}
+    text = paper_table.build_times(builds)
+    assert "| bunny-k64 | 10.0 | - |" in text and "| bunny-right-sized | 5.0 | k64 |" in text
+    assert "All builds: 0.25 h" in text
+    assert paper_table.build_times({}) == ""

@@ -27,6 +27,7 @@ import os
 import shlex
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -87,12 +88,15 @@ def summary(report: dict) -> str:
     records = report["records"]
     meshes = [m for m in MESHES if any(r["scene"].startswith(f"{m}-") for r in records)]
     textures = _texture_sizes(records)  # texture-space PRT columns, when the run measured them
-    head = ["mesh", "k = 64", "k = 128", "default (right-sized)", "vertex PRT (Sloan)", *(f"texture {t}^2" for t in textures), "GLSL k = 64 FPS"]
+    sizes = [z for z in SIZES if any(r["scene"].endswith(f"-{z}") for r in records)]  # the builds this run made
+    names = {"k64": "k = 64", "k128": "k = 128", "right-sized": "default (right-sized)"}
+    head = ["mesh", "transfer", *(names[z] for z in sizes), "vertex PRT (Sloan)", *(f"texture {t}^2" for t in textures), "GLSL k = 64 FPS"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * (len(head) - 1) + "---:|"]
     verdict = {"accuracy": [], "right": [], "packing": [], "precision": [], "gemm": [], "gemm128": [], "vertex": [], "k128": [], "floor": []}
     for mesh in meshes:
-        cells = []
-        for size in SIZES:
+        network = _pick(records, f"{mesh}-right-sized") or _pick(records, f"{mesh}-k64")
+        cells = [network.get("transfer", "direct") if network else "-"]  # the baselines' rows carry the same
+        for size in sizes:
             d, g = _pick(records, f"{mesh}-{size}"), _pick(records, f"{mesh}-{size}", material="glossy")
             if d is None or g is None:
                 cells.append("-")
@@ -182,6 +186,17 @@ def summary(report: dict) -> str:
     return "\n".join(out)
 
 
+def build_times(builds: dict) -> str:
+    """Each build's wall time (``prt-train``, every stage, 2 cores), as a Markdown section."""
+    if not builds:
+        return ""
+    lines = ["## Build times", "", "| build | minutes | shares the precompute of |", "|---|---:|---|"]
+    lines += [f"| {name} | {b['seconds'] / 60:.1f} | {b['shares_precompute_of'] or '-'} |" for name, b in builds.items()]
+    total = sum(b["seconds"] for b in builds.values()) / 3600
+    lines += ["", f"All builds: {total:.2f} h (the first build of each mesh includes its ray-traced ground truth and bounces)."]
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--samples", type=int, default=1_000_000)
@@ -200,6 +215,10 @@ def main(argv=None) -> int:
     p.add_argument("--meshes", nargs="*", default=list(MESHES), choices=list(MESHES))
     p.add_argument("--sizes", nargs="*", default=list(SIZES), choices=list(SIZES), help="which builds to make (all: the table)")
     p.add_argument("--build-only", action="store_true", help="make the builds (cached under --work) and stop before the benchmark")
+    p.add_argument("--bounces", default="auto", metavar="N|auto",
+                   help="passed to prt-train (default auto, its default); the baselines get the same bounces (0: the paper's direct transfer)")
+    p.add_argument("--ref-hit-rays", type=int, default=None, metavar="N", help="passed to prt-bench (scenes with bounces)")
+    p.add_argument("--ref-hit-transfer-rays", type=int, default=None, metavar="N", help="passed to prt-bench (scenes with bounces)")
     p.add_argument("--train-args", default="", help="more prt-train options for every build, e.g. \"--steps 1000 --batch 4096\"")
     p.add_argument("--summary-only", action="store_true",
                    help="rewrite the summary of --doc from the recorded <out>.json (new verdicts on old figures); builds and measures nothing")
@@ -211,6 +230,8 @@ def main(argv=None) -> int:
         return _rewrite_summary(args.doc, json.loads(args.out.with_suffix(".json").read_text()))
 
     scenes = []
+    builds_path = args.out.parent / f"{args.out.name}_builds.json"  # each build's command and wall time
+    builds = json.loads(builds_path.read_text()) if builds_path.is_file() else {}
     for name in args.meshes:
         mesh = MESHES[name]
         if isinstance(mesh, Path) and not mesh.is_file():
@@ -230,9 +251,17 @@ def main(argv=None) -> int:
                 out.mkdir(parents=True, exist_ok=True)
                 (out / "precompute").symlink_to((first / "precompute").resolve())
             cmd = [sys.executable, "-m", "prt.train.train_cli", str(mesh), "-o", str(out), "--name", f"{name}-{size}",
-                   "--samples", str(args.samples), "--rays", str(args.rays), "--bounces", "0", "--no-progress", *shlex.split(args.train_args), *flags]  # fmt: skip  (the paper's direct transfer)
+                   "--samples", str(args.samples), "--rays", str(args.rays), "--bounces", args.bounces, "--no-progress",
+                   *shlex.split(args.train_args), *flags]  # fmt: skip
             print(f"== {name} {size}: {shlex.join(cmd[2:])}", flush=True)
+            started = time.perf_counter()
             subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+            seconds = time.perf_counter() - started
+            # the first (uncached) build's wall time is the one kept: a rerun only reloads its stages
+            if f"{name}-{size}" not in builds or builds[f"{name}-{size}"]["command"] != shlex.join(cmd[2:]):
+                builds[f"{name}-{size}"] = {"command": shlex.join(cmd[2:]), "seconds": round(seconds, 1),
+                                            "shares_precompute_of": None if first is None or first == out else first.name}  # fmt: skip
+                atomic_write_bytes(builds_path, json.dumps(builds, indent=1).encode())
             first = first or out
             scenes.append(out / "scene.json")
 
@@ -246,6 +275,8 @@ def main(argv=None) -> int:
              *(["--texture-size", *map(str, args.texture_size)] if "texture" in args.backends else []),
              *(["--config-budget", str(args.config_budget)] if args.config_budget else []),
              *(["--packing-views", str(args.packing_views)] if args.packing_views else []),
+             *(["--ref-hit-rays", str(args.ref_hit_rays)] if args.ref_hit_rays else []),
+             *(["--ref-hit-transfer-rays", str(args.ref_hit_transfer_rays)] if args.ref_hit_transfer_rays else []),
              *(["--precisions", *args.precisions] if args.precisions else []), *(["--fresh"] if args.fresh else [])]  # fmt: skip
     print(f"== benchmark: {shlex.join(bench[1:])}", flush=True)
     subprocess.run(bench, check=True)
@@ -254,14 +285,17 @@ def main(argv=None) -> int:
     table = args.out.with_suffix(".md").read_text()
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
     doc = args.doc
+    report = json.loads(args.out.with_suffix(".json").read_text())
     page = (
         "# Paper-style table\n\n"
-        f"Made by `{command.strip()}` on this project's 2-core machine (no GPU; OpenGL from Mesa llvmpipe).\n\n"
+        f"Made on {time.strftime('%Y-%m-%d')} by `{command.strip()}` "
+        "on this project's 2-core machine (no GPU; OpenGL from Mesa llvmpipe).\n\n"
         f"Settings: `{json.dumps(settings)}`\n\n"
         "Error is against a reference render whose transfer is ray traced at every visible pixel, on\n"
         "tone-mapped images over the pixels the scene covers; FPS are medians over the views.\n\n"
         "## Summary\n\n"
-        f"{summary(json.loads(args.out.with_suffix('.json').read_text()))}\n\n"
+        f"{summary(report)}\n\n"
+        f"{build_times(builds)}\n\n"
         "## Every configuration\n\n"
         f"{table}\n\n![speed against error]({os.path.relpath(args.out.with_suffix('.png').resolve(), doc.parent.resolve())})\n"
     )
