@@ -92,3 +92,42 @@ def test_bad_inputs_are_rejected():
         segment_samples(np.zeros((0, 3)), np.zeros(0, int), np.zeros((0, 16)))
     with pytest.raises(ValueError, match="NaN"):
         segment_samples(np.full((4, 3), np.nan), np.zeros(4, int), np.zeros((4, 16)))
+
+
+def _floor_and_column(rng, n_floor=6000, n_column=4000):
+    """A square floor at y = -0.5 (1 wide) holding most samples, and a column 2 tall standing on it:
+    y is the longest side and the y-median of the samples lies on the floor (a creature on a slab)."""
+    floor = np.column_stack([rng.uniform(-0.5, 0.5, n_floor), np.full(n_floor, -0.5), rng.uniform(-0.5, 0.5, n_floor)])
+    angle = rng.uniform(0.0, 2 * np.pi, n_column)
+    column = np.column_stack([0.2 * np.cos(angle), rng.uniform(-0.5, 1.5, n_column), 0.2 * np.sin(angle)])
+    return np.concatenate([floor, column])
+
+
+def test_split_value_is_the_median_unless_a_plane_of_samples_lies_there():
+    from prt.train.segments import PLANE_TOLERANCE, split_value
+
+    rng = np.random.default_rng(0)
+    smooth = rng.uniform(-1.0, 1.0, 10001)
+    assert split_value(smooth) == np.median(smooth)
+    plane = np.concatenate([np.full(3000, 0.25), rng.uniform(-1.0, 1.0, 4000)])
+    assert np.median(plane) == 0.25  # the plain median cuts through the plane
+    cut = split_value(plane)
+    tol = PLANE_TOLERANCE * (plane.max() - plane.min())
+    assert abs(cut - 0.25) >= tol * 0.999  # off the plane by the tolerance
+    assert 0 < np.count_nonzero(plane <= cut) < len(plane)
+
+
+def test_fragments_a_hair_off_a_floor_take_the_floor_samples_segment():
+    """A kd cut through the floor put its samples in one segment and the runtime's fragments,
+    1e-4 above it (sphere tracing stops short), in another: the creature's floor rendered at 26 dB."""
+    rng = np.random.default_rng(1)
+    points = _floor_and_column(rng)
+    transfer = rng.normal(size=(len(points), 4))
+    seg = segment_samples(points, np.zeros(len(points), np.int64), transfer, max_segments=2, merge=False, min_samples=50)
+    assert seg.nodes[0]["axis"] == 1  # the cut is along y, the longest side
+    on_floor = points[:, 1] == -0.5
+    home = np.unique(seg.home[on_floor])
+    assert len(home) == 1  # the floor's samples sit in one segment
+    zero = np.zeros(int(on_floor.sum()), np.int64)
+    for lift in (1e-4, -1e-4, 1e-6, -1e-6):
+        assert np.array_equal(seg.assign(points[on_floor] + [0.0, lift, 0.0], zero), np.full(len(zero), home[0])), lift

@@ -29,7 +29,7 @@ from .cache import atomic_save_npz, atomic_write_json
 from .outdir import check_output_folder, mark_output_folder
 from .adaptive import NEIGHBOURS, adaptive_samples
 from .sampling import TRAIN_STREAM, VALIDATION_STREAM, SurfaceSamples, sample_surface
-from .segments import segment_samples
+from .segments import SPLIT_RULE, segment_samples
 from .transfer import DEFAULT_CHUNK, compute_transfer, make_tracer
 
 __all__ = ["PrecomputeSettings", "SpecLimits", "SPEC_LIMITS", "check_settings", "sample_limit", "run_precompute", "load_precompute"]
@@ -182,7 +182,7 @@ def run_precompute(
     mark_output_folder(out, "precompute")
     keyed = {k: v for k, v in asdict(settings).items() if k != "adaptive" or v}  # older builds keep their key
     key = hashlib.sha1(
-        json.dumps([_geometry_key(geometry), keyed, FORMAT_VERSION]).encode()
+        json.dumps([_geometry_key(geometry), keyed, FORMAT_VERSION, SPLIT_RULE]).encode()
     ).hexdigest()[:16]
     summary_path = out / "precompute.json"
     previous = _read_summary(summary_path)

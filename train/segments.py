@@ -2,6 +2,7 @@
 
 1. Split: samples are grouped by object (optional), then each group is cut by a k-d tree
    (median split along the longest side of the biggest leaf) until the leaf budget is spent.
+   A cut never runs through a plane of samples (a floor, a wall; :func:`split_value`).
 2. Merge (CPCA in spirit): transfer in a region that only sees the sky is an exact function
    of the normal and lies in a low-dimensional affine subspace; shadows add what that subspace
    cannot explain.  For each leaf we keep the first and second moments of its transfer, so
@@ -23,7 +24,18 @@ import numpy as np
 
 from ..runtime.segmentation import assign_segments, kd_arrays
 
-__all__ = ["Segmentation", "segment_samples"]
+__all__ = ["Segmentation", "segment_samples", "split_value", "SPLIT_RULE"]
+
+SPLIT_RULE = "off-plane-v1"
+"""How cuts are placed (part of the precompute's cache key): the median, moved off planes of samples."""
+
+PLANE_SHARE = 0.02
+"""Share of a leaf's samples within the tolerance of its median that makes the median lie on a plane."""
+
+PLANE_TOLERANCE = 1e-3
+"""Half-width of a plane of samples, as a share of the leaf's extent along the cut's axis: above the
+G-buffer's distance from the true surface (sphere tracing stops within 1e-4 of the ray's length;
+rasterised positions round in float32)."""
 
 
 @dataclass
@@ -172,7 +184,7 @@ def segment_samples(
             break
         p = points[sel]
         axis = int(np.argmax(p.max(axis=0) - p.min(axis=0)))
-        split = float(np.median(p[:, axis]))
+        split = split_value(p[:, axis])
         left = p[:, axis] <= split
         if left.all() or not left.any():
             break  # all samples on one plane along the longest axis: nothing left to cut
@@ -240,6 +252,34 @@ def segment_samples(
         leaves_before_merge=len(leaves),
         notes=notes,
     )
+
+
+def split_value(values: np.ndarray) -> float:
+    """Where a leaf's samples are cut along an axis (``values``: their coordinates on it): the median,
+    unless the median lies on a plane of samples.
+
+    A surface perpendicular to the axis (a floor, a wall, a box's face) holds many samples at one
+    coordinate, and the median of a leaf holding it often lies exactly there.  A cut through that
+    surface keeps its samples on one side, but the fragments the runtime shades there lie a hair
+    off the surface (sphere tracing stops short of it, rasterised positions round), on either side
+    of the cut: half the surface would run a network that never saw it.  So when at least
+    ``PLANE_SHARE`` of the samples lie within ``PLANE_TOLERANCE`` of the leaf's extent from the
+    median, the cut moves that tolerance beyond the plane's samples, to the side that leaves the two
+    halves closer in size (the plane then lies wholly in one of them).
+    """
+    values = np.asarray(values, dtype=np.float64)
+    median = float(np.median(values))
+    tol = PLANE_TOLERANCE * float(values.max() - values.min())
+    near = np.abs(values - median) <= tol
+    if tol <= 0 or near.sum() < PLANE_SHARE * len(values):
+        return median
+    half = 0.5 * len(values)
+    best = None
+    for cut in (float(values[near].min()) - tol, float(values[near].max()) + tol):
+        left = int(np.count_nonzero(values <= cut))
+        if 0 < left < len(values) and (best is None or abs(left - half) < best[0]):
+            best = (abs(left - half), cut)
+    return median if best is None else best[1]
 
 
 def _with_margin(points: np.ndarray, home: np.ndarray, segment: int, box: np.ndarray, delta: float) -> np.ndarray:
