@@ -131,3 +131,41 @@ def test_fragments_a_hair_off_a_floor_take_the_floor_samples_segment():
     zero = np.zeros(int(on_floor.sum()), np.int64)
     for lift in (1e-4, -1e-4, 1e-6, -1e-6):
         assert np.array_equal(seg.assign(points[on_floor] + [0.0, lift, 0.0], zero), np.full(len(zero), home[0])), lift
+
+
+def test_precompute_key_changes_only_where_the_off_plane_rule_moves_a_cut(tmp_path):
+    """A build whose cuts the rule leaves alone keeps its key (and so its cached fits), also when its
+    folder predates the rule; the creature, whose y-median lies on its ground slab, gets a new one."""
+    import json
+
+    from prt.train.precompute import PrecomputeSettings, run_precompute
+    from prt.train.segments import SPLIT_RULE
+
+    settings = PrecomputeSettings(samples=4000, validation=500, rays=16)
+    keys = {}
+    for name, source in (("cornell", str(DATA / "CornellBox-Original.obj")), ("creature", "creature")):
+        geometry, out, logs = load_geometry(source), tmp_path / name, []
+        first = run_precompute(geometry, out, settings, progress=False, log=logs.append)
+        assert first["split_rule"] == SPLIT_RULE
+        moved = [line for line in logs if "moved off a plane" in line]
+        # a folder from before the rule (no split_rule recorded) is segmented again, not trusted
+        old = json.loads((out / "precompute.json").read_text())
+        old.pop("split_rule")
+        (out / "precompute.json").write_text(json.dumps(old))
+        logs.clear()
+        again = run_precompute(geometry, out, settings, progress=False, log=logs.append)
+        assert not any("up to date" in line for line in logs) and again["key"] == first["key"]
+        logs.clear()
+        assert run_precompute(geometry, out, settings, progress=False, log=logs.append)["key"] == first["key"]
+        assert any("up to date" in line for line in logs)
+        keys[name] = (first["key"], bool(moved))
+    assert keys["cornell"][1] is False and keys["creature"][1] is True
+    # the unmoved build's key is the one made before the rule: sha1 of geometry, settings, format
+    from dataclasses import asdict
+    import hashlib
+
+    from prt.train.precompute import FORMAT_VERSION, _geometry_key
+
+    plain = hashlib.sha1(json.dumps([_geometry_key(load_geometry(str(DATA / "CornellBox-Original.obj"))),
+                                     {k: v for k, v in asdict(settings).items() if k != "adaptive"}, FORMAT_VERSION]).encode()).hexdigest()[:16]  # fmt: skip
+    assert keys["cornell"][0] == plain and keys["creature"][0] != plain

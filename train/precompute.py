@@ -182,13 +182,19 @@ def run_precompute(
     mark_output_folder(out, "precompute")
     keyed = {k: v for k, v in asdict(settings).items() if k != "adaptive" or v}  # older builds keep their key
     key = hashlib.sha1(
-        json.dumps([_geometry_key(geometry), keyed, FORMAT_VERSION, SPLIT_RULE]).encode()
+        json.dumps([_geometry_key(geometry), keyed, FORMAT_VERSION]).encode()
     ).hexdigest()[:16]
+    # Segments cut by the off-plane rule (train/segments.py, split_value) where it moved a cut: then
+    # the key changes, and the fits keyed by it are made anew; elsewhere the segments, the key and
+    # the cached fits stay what they were.  A folder made before the rule is checked once (its
+    # samples and transfer come from the chunk cache) and keeps its key where no cut moves.
+    ruled = hashlib.sha1(f"{key}|{SPLIT_RULE}".encode()).hexdigest()[:16]
     summary_path = out / "precompute.json"
     previous = _read_summary(summary_path)
     if previous is not None:
-        if previous.get("key") == key and all((out / f).is_file() for f in previous["files"]):
-            log(f"precompute: up to date in {out} (key {key})")
+        if (previous.get("key") in (key, ruled) and previous.get("split_rule") == SPLIT_RULE
+                and all((out / f).is_file() for f in previous["files"])):  # fmt: skip
+            log(f"precompute: up to date in {out} (key {previous['key']})")
             return previous
 
     timings = {}
@@ -243,6 +249,9 @@ def run_precompute(
     )
     valid_seg = seg.assign(valid.points, valid.object_ids)
     timings["segments_s"] = time.perf_counter() - t0
+    if seg.moved_cuts:
+        log(f"precompute: {seg.moved_cuts} k-d cut(s) moved off a plane of samples (a floor or wall)")
+        key = ruled
 
     atomic_save_npz(
         out / "samples.npz",
@@ -278,6 +287,7 @@ def run_precompute(
     summary = {
         "format": FORMAT_VERSION,
         "key": key,
+        "split_rule": SPLIT_RULE,
         "source": geometry.source,
         "geometry": geometry.summary(),
         "settings": asdict(settings),

@@ -87,6 +87,7 @@ class Segmentation:
     rank: int
     leaves_before_merge: int
     notes: list[str] = field(default_factory=list)
+    moved_cuts: int = 0  # k-d cuts the off-plane rule moved from the median (split_value)
 
     @property
     def count(self) -> int:
@@ -177,6 +178,7 @@ def segment_samples(
         roots = {int(o): 0 for o in np.unique(object_ids)}
 
     budget = max(int(max_segments), len(leaves))
+    moved = 0  # cuts the off-plane rule moved from the median
     while len(leaves) < budget:
         biggest = max(range(len(leaves)), key=lambda i: len(leaves[i][1]))
         node, sel = leaves[biggest]
@@ -185,6 +187,7 @@ def segment_samples(
         p = points[sel]
         axis = int(np.argmax(p.max(axis=0) - p.min(axis=0)))
         split = split_value(p[:, axis])
+        moved += split != float(np.median(p[:, axis]))
         left = p[:, axis] <= split
         if left.all() or not left.any():
             break  # all samples on one plane along the longest axis: nothing left to cut
@@ -251,6 +254,7 @@ def segment_samples(
         rank=int(rank),
         leaves_before_merge=len(leaves),
         notes=notes,
+        moved_cuts=int(moved),
     )
 
 
