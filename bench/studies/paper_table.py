@@ -4,16 +4,19 @@ usage: python bench/studies/paper_table.py [--samples 1000000] [--views 30] [--s
                                    [--backends onnx glsl vertex texture] [--texture-size 512 1024] [--work /tmp/prt-paper]
                                    [--meshes bunny ...] [--sizes k64 k128 right-sized] [--build-only]
                                    [--warmup 3] [--config-budget SECONDS] [--packing-views N]
-                                   [--precisions fp32 fp16 int8] [--fresh]
+                                   [--precisions fp32 fp16 int8] [--fresh] [--bounces auto|N]
+                                   [--ref-hit-rays N] [--ref-hit-transfer-rays N]
                                    [--out docs/benchmarks/paper] [--doc docs/paper_table.md]
 
 Builds the shared meshes (bunny, teapot, spot, daffodil plant; from ../shared/data/meshes,
-Spot falls back to the bundled copy) at the paper's two sizes (k = 64 and k = 128, l = 4) and
+Spot falls back to the bundled copy), the bundled Cornell box and the built-in ``creature`` SDF
+scene, with ``prt-train``'s default bounces (``--bounces 0``: the paper's direct transfer; the
+vertex and texture baselines get the networks' bounces), at the paper's two sizes (k = 64 and k = 128, l = 4) and
 at our right-sized setting (``prt-train --match 64x4``: per segment, the cheapest size on the
 ladder whose validation error is within 5 % of the k = 64 network's), sharing one
 precompute per mesh, then runs the backend benchmark (``prt-bench``) over all of
-them and writes ``<out>.json``, ``<out>.md`` and ``<out>.png`` plus ``docs/paper_table.md``
-(or ``--doc``) with the command that made them.  Every stage is cached (builds under --work, references and
+them and writes ``<out>.json``, ``<out>.md``, ``<out>.png`` and ``<out>_builds.json`` (each build's
+command and wall time) plus ``docs/paper_table.md`` (or ``--doc``) with the date and command that made them.  Every stage is cached (builds under --work, references and
 each finished scene's measurement in ``<out>_cache``), so an interrupted run resumes at the
 scene it was on; --fresh measures every scene again.  The full setting takes hours on 2 cores; smaller --samples/--views/--size give a
 quicker table (the settings are written next to the figures).
