@@ -50,7 +50,7 @@ from .network import Architecture, evaluate_numpy
 from .outdir import check_output_folder, mark_output_folder
 from .rightsize import SCENE_LIGHT, shaded_psnr
 from .sampling import sample_surface
-from .segments import segment_samples
+from .segments import SPLIT_RULE, segment_samples
 from .transfer import compute_transfer
 
 __all__ = ["DeformSpec", "shape_code", "split_frames", "run_deform_build", "DEFORM_FORMAT"]
@@ -253,6 +253,8 @@ def run_deform_build(source, out_dir, spec: DeformSpec | None = None, *, name: s
     t0 = time.perf_counter()
     trained, records = [], []
     data_key = _hash(DEFORM_FORMAT, [frame_keys[f] for f in sorted(data)], spec.segments, arch.as_dict(), settings.cache_key())
+    if seg.moved_cuts:  # the off-plane rule changed the segments (train/segments.py): fits cached before do not fit them
+        data_key = _hash(data_key, SPLIT_RULE)
     for s in range(seg.count):
         members = seg.members[s]
         vmask = valid_home == s  # a segment without held-out samples validates on some of its own training samples
