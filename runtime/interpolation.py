@@ -439,7 +439,7 @@ class TransferInterpolator:
         self.threads = max(1, int(threads or os.cpu_count() or 1))
         self._kernels = _kernels()
         self._coeffs = unshadowed_monomials().astype(np.float32)
-        self._pool = ThreadPoolExecutor(max_workers=self.threads, thread_name_prefix="interpolate") if self.threads > 1 else None
+        self._pool = ThreadPoolExecutor(max_workers=self.threads - 1, thread_name_prefix="interpolate") if self.threads > 1 else None
         # Two sets of frame-sized arrays used in turn: a frame's result stays intact while the next is
         # computed, and frames do not pay for fresh pages.
         self._buffers: list[dict] = [{}, {}]
@@ -457,7 +457,9 @@ class TransferInterpolator:
         if self._pool is None:
             kernel(*args, 0, step)
             return
-        for future in [self._pool.submit(kernel, *args, i * step, n * step) for i in range(n)]:
+        futures = [self._pool.submit(kernel, *args, i * step, n * step) for i in range(1, n)]
+        kernel(*args, 0, n * step)  # the first band on this thread (the kernels release the GIL)
+        for future in futures:
             future.result()
 
     def _arrays(self, height: int, width: int, n: int) -> dict:
