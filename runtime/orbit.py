@@ -5,11 +5,16 @@ the renderer's camera) and :func:`render_camera_path` (a :class:`~prt.runtime.ca
 Output is never left half-written: each frame file is written through a temporary file and a
 rename, a video is encoded into a temporary file renamed at the end, the output folder is
 created only when the first frame is ready, and a failure removes what the call wrote.
+
+Frames are rendered back to back and held in memory (up to :data:`HOLD_BYTES`), then tone-mapped,
+encoded and written; the timings cover the rendering only, the report gives the writing's seconds
+apart.
 """
 
 from __future__ import annotations
 
 import os
+import time
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,6 +32,13 @@ from .shading import to_srgb8
 __all__ = ["render_orbit", "render_camera_path", "OrbitSummary", "FORMATS", "VIDEO_INSTALL"]
 
 FORMATS = ("png", "exr", "mp4")
+HOLD_BYTES = 256 << 20
+"""Memory for rendered frames not yet written (float32; at least one frame): the frames of a
+path are rendered back to back, as the viewer renders them, and written after.  Writing each frame
+between two renders leaves the renderer's threads idle for the encoding, and they come back slow:
+on the 2-core machine every stage of the next frame took 30-40 % longer (``docs/benchmarks/demo_fps.md``)."""
+PNG_LEVEL = 1
+"""zlib level of the PNG frames: 4x faster to encode than Pillow's default 6, files about a third larger."""
 VIDEO_INSTALL = 'pip install "prt-runtime[video]"  (imageio-ffmpeg)'
 
 
@@ -42,6 +54,7 @@ class OrbitSummary:
     median_ms: dict  # stage -> median milliseconds, "frame" included
     out: Path
     wrote: str = ""  # what was written, for the report (default: the PNG frames in ``out``)
+    write_s: float = 0.0  # seconds spent tone mapping, encoding and writing the frames (not in median_ms)
 
     @property
     def fps(self) -> float:
@@ -53,6 +66,7 @@ class OrbitSummary:
         return (
             f"{self.scene}: {self.frames} frames {self.width}x{self.height}, backend {self.backend}: median {self.fps:.1f} FPS "
             f"({med['frame']:.1f} ms/frame; {parts} ms); wrote {self.wrote or f'{self.out}/frame_000.png ...'}"
+            f" in {self.write_s:.1f} s"
         )
 
 
@@ -117,6 +131,12 @@ def render_camera_path(r, path: CameraPath, out, *, exposure: float = 1.0, warmu
     out = Path(out)
     sink = _VideoSink(out, r.width, r.height, fps) if fmt == "mp4" else _FrameSink(out, fmt)
     start = r.camera
+    # Rendered frames not yet written go into slots allocated (and touched) once: a fresh array per
+    # held frame would make the next renders pay for new pages.
+    frame_bytes = r.height * r.width * 3 * 4
+    slots = np.ones((max(1, min(len(cameras), HOLD_BYTES // frame_bytes)), r.height, r.width, 3), np.float32)
+    held: list[int] = []  # the path's indices of the frames in the slots, in order
+    write_s = 0.0
     try:
         for i in range(warmup):  # sessions, shader compilation, caches; a new view each time
             r.set_camera_object(cameras[0].orbit(-0.01 * (i + 1)))
@@ -129,15 +149,26 @@ def render_camera_path(r, path: CameraPath, out, *, exposure: float = 1.0, warmu
             image = r.render()
             for k, v in r.timings.items():
                 stages.setdefault(k, []).append(v)
-            sink.add(i, image, exposure)
+            if i == 0:
+                sink.open()  # the folders, once the first frame is ready (a bad output path fails now)
+            np.copyto(slots[len(held)], image)
+            held.append(i)
+            if i == len(cameras) - 1 or len(held) == len(slots):
+                t0 = time.perf_counter()
+                for k, j in enumerate(held):
+                    sink.add(j, slots[k], exposure)
+                held.clear()
+                write_s += time.perf_counter() - t0
+        t0 = time.perf_counter()
         sink.finish()
+        write_s += time.perf_counter() - t0
     except BaseException:
         sink.abort()
         raise
     finally:
         r.set_camera_object(start)
     med = {k: float(np.median(v)) for k, v in stages.items()}
-    return OrbitSummary(r.scene.name, len(cameras), r.width, r.height, r.backend, med, out, sink.wrote())
+    return OrbitSummary(r.scene.name, len(cameras), r.width, r.height, r.backend, med, out, sink.wrote(), write_s)
 
 
 class _FrameSink:
@@ -148,12 +179,13 @@ class _FrameSink:
         self.written: list[Path] = []
         self.created: list[Path] = []  # folders made here, outermost first
 
+    def open(self) -> None:
+        self.created = _make_folder(self.out)
+
     def add(self, i: int, image: np.ndarray, exposure: float) -> None:
         target = self.out / f"frame_{i:03d}.{self.fmt}"
         if self.fmt == "png":
-            data = iio.imwrite("<bytes>", to_srgb8(image, exposure), extension=".png")
-        if not self.written:
-            self.created = _make_folder(self.out)
+            data = iio.imwrite("<bytes>", to_srgb8(image, exposure), extension=".png", compress_level=PNG_LEVEL)
         if self.fmt == "png":
             atomic_write_bytes(target, data)
         else:
@@ -190,12 +222,14 @@ class _VideoSink:
         self.writer = None
         self.created: list[Path] = []
 
+    def open(self) -> None:
+        self.created = _make_folder(self.path.parent)
+
     def add(self, i: int, image: np.ndarray, exposure: float) -> None:
         frame = to_srgb8(image, exposure)
         # H.264 in yuv420p needs even sizes: repeat the last row / column of an odd one
         frame = np.ascontiguousarray(np.pad(frame, ((0, frame.shape[0] % 2), (0, frame.shape[1] % 2), (0, 0)), mode="edge"))
         if self.writer is None:
-            self.created = _make_folder(self.path.parent)
             size = (frame.shape[1], frame.shape[0])
             self.writer = self.ffmpeg.write_frames(str(self.tmp), size, fps=self.fps, codec="libx264",
                                                    quality=8, macro_block_size=1, ffmpeg_log_level="error")  # fmt: skip

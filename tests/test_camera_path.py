@@ -112,6 +112,27 @@ def test_png_and_exr_frames(renderer, tmp_path):
     np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-6)  # linear radiance, float32
 
 
+def test_frames_held_then_written_match_each_view(renderer, tmp_path, monkeypatch):
+    """Frames held in memory and written in batches (a budget below one frame: one at a time)
+    are the views' own images, in order, losslessly: the PNG pixels are to_srgb8 of each render."""
+    import imageio.v3 as iio
+
+    import prt.runtime.orbit as orbit
+    from prt.runtime.shading import to_srgb8
+
+    path = CameraPath((START, START.orbit(0.7)), 4)
+    frame_bytes = 32 * 40 * 3 * 4
+    for budget, folder in ((1, "one"), (2 * frame_bytes + 1, "two"), (orbit.HOLD_BYTES, "all")):
+        monkeypatch.setattr(orbit, "HOLD_BYTES", budget)
+        summary = render_camera_path(renderer, path, tmp_path / folder, warmup=0)
+        assert summary.write_s > 0 and " in " in str(summary)
+    for i, camera in enumerate(path.cameras()):
+        renderer.set_camera_object(camera)
+        expected = to_srgb8(renderer.render())
+        for folder in ("one", "two", "all"):
+            np.testing.assert_array_equal(iio.imread(tmp_path / folder / f"frame_{i:03d}.png"), expected)
+
+
 def read_envmap_like(path):
     import OpenEXR
 
