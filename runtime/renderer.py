@@ -71,6 +71,9 @@ class Scene:
     """
 
     def __init__(self, manifest: Manifest):
+        if not isinstance(manifest, Manifest):
+            hint = f"; open a file with Scene.load({str(manifest)!r})" if isinstance(manifest, (str, os.PathLike)) else ""
+            raise ArgumentTypeError(f"Scene: expected a Manifest, got {type(manifest).__name__}{hint}")
         self.manifest = manifest
         self.deformation: Deformation | None = None  # deformable scenes: frames, codes, basis
         if manifest.deformation is not None:

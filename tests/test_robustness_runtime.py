@@ -280,6 +280,10 @@ def test_wrong_python_types_in_the_api_are_project_errors(gl_ctx, quad):
         Renderer(quad, "64", 64, ctx=gl_ctx)
     with pytest.raises(ArgumentTypeError, match="scene must be a Scene"):
         Renderer("scene.json", 8, 8, ctx=gl_ctx)
+    with pytest.raises(ArgumentTypeError, match=r"Scene: expected a Manifest, got str; open a file with Scene.load\('scene.json'\)"):
+        Scene("scene.json")
+    with pytest.raises(ArgumentTypeError, match="expected a Manifest, got NoneType$"):
+        Scene(None)
     with pytest.raises(ArgumentTypeError):
         Renderer(quad, 8, 8, backend=["onnx"], ctx=gl_ctx)
     with pytest.raises(InputError, match="threads .* must be >= 1, got -1"):
