@@ -9,7 +9,9 @@ Four configurations take turns, round after round, each a whole :func:`render_or
 ``--frames`` PNG frames into a temporary folder (``make demo``'s call): tolerance 0.1 or 0 (every
 covered pixel runs its network), frames held or written one by one (``HOLD_BYTES`` = 1, what
 ``prt-runtime --headless`` did before).  Reported per configuration: the median over rounds of
-the orbit's median frame time, FPS, stage times and seconds spent writing.
+the orbit's median frame time, FPS, stage times and seconds spent writing.  Then the PNG
+encoding of one frame at zlib levels 1 (``PNG_LEVEL``) and 6 (Pillow's default): milliseconds
+(median of 5) and bytes.
 """
 
 from __future__ import annotations
@@ -17,8 +19,10 @@ from __future__ import annotations
 import argparse
 import json
 import tempfile
+import time
 from pathlib import Path
 
+import imageio.v3 as iio
 import numpy as np
 
 import prt.runtime.orbit as orbit
@@ -54,6 +58,15 @@ def main(argv=None) -> int:
                     orbit.HOLD_BYTES = default_hold
                 runs.setdefault(name, []).append({"median_ms": s.median_ms, "write_s": s.write_s})
                 print(f"round {k + 1}: {name}: {s.fps:.1f} FPS, wrote in {s.write_s:.2f} s", flush=True)
+    png = {}
+    image = renderers[DEFAULT_TOLERANCE].render_srgb()
+    for level in (1, 6):
+        times = []
+        for _ in range(5):
+            t0 = time.perf_counter()
+            data = iio.imwrite("<bytes>", image, extension=".png", compress_level=level)
+            times.append(1e3 * (time.perf_counter() - t0))
+        png[level] = {"ms": float(np.median(times)), "bytes": len(data)}
     for r in renderers.values():
         r.close()
     rows = {}
@@ -67,10 +80,11 @@ def main(argv=None) -> int:
     for name, row in rows.items():
         st = ", ".join(f"{k} {v:.1f}" for k, v in row["stages_ms"].items() if k != "frame")
         lines.append(f"| {name} | {row['fps']:.1f} | {row['frame_ms']:.1f} | {row['frame_ms'] / base:.2f}x | {row['write_s']:.2f} | {st} |")
+    lines += ["", "PNG of one frame: " + ", ".join(f"zlib level {k}: {v['ms']:.1f} ms, {v['bytes']} bytes" for k, v in png.items())]
     text = "\n".join(lines)
     print(text)
     if args.json:
-        atomic_write_bytes(args.json, json.dumps({"size": args.size, "frames": args.frames, "rows": rows}, indent=1).encode())
+        atomic_write_bytes(args.json, json.dumps({"size": args.size, "frames": args.frames, "rows": rows, "png": png}, indent=1).encode())
     if args.md:
         atomic_write_bytes(args.md, (text + "\n").encode())
     return 0
