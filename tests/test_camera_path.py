@@ -4,6 +4,7 @@ JSON round trip, interpolation, one-line errors, PNG / EXR / MP4 output written 
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -183,3 +184,20 @@ def test_cli_renders_a_path_and_refuses_a_bad_one(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "bad.json: keyframes[0]: eye and target coincide" in err[0]
     assert not (tmp_path / "never").exists()
+
+
+def test_demo_frame_rate_study_runs_every_configuration(tmp_path):
+    """bench/studies/demo_fps.py: four configurations (tolerance x held / written each), each with its
+    rounds, the HOLD_BYTES default restored, and the PNG levels' timings."""
+    root = Path(__file__).resolve().parents[1]
+    out, md = tmp_path / "fps.json", tmp_path / "fps.md"
+    proc = subprocess.run([sys.executable, str(root / "bench" / "studies" / "demo_fps.py"), "--size", "40", "--frames", "3",
+                           "--rounds", "2", "--json", str(out), "--md", str(md)], capture_output=True, text=True)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    data = json.loads(out.read_text())
+    assert sorted(data["rows"]) == ["interpolate 0 / each", "interpolate 0 / held", "interpolate 0.1 / each", "interpolate 0.1 / held"]
+    assert all(len(r["rounds"]) == 2 and r["fps"] > 0 and r["write_s"] > 0 for r in data["rows"].values())
+    assert "interpolate" in data["rows"]["interpolate 0.1 / held"]["stages_ms"]
+    assert "interpolate" not in data["rows"]["interpolate 0 / held"]["stages_ms"]
+    assert set(data["png"]) == {"1", "6"} and data["png"]["1"]["bytes"] >= data["png"]["6"]["bytes"] * 0.9
+    assert "| interpolate 0.1 / held |" in md.read_text()
