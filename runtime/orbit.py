@@ -36,7 +36,8 @@ HOLD_BYTES = 256 << 20
 """Memory for rendered frames not yet written (float32; at least one frame): the frames of a
 path are rendered back to back, as the viewer renders them, and written after.  Writing each frame
 between two renders leaves the renderer's threads idle for the encoding, and they come back slow:
-on the 2-core machine every stage of the next frame took 30-40 % longer (``docs/benchmarks/demo_fps.md``)."""
+on the 2-core machine the demo's frames took 1.17x as long, its network stage 1.46x
+(``bench/studies/demo_fps.py``, ``docs/benchmarks/demo_fps.md``)."""
 PNG_LEVEL = 1
 """zlib level of the PNG frames: 4x faster to encode than Pillow's default 6, files about a third larger."""
 VIDEO_INSTALL = 'pip install "prt-runtime[video]"  (imageio-ffmpeg)'
