@@ -4,6 +4,7 @@ import copy
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -147,3 +148,30 @@ def test_build_times_list_every_build_and_their_sum(paper_table):
     assert "| bunny-k64 | 10.0 | - |" in text and "| bunny-right-sized | 5.0 | k64 |" in text
     assert "All builds: 0.25 h" in text
     assert paper_table.build_times({}) == ""
+
+
+def test_vertex_same_bounces_study_relights_a_copy_and_pairs_rows_by_transfer(bench_module, tmp_path):
+    """bench/studies/vertex_same_bounces.py: the relit copy keeps the networks and takes the map's SH;
+    the summary pairs each network row with the vertex row of the same transfer only."""
+    study = bench_module("vertex_same_bounces")
+    from prt.runtime.envmap import load_envmap_sh
+    from prt.runtime.renderer import Scene, demo_scene_path
+
+    demo = demo_scene_path().parent
+    envmap = demo / "envmap.hdr"
+    out = study.relit_copy(demo, envmap, tmp_path)
+    scene = Scene.load(out)  # a valid manifest
+    assert scene.name == "spot-envmap" and scene.manifest.lighting.envmap is None
+    np.testing.assert_allclose(np.asarray(json.loads((out / "scene.json").read_text())["lighting"]["sh"]), load_envmap_sh(envmap, 4), rtol=1e-12)
+    assert sorted(p.name for p in (out / "segments").iterdir()) == sorted(p.name for p in (demo / "segments").iterdir())
+
+    def rec(backend, transfer, psnr, nbytes):
+        return {"scene": "s", "backend": backend, "precision": "fp32", "material": "diffuse", "transfer": transfer, "psnr": psnr,
+                "weight_bytes": nbytes, "ref_noise_psnr": 50.0}  # fmt: skip
+
+    report = {"records": [rec("onnx", "2 bounces", 48.0, 100), rec("vertex", "direct", 40.0, 50), rec("vertex", "2 bounces", 44.5, 400),
+                          {**rec("onnx", "2 bounces", 30.0, 100), "material": "glossy"}]}  # fmt: skip
+    rows = study.summary(report)
+    assert len(rows) == 1 and rows[0]["vertex_db"] == 44.5 and rows[0]["gain_db"] == 3.5 and rows[0]["bytes_ratio"] == 0.25 and rows[0]["met"]
+    report["records"][2]["psnr"] = 45.5  # +2.5 dB: missed
+    assert not study.summary(report)[0]["met"]
