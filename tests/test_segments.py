@@ -167,5 +167,75 @@ def test_precompute_key_changes_only_where_the_off_plane_rule_moves_a_cut(tmp_pa
     from prt.train.precompute import FORMAT_VERSION, _geometry_key
 
     plain = hashlib.sha1(json.dumps([_geometry_key(load_geometry(str(DATA / "CornellBox-Original.obj"))),
-                                     {k: v for k, v in asdict(settings).items() if k != "adaptive"}, FORMAT_VERSION]).encode()).hexdigest()[:16]  # fmt: skip
+                                     {k: v for k, v in asdict(settings).items() if k not in ("adaptive", "split")}, FORMAT_VERSION]).encode()).hexdigest()[:16]  # fmt: skip
     assert keys["cornell"][0] == plain and keys["creature"][0] != plain
+
+
+def _unexplained(points, transfer, seg, rank=8):
+    """Sum over leaves of count x RMS residual^2 of a rank-``rank`` PCA: what per-leaf fits must explain beyond it."""
+    from prt.train.segments import _Moments
+
+    leaves = [seg.assign(points, np.zeros(len(points), int)) == k for k in range(seg.count)]
+    return sum(m.sum() * _Moments.of(transfer[m]).residual_rms(rank) ** 2 for m in leaves)
+
+
+def test_residual_split_puts_leaves_where_the_transfer_is_complex(tmp_path):
+    """A plane with a small box standing near one corner (real ray-traced transfer): cutting the leaf
+    with the most unexplained transfer leaves less unexplained in all than cutting the biggest, its
+    small leaves crowd round the box, and the open plane, which only sees the sky, stays one big leaf."""
+    plane = trimesh.Trimesh([[-1, 0, -1], [1, 0, -1], [1, 0, 1], [-1, 0, 1]], [[0, 2, 1], [0, 3, 2]])
+    box = trimesh.creation.box(extents=(0.3, 0.3, 0.3))
+    box.apply_translation((0.6, 0.15, 0.6))  # x and z keep their scale in the loaded geometry
+    trimesh.util.concatenate([plane, box]).export(tmp_path / "box.ply")
+    geometry = load_geometry(str(tmp_path / "box.ply"))
+    s = sample_surface(geometry, 8000, seed=2)
+    t = compute_transfer(geometry, s.points, s.normals, rays=64)
+    ids = np.zeros(len(s), int)
+    common = dict(max_segments=8, min_samples=50, by_object=False, merge=False)
+    plain = segment_samples(s.points, ids, t, split="samples", **common)
+    complex_first = segment_samples(s.points, ids, t, split="residual", **common)
+    assert plain.count == complex_first.count == 8
+    assert np.array_equal(complex_first.assign(s.points, ids), complex_first.home)  # the runtime's rule still holds
+    assert _unexplained(s.points, t, complex_first) < 0.5 * _unexplained(s.points, t, plain)
+    sizes = np.bincount(complex_first.home)
+    assert np.bincount(plain.home).max() <= 1.2 * np.bincount(plain.home).min()  # equal areas
+    assert sizes.max() >= 8 * sizes.min()
+    near_box = [k for k in range(8) if complex_first.bounds[k, 1, 0] >= 0.45 and complex_first.bounds[k, 1, 2] >= 0.45]
+    far = int(np.argmax(sizes))
+    assert len(near_box) >= 5 and far not in near_box and sizes[far] >= 0.4 * len(s)
+    # its dim weight is the relative loss's (segments.py keeps its own copy to stay free of torch)
+    from prt.train.fit import RELATIVE_FLOOR
+    from prt.train.segments import DIM_FLOOR
+
+    assert DIM_FLOOR == RELATIVE_FLOOR
+    # the default is the equal-area split, and an unknown rule is refused
+    assert np.array_equal(segment_samples(s.points, ids, t, **common).home, plain.home)
+    with pytest.raises(ValueError, match="split: expected one of samples, residual"):
+        segment_samples(s.points, ids, t, split="area", **common)
+
+
+def test_split_rule_is_keyed_only_when_not_the_default_and_reuses_the_ray_traced_transfer(tmp_path):
+    from prt.runtime.errors import SpecError
+    from prt.train.precompute import PrecomputeSettings, check_settings, run_precompute
+
+    geometry = load_geometry(str(DATA / "CornellBox-Original.obj"))
+    out, logs = tmp_path / "pre", []
+    plain = run_precompute(geometry, out, PrecomputeSettings(samples=4000, validation=500, rays=16), progress=False, log=logs.append)
+    cache = sorted(p.name for p in (out / "cache").rglob("*") if p.is_file())
+    residual = run_precompute(geometry, out, PrecomputeSettings(samples=4000, validation=500, rays=16, split="residual"),
+                              progress=False, log=logs.append)  # fmt: skip
+    assert residual["key"] != plain["key"] and residual["settings"]["split"] == "residual"
+    assert sorted(p.name for p in (out / "cache").rglob("*") if p.is_file()) == cache  # no new ray tracing
+    with pytest.raises(SpecError, match="--split: expected one of samples, residual"):
+        check_settings(PrecomputeSettings(split="area"), flags=True)
+
+
+def test_a_build_spec_names_a_bad_split_rule():
+    from prt.runtime.errors import SpecError
+    from prt.train.build import spec_from_dict
+
+    assert spec_from_dict({"geometry": "creature", "split": "residual"}).precompute.split == "residual"
+    with pytest.raises(SpecError, match=r"^split: expected one of samples, residual, got 'area'$"):
+        spec_from_dict({"geometry": "creature", "split": "area"})
+    with pytest.raises(SpecError, match=r"^split: expected str, got int 3$"):
+        spec_from_dict({"geometry": "creature", "split": 3})

@@ -29,7 +29,7 @@ from .cache import atomic_save_npz, atomic_write_json
 from .outdir import check_output_folder, mark_output_folder
 from .adaptive import NEIGHBOURS, adaptive_samples
 from .sampling import TRAIN_STREAM, VALIDATION_STREAM, SurfaceSamples, sample_surface
-from .segments import SPLIT_RULE, segment_samples
+from .segments import SPLIT_BY, SPLIT_RULE, segment_samples
 from .transfer import DEFAULT_CHUNK, compute_transfer, make_tracer
 
 __all__ = ["PrecomputeSettings", "SpecLimits", "SPEC_LIMITS", "check_settings", "sample_limit", "run_precompute", "load_precompute"]
@@ -55,6 +55,9 @@ class PrecomputeSettings:
     # share of ``samples`` drawn by a second pass where the first pass's transfer varies fastest
     # (prt.train.adaptive); 0: all area-uniform (and the cache key of older builds unchanged)
     adaptive: float = 0.0
+    # which k-d leaf is cut next (prt.train.segments.SPLIT_BY): "samples" (equal areas; the cache key
+    # of older builds unchanged) or "residual" (leaves where the transfer is complex)
+    split: str = "samples"
 
     def validation_count(self) -> int:
         return self.validation or max(1000, self.samples // 20)
@@ -134,6 +137,8 @@ def check_settings(settings: PrecomputeSettings, *, flags: bool = False) -> None
         value = getattr(settings, key)
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
             raise SpecError(f"{name(key)}: expected a finite non-negative number, got {value!r}")
+    if settings.split not in SPLIT_BY:
+        raise SpecError(f"{name('split')}: expected one of {', '.join(SPLIT_BY)}, got {settings.split!r}")
     share = settings.adaptive
     if isinstance(share, bool) or not isinstance(share, (int, float)) or not 0.0 <= share <= 0.9:
         raise SpecError(f"{name('adaptive')}: expected a share of the samples in 0 .. 0.9, got {share!r}")
@@ -180,7 +185,8 @@ def run_precompute(
     check_settings(settings)
     check_output_folder(out, "precompute", force=force)
     mark_output_folder(out, "precompute")
-    keyed = {k: v for k, v in asdict(settings).items() if k != "adaptive" or v}  # older builds keep their key
+    # older builds keep their key: fields added later are keyed only when they differ from their default
+    keyed = {k: v for k, v in asdict(settings).items() if (k != "adaptive" or v) and (k != "split" or v != "samples")}
     key = hashlib.sha1(
         json.dumps([_geometry_key(geometry), keyed, FORMAT_VERSION]).encode()
     ).hexdigest()[:16]
@@ -246,6 +252,7 @@ def run_precompute(
         merge=settings.merge,
         merge_tolerance=settings.merge_tolerance,
         delta=settings.delta,
+        split=settings.split,
     )
     valid_seg = seg.assign(valid.points, valid.object_ids)
     timings["segments_s"] = time.perf_counter() - t0

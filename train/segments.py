@@ -1,7 +1,12 @@
 """Segments: which network is responsible for which part of the scene.
 
 1. Split: samples are grouped by object (optional), then each group is cut by a k-d tree
-   (median split along the longest side of the biggest leaf) until the leaf budget is spent.
+   (median split along the longest side of a leaf) until the leaf budget is spent.  Which leaf is
+   cut next (``split``): the one with the most samples (``"samples"``, the default: leaves of
+   equal area), or the one whose transfer a rank-``rank`` PCA explains least as a tone-mapped
+   image shows it (``"residual"``: count x RMS residual^2 / (c + mean DC), the 1 / (c + m)
+   weight of ``prt-train --loss relative``), so leaves go where shadows make the transfer complex
+   and dim, and a smooth region that only sees the sky keeps one big leaf.
    A cut never runs through a plane of samples (a floor, a wall; :func:`split_value`).
 2. Merge (CPCA in spirit): transfer in a region that only sees the sky is an exact function
    of the normal and lies in a low-dimensional affine subspace; shadows add what that subspace
@@ -24,10 +29,17 @@ import numpy as np
 
 from ..runtime.segmentation import assign_segments, kd_arrays
 
-__all__ = ["Segmentation", "segment_samples", "split_value", "SPLIT_RULE"]
+__all__ = ["Segmentation", "segment_samples", "split_value", "SPLIT_RULE", "SPLIT_BY"]
 
 SPLIT_RULE = "off-plane-v1"
 """How cuts are placed (part of the precompute's cache key): the median, moved off planes of samples."""
+
+SPLIT_BY = ("samples", "residual")
+"""Which leaf the k-d split cuts next: the most samples, or the most unexplained transfer (see above)."""
+
+DIM_FLOOR = 0.05
+"""c of the "residual" split's 1 / (c + mean DC) weight: ``prt.train.fit.RELATIVE_FLOOR`` (not imported:
+this module stays free of torch), so a leaf in the dark weighs at most 6.6x one under the open sky."""
 
 PLANE_SHARE = 0.02
 """Share of a leaf's samples within the tolerance of its median that makes the median lie on a plane."""
@@ -138,6 +150,7 @@ def segment_samples(
     rank: int = 8,
     delta: float = 0.05,
     min_samples: int = 256,
+    split: str = "samples",
 ) -> Segmentation:
     """Split a scene's samples into segments, merge the simple ones, add seam margins.
 
@@ -153,7 +166,10 @@ def segment_samples(
     rank : PCA rank of the residual test (8 spans unshadowed transfer of 3 bands)
     delta : margin width (scene units) sampled into neighbouring segments
     min_samples : leaves are not split below twice this count
+    split : which leaf is cut next, one of :data:`SPLIT_BY`
     """
+    if split not in SPLIT_BY:
+        raise ValueError(f"split: expected one of {', '.join(SPLIT_BY)}, got {split!r}")
     points = np.asarray(points, dtype=np.float64)
     object_ids = np.asarray(object_ids, dtype=np.int64)
     transfer = np.asarray(transfer, dtype=np.float64)
@@ -179,23 +195,39 @@ def segment_samples(
 
     budget = max(int(max_segments), len(leaves))
     moved = 0  # cuts the off-plane rule moved from the median
-    while len(leaves) < budget:
-        biggest = max(range(len(leaves)), key=lambda i: len(leaves[i][1]))
-        node, sel = leaves[biggest]
+    unexplained: dict[int, float] = {}  # node -> count x RMS residual^2 ("residual" split), computed once per leaf
+
+    def score(leaf: tuple[int, np.ndarray]) -> float:
+        node, sel = leaf
         if len(sel) < 2 * min_samples:
-            break
+            return -1.0  # too small to cut
+        if split == "samples":
+            return float(len(sel))
+        if node not in unexplained:
+            dim = DIM_FLOOR + float(np.maximum(transfer[sel, 0], 0.0).mean())  # tone mapping magnifies dim errors
+            unexplained[node] = len(sel) * _Moments.of(transfer[sel]).residual_rms(rank) ** 2 / dim
+        return unexplained[node]
+
+    while len(leaves) < budget:
+        chosen = max(range(len(leaves)), key=lambda i: score(leaves[i]))
+        node, sel = leaves[chosen]
+        if score(leaves[chosen]) < 0:
+            break  # every leaf is too small (or flat) to cut
         p = points[sel]
         axis = int(np.argmax(p.max(axis=0) - p.min(axis=0)))
-        split = split_value(p[:, axis])
-        moved += split != float(np.median(p[:, axis]))
-        left = p[:, axis] <= split
-        if left.all() or not left.any():
-            break  # all samples on one plane along the longest axis: nothing left to cut
+        cut = split_value(p[:, axis])
+        left = p[:, axis] <= cut
+        if left.all() or not left.any():  # all samples on one plane along the longest axis
+            if split == "samples":
+                break  # the biggest leaf cannot be cut: nothing left to cut
+            unexplained[node] = -1.0  # this leaf stays whole; cut the next most complex one
+            continue
+        moved += cut != float(np.median(p[:, axis]))
         nodes.append({})
         nodes.append({})
         li, ri = len(nodes) - 2, len(nodes) - 1
-        nodes[node] = {"axis": axis, "split": split, "left": li, "right": ri}
-        leaves[biggest] = (li, sel[left])
+        nodes[node] = {"axis": axis, "split": cut, "left": li, "right": ri}
+        leaves[chosen] = (li, sel[left])
         leaves.append((ri, sel[~left]))
 
     for i, (node, _) in enumerate(leaves):

@@ -25,6 +25,7 @@ from .fit import DEFAULT_STEPS
 from .cluster import open_executor
 from .executor import add_cluster_argument
 from .outdir import check_output_folder
+from .segments import SPLIT_BY
 
 __all__ = ["main", "build_parser"]
 
@@ -56,6 +57,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--validation", type=int, default=None, help="held-out samples [5%% of --samples, at least 1000]")
     p.add_argument("--rays", type=int, default=None, help=f"rays per sample for the ground truth [{d.precompute.rays}]")
     p.add_argument("--segments", type=int, default=None, help=f"leaf budget of the spatial split before merging [{d.precompute.segments}]")
+    p.add_argument("--split", choices=SPLIT_BY, default=None,
+                   help="which leaf the spatial split cuts next: the one with the most samples (equal areas), or the one whose "
+                        "transfer is least explained by a rank-8 PCA (more networks where shadows make it complex) [samples]")
     p.add_argument("--adaptive", type=float, default=None, metavar="SHARE",
                    help="share of --samples drawn by a second pass where the first pass's transfer varies fastest (contact shadows, creases) [0: all area-uniform]")
     p.add_argument("--steps", type=int, default=None, help=f"Adam steps per network whatever its sample count (early stopping on validation) [{DEFAULT_STEPS}]")
@@ -136,6 +140,7 @@ def _spec_from_args(args):
         "rays": args.rays,
         "segments": args.segments,
         "adaptive": args.adaptive,
+        "split": args.split,
         "steps": args.steps,
         "epochs": args.epochs,
         "time_budget": args.time_budget,
