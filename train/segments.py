@@ -195,7 +195,7 @@ def segment_samples(
 
     budget = max(int(max_segments), len(leaves))
     moved = 0  # cuts the off-plane rule moved from the median
-    unexplained: dict[int, float] = {}  # node -> count x RMS residual^2 ("residual" split), computed once per leaf
+    unexplained: dict[int, float] = {}  # node -> its "residual" score (count x RMS residual^2 / dim), once per leaf
 
     def score(leaf: tuple[int, np.ndarray]) -> float:
         node, sel = leaf

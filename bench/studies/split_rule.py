@@ -1,15 +1,16 @@
 """Which k-d leaf to cut next: equal areas (``--split samples``) against unexplained transfer (``--split residual``).
 
 usage: python bench/studies/split_rule.py [--scenes daffodil spot bunny teapot] [--work DIR]
-                                          [--samples 100000] [--rays 256] [--segments 8]
-                                          [--train-args "..."] [--json OUT] [--md OUT]
+                                          [--samples 100000] [--rays 256] [--segments 8] [--rules samples residual]
+                                          [--train-args "..."] [--bench-args "..."] [--json OUT] [--md OUT]
 
 For each scene, two ``prt-train`` builds that differ only in ``--split``; the second starts from
 a copy (hard links) of the first's ray-traced transfer cache, so both fit the same samples and
 only the segments differ.  Then ``prt-bench`` measures both against one reference (shared
 ``--cache``): ONNX fp32, diffuse and glossy PSNR over the covered pixels, and the per-segment
 held-out errors from each build's report.  Builds and benches are cached under ``--work``; a
-rerun only measures what is missing.
+rerun only measures what is missing.  ``--rules samples`` alone builds one side (e.g. the real
+default, 8 leaves, beside a ``--split residual`` run with more leaves); its row then shows "-".
 """
 
 from __future__ import annotations
@@ -42,8 +43,10 @@ def build(scene: str, rule: str, args) -> Path:
     out = args.work / scene / f"{rule}-s{args.segments}"
     if (out / "scene.json").is_file():
         return out
-    first = args.work / scene / f"{RULES[0]}-s{args.segments}"
-    if rule != RULES[0] and (first / "precompute" / "cache").is_dir() and not out.exists():
+    first = next((f for f in sorted((args.work / scene).glob("*-s*")) if (f / "precompute" / "cache").is_dir()
+                  and f.name != out.name and (f / "build.json").is_file()), None)  # fmt: skip
+    same = first is not None and json.loads((first / "build.json").read_text())["spec"].get("samples") == args.samples
+    if same and not out.exists():
         (out / "precompute").mkdir(parents=True)  # the same ray-traced transfer: only the segments differ
         subprocess.run(["cp", "-al", str(first / "precompute" / "cache"), str(out / "precompute")], check=True)
     cmd = [sys.executable, "-m", "prt.train.train_cli", str(SCENES[scene]), "-o", str(out), "--force", "--name", f"{scene}-{rule}",
@@ -62,7 +65,7 @@ def bench(scene: str, out: Path, args) -> dict:
     report = out.parent / f"{out.name}_bench.json"
     if not report.is_file():
         cmd = [sys.executable, "-m", "prt.bench.cli", str(out / "scene.json"), "--ref-rays", str(args.ref_rays),
-               "--cache", str(args.work / scene / "bench_cache"), "--json", str(report), *BENCH]  # fmt: skip
+               "--cache", str(args.work / scene / "bench_cache"), "--json", str(report), *BENCH, *shlex.split(args.bench_args)]  # fmt: skip
         print(f"== bench {out.name}: {shlex.join(cmd[2:])}", flush=True)
         subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
     rows = json.loads(report.read_text())["records"]
@@ -87,8 +90,10 @@ def main(argv=None) -> int:
     p.add_argument("--rays", type=int, default=256)
     p.add_argument("--ref-rays", type=int, default=256)
     p.add_argument("--segments", type=int, default=8)
+    p.add_argument("--rules", nargs="*", default=list(RULES), choices=list(RULES), help="which sides to build [both]")
     p.add_argument("--train-args", default="--hidden 64 --layers 4 --steps 1000 --batch 4096 --bounces 0",
                    help="more prt-train options for both builds [%(default)s]")
+    p.add_argument("--bench-args", default="", help="more prt-bench options, e.g. \"--ref-hit-rays 512 --ref-hit-transfer-rays 16\"")
     p.add_argument("--json", type=Path, default=None)
     p.add_argument("--md", type=Path, default=None)
     args = p.parse_args(argv)
@@ -98,21 +103,26 @@ def main(argv=None) -> int:
         if not SCENES[scene].is_file():
             print(f"note: {SCENES[scene]} not found (no ../shared here); skipping {scene}")
             continue
-        got = {rule: bench(scene, build(scene, rule, args), args) for rule in RULES}
-        rows.append({"scene": scene, **{rule: got[rule] for rule in RULES},
-                     "gain_db": [round(got["residual"][m] - got["samples"][m], 2) for m in ("diffuse_db", "glossy_db")]})  # fmt: skip
+        got = {rule: bench(scene, build(scene, rule, args), args) for rule in args.rules}
+        both = all(rule in got for rule in RULES)
+        rows.append({"scene": scene, **{rule: got.get(rule) for rule in RULES},
+                     "gain_db": [round(got["residual"][m] - got["samples"][m], 2) for m in ("diffuse_db", "glossy_db")] if both else None})  # fmt: skip
     report = {"command": command, "date": time.strftime("%Y-%m-%d"), "settings": {k: str(v) for k, v in vars(args).items()}, "rows": rows}
     if args.json:
         atomic_write_bytes(args.json, json.dumps(report, indent=1).encode())
     lines = [f"Made by `{command}` on {report['date']}.", "",
-             "| scene | segments | `--split samples` D / G dB | `--split residual` D / G dB | gain D / G dB | worst segment's held-out shaded error %: samples -> residual |",
+             "| scene | leaf budget | `--split samples` D / G dB | `--split residual` D / G dB | gain D / G dB | worst segment's held-out shaded error %: samples -> residual |",
              "|---|---:|---|---|---|---|"]  # fmt: skip
+    def side(got: dict | None) -> tuple[str, str]:
+        if got is None:
+            return "-", "-"
+        worst = max(e for e in got["segment_shaded_err_pct"] if e is not None)
+        return f"{got['diffuse_db']:.2f} / {got['glossy_db']:.2f}", f"{worst:.1f}"
+
     for r in rows:
-        a, b = r["samples"], r["residual"]
-        lines.append(f"| {r['scene']} | {a['segments']} / {b['segments']} | {a['diffuse_db']:.2f} / {a['glossy_db']:.2f} | "
-                     f"{b['diffuse_db']:.2f} / {b['glossy_db']:.2f} | {r['gain_db'][0]:+.2f} / {r['gain_db'][1]:+.2f} | "
-                     f"{max(e for e in a['segment_shaded_err_pct'] if e is not None):.1f} -> "
-                     f"{max(e for e in b['segment_shaded_err_pct'] if e is not None):.1f} |")  # fmt: skip
+        (a, wa), (b, wb) = side(r["samples"]), side(r["residual"])
+        gain = f"{r['gain_db'][0]:+.2f} / {r['gain_db'][1]:+.2f}" if r["gain_db"] else "-"
+        lines.append(f"| {r['scene']} | {args.segments} | {a} | {b} | {gain} | {wa} -> {wb} |")
     text = "\n".join(lines) + "\n"
     print(text)
     if args.md:
