@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shlex
 import subprocess
 import sys
@@ -113,10 +112,11 @@ def main(argv=None) -> int:
     lines = [f"Made by `{command}` on {report['date']}.", "",
              "| scene | leaf budget | `--split samples` D / G dB | `--split residual` D / G dB | gain D / G dB | worst segment's held-out shaded error %: samples -> residual |",
              "|---|---:|---|---|---|---|"]  # fmt: skip
+
     def side(got: dict | None) -> tuple[str, str]:
         if got is None:
             return "-", "-"
-        worst = max(e for e in got["segment_shaded_err_pct"] if e is not None)
+        worst = max((e for e in got["segment_shaded_err_pct"] if e is not None), default=float("nan"))  # nan: all analytic
         return f"{got['diffuse_db']:.2f} / {got['glossy_db']:.2f}", f"{worst:.1f}"
 
     for r in rows:
