@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from prt.bench.metrics import psnr_from_mse as psnr
 from prt.bench.reference import load_scene_geometry
 from prt.runtime.camera import Camera, orbit_views
 from prt.runtime.files import atomic_write_bytes
@@ -32,15 +33,12 @@ from prt.runtime.shading import tonemap
 from prt.train.transfer import compute_transfer, make_tracer
 
 
-def psnr(mse: float) -> float:
-    return float(10 * np.log10(1.0 / mse)) if mse > 0 else float("inf")
-
-
 def measure(build: Path, views: int, size: int, rays: int) -> dict:
     scene = Scene.load(build / "scene.json")
     geometry, _ = load_scene_geometry(scene.manifest)
     tracer = make_tracer(geometry)
     albedo = np.asarray(scene.manifest.material.albedo, dtype=np.float64)
+    shade = lambda x: tonemap((np.clip(x, 0, None) * albedo).astype(np.float32)).astype(np.float64)  # noqa: E731
     errors, segments, first = [], [], None
     with Renderer(scene, size, size, "onnx") as r:
         light = np.asarray(r.lighting.sh, dtype=np.float64)
@@ -53,11 +51,11 @@ def measure(build: Path, views: int, size: int, rays: int) -> dict:
             net = transfer[g.covered].astype(np.float64) @ light
             ref = compute_transfer(geometry, g.position[g.covered], g.normal[g.covered], rays=rays, seed=v, tracer=tracer,
                                    progress=False).astype(np.float64) @ light  # fmt: skip
-            shade = lambda x: tonemap((np.clip(x, 0, None) * albedo).astype(np.float32)).astype(np.float64)  # noqa: E731
-            errors.append(((shade(net) - shade(ref)) ** 2).mean(axis=1))
+            net, ref = shade(net), shade(ref)
+            errors.append(((net - ref) ** 2).mean(axis=1))
             segments.append(g.segment[g.covered])
             if first is None:  # view 0's images, for the crop
-                first = (g.covered, g.segment, shade(net), shade(ref))
+                first = (g.covered, g.segment, net, ref)
     err, seg = np.concatenate(errors), np.concatenate(segments)
     total, mse = err.sum(), err.mean()
     rows = []
