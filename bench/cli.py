@@ -3,7 +3,7 @@
 usage::
 
     prt-bench scene.json [more scenes] [--json out.json] [--md out.md]
-        [--plot out.png] [--views 30] [--size 512 [256 ...]] [--ref-rays 1024] [--warmup 3]
+        [--plot out.png] [--views 30] [--size 512 [256 ...]] [--ref-rays 1024] [--baseline-rays N] [--warmup 3]
         [--precisions fp32 fp16 fp16-mlp int8] [--interpolate TOL ...] [--backends onnx glsl vertex texture] [--texture-size N ...] [--cache DIR]
         [--gemm-size 4096] [--blas-threads N] [--config-budget SECONDS] [--packing-views N]
         [--images DIR] [--fresh] [--cluster auto|ADDRESS]
@@ -50,6 +50,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "is usually the reference's floor there")  # fmt: skip
     p.add_argument("--ref-hit-transfer-rays", type=int, default=HIT_TRANSFER_RAYS, metavar="N",
                    help=f"scenes with bounces: rays of the direct transfer traced at each bounce hit (default {HIT_TRANSFER_RAYS})")
+    p.add_argument("--baseline-rays", type=int, default=None, metavar="N",
+                   help="rays per vertex / texel of the vertex and texture baselines' direct transfer and bounces, e.g. the "
+                        "build's own --rays, so a quieter reference does not also raise the baselines (default: --ref-rays)")  # fmt: skip
     p.add_argument("--warmup", type=int, default=3, help="frames before timing each configuration (default 3)")
     p.add_argument("--packing-views", type=int, default=None, metavar="N",
                    help="views of the naive-vs-packed baseline, spread over the orbit (default: all; the naive path "
@@ -79,6 +82,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.views < 1 or min(args.size) < 1 or args.ref_rays < 1 or args.warmup < 0:
         p.error("--views, --size and --ref-rays must be positive, --warmup >= 0")
+    if args.baseline_rays is not None and args.baseline_rays < 1:
+        p.error(f"--baseline-rays: expected a positive integer, got {args.baseline_rays}")
     if args.ref_hit_rays < 1 or args.ref_hit_transfer_rays < 1:
         p.error("--ref-hit-rays and --ref-hit-transfer-rays must be positive")
     for flag, value in (("--gemm-size", args.gemm_size), ("--blas-threads", args.blas_threads), ("--packing-views", args.packing_views)):
@@ -108,6 +113,7 @@ def main(argv=None) -> int:
         cache = args.json.parent / f"{args.json.stem}_cache"
     settings = Settings(
         views=args.views, sizes=tuple(args.size), ref_rays=args.ref_rays, ref_rays_max=args.ref_rays_max, warmup=args.warmup, config_budget=args.config_budget,
+        baseline_rays=args.baseline_rays,
         packing_views=args.packing_views,
         precisions=tuple(dict.fromkeys(args.precisions)), backends=tuple(args.backends), cache=cache,
         interpolate=tuple(dict.fromkeys(args.interpolate)),

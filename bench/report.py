@@ -387,6 +387,8 @@ def scene_checkpoint(scene_path, settings) -> Path:
     for key, default in (("ref_hit_rays", HIT_RAYS), ("ref_hit_transfer_rays", HIT_TRANSFER_RAYS)):  # (likewise)
         if getattr(settings, key, default) != default:
             options[key] = getattr(settings, key)
+    if getattr(settings, "baseline_rays", None) is not None:  # (likewise)
+        options["baseline_rays"] = settings.baseline_rays
     options["prt"] = _prt_version()  # a new release measures again
     options["records"] = RECORD_FORMAT  # so does a new record format
     digest.update(json.dumps(options, sort_keys=True, default=list).encode())

@@ -83,6 +83,12 @@ class Settings:
     images: Path | None = None  # folder for the error-map figures (None: none)
     ref_hit_rays: int = HIT_RAYS  # interreflection reference: bounce rays per pixel (bench/bounce_reference.py)
     ref_hit_transfer_rays: int = HIT_TRANSFER_RAYS  # and rays of the direct transfer at each hit
+    baseline_rays: int | None = None  # rays per vertex / texel of the vertex and texture baselines (None: ref_rays)
+
+    @property
+    def rays_of_baselines(self) -> int:
+        """Rays per vertex or texel of the baselines' direct transfer and of their bounces."""
+        return self.ref_rays if self.baseline_rays is None else self.baseline_rays
 
 
 def _materials(manifest) -> dict:
@@ -245,7 +251,7 @@ class SceneBench:
             texture_info = {"note": "skipped: mixed scene (SDF objects have no UV atlas)"}
         elif "texture" in settings.backends:
             self.textures, texture_info = texture_variants(manifest, self.geometry, self.tracer, settings.texture_sizes,
-                                                           settings.ref_rays, settings.cache, ctx, log)  # fmt: skip
+                                                           settings.rays_of_baselines, settings.cache, ctx, log)  # fmt: skip
         self.entry = {
             "scene": manifest.name, "path": str(manifest.path), "geometry": geo_info,
             "networks": sum(s.kind == "network" for s in manifest.segments), "weight_bytes": self.weights["fp32"],
@@ -315,22 +321,22 @@ class SceneBench:
             return None, {"note": f"skipped: {self.geometry.kind} scene (no vertices for the SDF objects)"}
         if "vertex" not in self.settings.backends:
             return None, {"note": "skipped (--backends)"}
-        front, back, back_vertices = vertex_transfer(self.geometry, self.tracer, self.settings.ref_rays, self.transfer_cache, self.geometry_id)
+        rays = self.settings.rays_of_baselines
+        front, back, back_vertices = vertex_transfer(self.geometry, self.tracer, rays, self.transfer_cache, self.geometry_id)
         n_vertices = len(self.geometry.mesh.vertices)
-        info = {"vertices": n_vertices, "back_vertices": back_vertices,
-                "weight_bytes": 16 * 4 * (n_vertices + back_vertices), "rays": self.settings.ref_rays}  # fmt: skip
+        info = {"vertices": n_vertices, "back_vertices": back_vertices, "weight_bytes": 16 * 4 * (n_vertices + back_vertices), "rays": rays}
         return (front, back), info
 
     def _vertex_bounces(self):
         """The vertex baseline with the scene's N bounces ("direct+rgb"; None without bounces or vertex baseline).
 
         Adds ``bounces`` to the ``vertex_baseline`` entry: ``bounces``, ``rays`` (bounce rays per
-        vertex sample: ``--ref-rays``, as its direct transfer), ``estimator``, ``weight_bytes``
-        (64 float32 per vertex and side), ``seconds`` (0 when cached).
+        vertex sample: ``--baseline-rays``, as its direct transfer; default ``--ref-rays``), ``estimator``,
+        ``weight_bytes`` (64 float32 per vertex and side), ``seconds`` (0 when cached).
         """
         if self.vertex_data is None or self.bounces <= 0:
             return None
-        rays, info = self.settings.ref_rays, self.entry["vertex_baseline"]
+        rays, info = self.settings.rays_of_baselines, self.entry["vertex_baseline"]
         front, back, seconds = vertex_bounce_transfer(self.geometry, *self.vertex_data, self.bounce_albedo, self.bounces, rays=rays,
                                                       seed=self.settings.seed, cache=self.transfer_cache, geometry_id=self.geometry_id)  # fmt: skip
         info["bounces"] = {

@@ -251,6 +251,28 @@ def test_bench_reports_vertex_rows_with_the_scenes_bounces_beside_direct(cornell
     assert "vertex baseline with 1 bounce" in md
 
 
+@pytest.mark.gl
+def test_baseline_rays_set_the_vertex_baselines_rays_and_leave_the_reference(cornell_report, tmp_path):
+    """``--baseline-rays``: the vertex baseline (direct and bounces) traces its own ray count; the
+    reference, and so the networks' PSNR, stays the ``--ref-rays`` one."""
+    data, _ = cornell_report
+    out = tmp_path / "r.json"
+    argv = [data["scenes"][0]["path"], "--size", "32", "--views", "2", "--ref-rays", "32", "--ref-rays-max", "32", "--warmup", "0",
+            "--backends", "onnx", "vertex", "--precisions", "fp32", "--gemm-size", "64", "--baseline-rays", "8", "--json", str(out)]  # fmt: skip
+    assert cli.main(argv) == 0
+    fewer = json.loads(out.read_text())
+    baseline = fewer["scenes"][0]["vertex_baseline"]
+    assert baseline["rays"] == 8 and baseline["bounces"]["rays"] == 8
+    assert fewer["scenes"][0]["reference"]["rays"] == 32
+    def psnr(report, backend, transfer):
+        return next(r["psnr"] for r in report["records"] if (r["backend"], r["transfer"], r["material"]) == (backend, transfer, "diffuse"))
+    assert psnr(fewer, "onnx", "1 bounce") == pytest.approx(psnr(data, "onnx", "1 bounce"), abs=1e-6)
+    for transfer in ("direct", "1 bounce"):  # 8 rays per vertex against 32: another, noisier baseline
+        assert psnr(fewer, "vertex", transfer) != pytest.approx(psnr(data, "vertex", transfer), abs=1e-3)
+    with pytest.raises(SystemExit):
+        cli.main([*argv[:-4], "--baseline-rays", "0", "--json", str(out)])
+
+
 @pytest.mark.parametrize(("backend", "transfer", "label"), [
     ("texture", "2 bounces", "texture 1024 2 bounces diffuse"), ("texture", "direct", "texture 1024 diffuse"),
     ("vertex", "1 bounce", "vertex 1 bounce diffuse"), ("glsl", "2 bounces", "glsl diffuse"),
