@@ -173,5 +173,8 @@ def test_vertex_same_bounces_study_relights_a_copy_and_pairs_rows_by_transfer(be
                           {**rec("onnx", "2 bounces", 30.0, 100), "material": "glossy"}]}  # fmt: skip
     rows = study.summary(report)
     assert len(rows) == 1 and rows[0]["vertex_db"] == 44.5 and rows[0]["gain_db"] == 3.5 and rows[0]["bytes_ratio"] == 0.25 and rows[0]["met"]
+    assert rows[0]["vertex_rays"] is None
+    report["scenes"] = [{"scene": "s", "vertex_baseline": {"rays": 512}}]  # --baseline-rays: the row says how many
+    assert study.summary(report)[0]["vertex_rays"] == 512
     report["records"][2]["psnr"] = 45.5  # +2.5 dB: missed
     assert not study.summary(report)[0]["met"]
