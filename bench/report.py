@@ -30,7 +30,7 @@ JSON report (``--json``)
     the largest network segment of the first view, one thread: ``segment``, ``rows``,
     ``run_us``, ``op_us`` per op type, ``gemm_share``: the share of the run in the MLP's
     Gemms; the rest is the encoding and element-wise ops); ``vertex_baseline`` (``vertices``, ``back_vertices``,
-    ``weight_bytes``, ``coverage_agreement``, and for a scene built with ``--bounces N``
+    ``weight_bytes``, ``rays`` (per vertex: ``--baseline-rays``, default ``--ref-rays``), ``coverage_agreement``, and for a scene built with ``--bounces N``
     ``bounces``: the interreflected vertex transfer's ``bounces``, ``rays``, ``estimator``,
     ``weight_bytes``, ``seconds``; or ``note`` when skipped), ``texture_baseline``
     (``bounces`` its textures carry, the scene's N or 0; ``sizes``: per ``--texture-size``, the bake's texel counts, ``bytes``, ``precompute_s``,
@@ -206,7 +206,8 @@ def markdown(report: dict) -> str:
             lines.append(f"- vertex baseline: {vb['note']}")
         elif vb:
             lines.append(f"- vertex baseline: {vb['vertices']:,} vertices (+{vb['back_vertices']:,} back sides) x 16 float32 = "
-                         f"{vb['weight_bytes']:,} bytes vs {s['weight_bytes']:,} bytes of network weights (fp32 ONNX initialisers)")  # fmt: skip
+                         f"{vb['weight_bytes']:,} bytes vs {s['weight_bytes']:,} bytes of network weights (fp32 ONNX initialisers); "
+                         f"{vb.get('rays', '?')} rays per vertex")  # fmt: skip
             if "bounces" in vb:
                 b = vb["bounces"]
                 lines.append(f"- vertex baseline with {transfer_label(b['bounces'])}: x 64 float32 (direct + indirect RGB) = {b['weight_bytes']:,} "

@@ -259,7 +259,8 @@ def test_baseline_rays_set_the_vertex_baselines_rays_and_leave_the_reference(cor
     out = tmp_path / "r.json"
     argv = [data["scenes"][0]["path"], "--size", "32", "--views", "2", "--ref-rays", "32", "--ref-rays-max", "32", "--warmup", "0",
             "--backends", "onnx", "vertex", "--precisions", "fp32", "--gemm-size", "64", "--baseline-rays", "8", "--json", str(out)]  # fmt: skip
-    assert cli.main(argv) == 0
+    assert cli.main([*argv, "--md", str(tmp_path / "r.md")]) == 0
+    assert "x 16 float32" in (md := (tmp_path / "r.md").read_text()) and "8 rays per vertex" in md
     fewer = json.loads(out.read_text())
     baseline = fewer["scenes"][0]["vertex_baseline"]
     assert baseline["rays"] == 8 and baseline["bounces"]["rays"] == 8
