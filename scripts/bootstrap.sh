@@ -6,7 +6,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-apt_packages=(libegl1 libegl-mesa0 libgl1-mesa-dri)
+apt_packages=(libegl1 libegl-mesa0 libgl1-mesa-dri qemu-user)  # qemu-user: tests/test_cpu_portability.py
 missing=()
 for pkg in "${apt_packages[@]}"; do
   dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
