@@ -11,7 +11,7 @@ test: install
 	.venv/bin/python -m pytest -q
 
 bench: install
-	.venv/bin/python bench/studies/precompute_bench.py --json docs/benchmarks/precompute_bunny.json
-	.venv/bin/python bench/studies/train_bench.py --json docs/benchmarks/train_bunny.json
-	.venv/bin/python bench/studies/runtime_bench.py --json docs/benchmarks/runtime.json
-	RAY_USAGE_STATS_ENABLED=0 .venv/bin/python bench/studies/cluster_bench.py --json docs/benchmarks/cluster.json
+	.venv/bin/python studies/precompute_bench.py --json docs/benchmarks/precompute_bunny.json
+	.venv/bin/python studies/train_bench.py --json docs/benchmarks/train_bunny.json
+	.venv/bin/python studies/runtime_bench.py --json docs/benchmarks/runtime.json
+	RAY_USAGE_STATS_ENABLED=0 .venv/bin/python studies/cluster_bench.py --json docs/benchmarks/cluster.json

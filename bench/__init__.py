@@ -12,10 +12,10 @@ train, export and runtime (never the other way round).
 - :mod:`~prt.bench.packing`      every network on every pixel against the packed path
 - :mod:`~prt.bench.report`       JSON keys, Markdown, plot, error maps, scene checkpoints
 - :mod:`~prt.bench.cli`          ``prt-bench`` (:func:`~prt.bench.cli.main`)
-- :mod:`~prt.bench.segment_study`  helpers of the per-segment ONNX studies in ``bench/studies/``
+- :mod:`~prt.bench.segment_study`  helpers of the per-segment ONNX studies in ``studies/``
 
 The precision variants (fp16, fp16-mlp, int8) are built by :mod:`prt.export.precision`.
-Study scripts (paper table, int8, graph folding, stage timings) live in ``bench/studies/``
+Study scripts (paper table, int8, graph folding, stage timings) live in ``studies/``
 of a checkout and are not installed.
 """
 

@@ -1,7 +1,7 @@
 """The interreflected part of the benchmark's reference (scenes built with ``--bounces N``).
 
 The renderer's interreflected transfer is ``T_0 + T_1 + ... + T_N`` (Sloan et al. 2002; see
-:mod:`prt.train.interreflection`).  At every covered pixel ``p`` the reference computes
+:mod:`prt.train.transport.interreflection`).  At every covered pixel ``p`` the reference computes
 
     T(p) = T_0(p) + mean_j  a(q_j) * [ T_0(q_j) + H(q_j) ]          (RGB: a is a colour)
 
@@ -14,7 +14,7 @@ over ``hit_rays`` cosine-distributed rays from ``p`` hitting ``q_j``:
   all of the indirect light, involves no interpolation at all;
 - ``H(q_j) = T_1 + ... + T_{N-1}`` (``N >= 2`` only): the higher bounces, from the nearest of
   an independent set of surface samples (own seed and count, not the build's) on which the
-  bounce operator of :mod:`prt.train.interreflection` ran with the same albedos (its
+  bounce operator of :mod:`prt.train.transport.interreflection` ran with the same albedos (its
   tangent-plane-aware nearest-sample rule, stricter: :data:`REFERENCE_CANDIDATES`, :data:`REFERENCE_PLANE_WEIGHT`).
 
 So the reference shares nothing with the build but the scene, the albedos recorded in the
@@ -34,9 +34,9 @@ from scipy.spatial import cKDTree
 from prt.runtime.errors import InputError
 from prt.runtime.files import atomic_save_npz
 from prt.train import compute_transfer
-from prt.train.interreflection import NORMAL_WEIGHT, interreflect, nearest_on_plane, trace_bounce_rays
-from prt.train.sampling import sample_surface
-from prt.train.transfer import cosine_directions, orthonormal_frames
+from prt.train.transport.interreflection import NORMAL_WEIGHT, interreflect, nearest_on_plane, trace_bounce_rays
+from prt.train.inputs.sampling import sample_surface
+from prt.train.transport.transfer import cosine_directions, orthonormal_frames
 
 __all__ = ["face_albedo", "higher_bounce_samples", "indirect_transfer", "cached_indirect", "direct_rgb", "HIT_RAYS", "HIT_TRANSFER_RAYS", "HIGHER_SAMPLES"]
 
@@ -44,7 +44,7 @@ HIT_RAYS = 64  # bounce rays per pixel
 HIT_TRANSFER_RAYS = 128  # rays of the direct transfer at each hit point (averaged again over HIT_RAYS hits)
 HIGHER_SAMPLES = 40_000  # independent samples carrying the bounces >= 2
 SEED_STREAM = 0x5EF  # keeps the reference's random streams apart from the build's
-# The nearest-sample searches of the higher bounces (prt.train.interreflection.nearest_on_plane)
+# The nearest-sample searches of the higher bounces (prt.train.transport.interreflection.nearest_on_plane)
 # compare more samples with the hit's tangent plane, and weigh the distance from it more, than
 # the build's (8, 4.0): the independent samples are sparser, and at 40k on the Cornell box the
 # build's values left the light/ceiling gap's samples with leaked sky light (mean shaded T_1
@@ -126,7 +126,7 @@ def indirect_transfer(geometry, tracer, points, normals, albedo, bounces: int, *
     Parameters
     ----------
     geometry, tracer :
-        The scene and its Embree tracer (:func:`prt.train.transfer.make_tracer`).
+        The scene and its Embree tracer (:func:`prt.train.transport.transfer.make_tracer`).
     points, normals : (P, 3)
         Pixels' positions and normals (facing the camera).
     albedo : (F, 3)

@@ -54,8 +54,8 @@ from prt.runtime.files import atomic_write_bytes, atomic_write_json
 from prt.runtime.gbuffer import load_mesh
 from prt.runtime.renderer import Renderer, Scene, make_current
 from prt.runtime.shading import shade, tonemap
-from prt.train.geometry import Geometry
-from prt.train.transfer import make_tracer
+from prt.train.inputs.geometry import Geometry
+from prt.train.transport.transfer import make_tracer
 
 __all__ = ["Settings", "LinearMorphableModel", "fit_lmm", "nearest_training_frame", "select_frames", "posed_geometry",
            "rest_geometry", "subdivide_geometry", "resolve_light", "frame_times", "DeformBench", "run", "markdown", "parse_args", "main", "METHODS", "TARGETS"]
@@ -206,7 +206,7 @@ def subdivide_geometry(geometry, levels: int):
 
 
 def rest_geometry(manifest) -> Geometry:
-    """A deformable scene's rest mesh (``geometry.npz``) as a :class:`prt.train.geometry.Geometry` for tracing."""
+    """A deformable scene's rest mesh (``geometry.npz``) as a :class:`prt.train.inputs.geometry.Geometry` for tracing."""
     if manifest.geometry.type != "mesh":
         raise InputError(f"{manifest.path}: a deformable scene's geometry is a mesh, found {manifest.geometry.type!r}")
     mesh = load_mesh(manifest.geometry.path)

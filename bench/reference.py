@@ -27,7 +27,7 @@ from prt.bench.metrics import image_metrics
 from prt.runtime.files import atomic_save_npz
 from prt.runtime.shading import shade, tonemap
 from prt.train import compute_transfer
-from prt.train.geometry import Geometry, load_geometry
+from prt.train.inputs.geometry import Geometry, load_geometry
 
 __all__ = ["mesh_checksum", "load_scene_geometry", "cached_transfer", "shade_image", "reference_images", "noise_psnr", "View",
            "REFERENCE_MARGIN_DB", "rays_for_margin", "convergence"]
@@ -66,7 +66,7 @@ def load_scene_geometry(manifest):
 
     Returns
     -------
-    geometry : prt.train.geometry.Geometry
+    geometry : prt.train.inputs.geometry.Geometry
     info : dict
         ``type``, ``source``, ``checksum``, ``matches_build_source`` (bool, or None when the
         check could not be made).
@@ -189,7 +189,7 @@ def _mixed_geometry(manifest):
     """A mixed scene's geometry for tracing: its mesh objects from ``geometry.npz``, its SDF objects
     rebuilt from ``mixed.json`` (their placements in scene units; neural networks in the folder)."""
     from prt.runtime.errors import GeometryError
-    from prt.train.mixed import MixedParts, sdfs_from_record
+    from prt.train.inputs.mixed import MixedParts, sdfs_from_record
 
     record_path = manifest.root / "mixed.json"
     try:

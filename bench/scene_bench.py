@@ -51,7 +51,7 @@ from prt.runtime.gbuffer import load_mesh
 from prt.runtime.gl import bind_framebuffer, create_context
 from prt.runtime.renderer import Renderer, Scene
 from prt.runtime.shading import Material, diffuse_light_matrix, shade, tonemap
-from prt.train.transfer import make_tracer
+from prt.train.transport.transfer import make_tracer
 
 __all__ = ["MATERIALS", "GLOSSY", "Settings", "SceneBench", "budget_views", "spread", "check_scene", "run"]
 

@@ -1,4 +1,4 @@
-"""Shared by the per-segment ONNX studies (``bench/studies/int8_static.py``, ``onnx_graph_fold.py``).
+"""Shared by the per-segment ONNX studies (``studies/int8_static.py``, ``onnx_graph_fold.py``).
 
 A scene built by ``prt-train`` keeps its training and held-out samples in ``precompute/``
 beside ``scene.json``; these helpers read them, give each network segment its own samples,

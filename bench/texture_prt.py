@@ -1,6 +1,6 @@
 """The texture-space baseline: transfer textures (texture-space PRT) baked for a scene, cached.
 
-For each ``--texture-size``, :func:`prt.train.transfer_texture.bake_transfer_texture` bakes the
+For each ``--texture-size``, :func:`prt.train.transport.transfer_texture.bake_transfer_texture` bakes the
 scene's mesh (``geometry.npz``) at ``--ref-rays`` rays per texel (the rays of every other path),
 with the mesh file's own UVs where ``build.json``'s source has usable ones, else xatlas.  The
 texture is cached in the bench cache (``<cache>/<scene>/transfer_texture-<size>-r<rays>.npz``
@@ -9,7 +9,7 @@ variant of the manifest naming it is rendered by the runtime's ``texture`` backe
 are timed and compared exactly as the networks' are.  Mesh scenes only.
 
 A scene built with ``--bounces N`` gets interreflection textures ("direct+rgb", 64 values per
-texel; :func:`prt.train.transfer_texture.scene_bounces`): their texels' bounce rays gather the
+texel; :func:`prt.train.transport.transfer_texture.scene_bounces`): their texels' bounce rays gather the
 build's own precompute samples, as the networks' training data did, so the texture and the
 networks are compared against the same bounce-aware reference.  Cached as
 ``transfer_texture-<size>-r<rays>-b<N>.npz``.  The records of those textures say so: their
@@ -26,7 +26,7 @@ from pathlib import Path
 
 from prt.runtime.files import atomic_write_json
 from prt.runtime.transfer_texture import TransferTextureInfo
-from prt.train.transfer_texture import bake_transfer_texture, save_transfer_texture, scene_bounces
+from prt.train.transport.transfer_texture import bake_transfer_texture, save_transfer_texture, scene_bounces
 
 __all__ = ["texture_variants"]
 

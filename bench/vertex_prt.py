@@ -6,13 +6,13 @@ side), interpolated by the rasteriser (4 RGBA32F targets per pass of 16 values,
 ``shaders/vertex_prt.vert|frag``), shaded like the rest; mesh scenes only.
 
 Interreflected transfer (scenes built with ``--bounces N``, Sloan et al. 2002 section 6) uses
-the build's bounce-stage estimator (:mod:`prt.train.interreflection`) with the vertices as its
+the build's bounce-stage estimator (:mod:`prt.train.transport.interreflection`) with the vertices as its
 samples, so the baseline carries no information beyond its own vertices: the sample set is the
 front of every used vertex plus the back of the vertices of open faces (reversed normal); each
-shoots cosine rays (:func:`prt.train.interreflection.trace_bounce_rays`), every hit takes the
+shoots cosine rays (:func:`prt.train.transport.interreflection.trace_bounce_rays`), every hit takes the
 previous bounce of the vertex sample nearest to it in (position, normal), tangent-plane aware
-(:func:`prt.train.interreflection.nearest_on_plane`), and the bounces are the sparse products of
-:func:`prt.train.interreflection.interreflect`: ``T_b = W @ T_{b-1}`` over the vertex samples,
+(:func:`prt.train.transport.interreflection.nearest_on_plane`), and the bounces are the sparse products of
+:func:`prt.train.transport.interreflection.interreflect`: ``T_b = W @ T_{b-1}`` over the vertex samples,
 starting from their ray-traced direct transfer.  (Not the benchmark reference's estimator,
 :mod:`prt.bench.bounce_reference`, which traces the direct transfer afresh at every hit and
 reads higher bounces from independent samples.)  The result has the networks' "direct+rgb"
@@ -34,7 +34,7 @@ from prt.runtime.files import atomic_save_npz
 from prt.runtime.gl import bind_framebuffer
 from prt.runtime.normals import vertex_normals
 from prt.shaders import assemble
-from prt.train.interreflection import interreflect, trace_bounce_rays
+from prt.train.transport.interreflection import interreflect, trace_bounce_rays
 
 __all__ = ["VertexPRT", "vertex_transfer", "vertex_samples", "vertex_indirect", "cached_vertex_indirect", "vertex_bounce_transfer",
            "ESTIMATOR_VERSION"]
@@ -50,7 +50,7 @@ class VertexPRT:
     Parameters
     ----------
     ctx : moderngl.Context
-    geometry : prt.train.geometry.Geometry
+    geometry : prt.train.inputs.geometry.Geometry
         A mesh scene (not an SDF).
     front, back : (V, n) float32
         Transfer at each vertex for its normal and for the reversed normal (used by open

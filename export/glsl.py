@@ -247,7 +247,7 @@ def choose_layout(architecture: dict) -> str:
     ----------
     architecture : dict
         ``hidden``, ``layers``, ``pos_freqs``, ``normal_freqs``, ``bands`` (as recorded in
-        the ONNX file or :meth:`prt.train.network.Architecture.as_dict`).
+        the ONNX file or :meth:`prt.train.networks.network.Architecture.as_dict`).
     """
     return "const" if _weight_blocks(architecture) <= AUTO_CONST_MAX_BLOCKS else "texture"
 

@@ -1,4 +1,4 @@
-"""A grid-encoded segment network (``prt.train.grid_encoding``) as an ONNX file (and as GLSL), built from plain
+"""A grid-encoded segment network (``prt.train.networks.grid_encoding``) as an ONNX file (and as GLSL), built from plain
 arrays (no torch here; this module never imports ``prt.train``).
 
 Graph (opset 18: ``BitwiseXor`` / ``BitwiseAnd`` and the Reduce* ops with ``axes`` as an input),
@@ -23,7 +23,7 @@ per architecture, the box and output scaling in the texture too).
 
 The table can be stored as float16 (``table_dtype="float16"``, a Cast to float32 in the graph).
 The level constants are recorded in the metadata (``prt.grid``), so :func:`read_arrays` gives back
-the arrays ``prt.train.grid_encoding.evaluate_numpy`` takes.
+the arrays ``prt.train.networks.grid_encoding.evaluate_numpy`` takes.
 """
 
 from __future__ import annotations

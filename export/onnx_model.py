@@ -11,9 +11,9 @@ Graph (opset 17), one input and one output, dynamic batch ``N``:
 
 The encoding is part of the graph (Split, Sub/Mul/Clip, ReduceL2/Max/Div, MatMul, Sin, Cos,
 Concat), then ``layers`` x (Gemm, LeakyRelu), Gemm, Tanh, Mul, Add; a residual network's
-(:class:`prt.train.network.Architecture`, ``residual``) then adds ``q(n) @ out_normal_quad``
+(:class:`prt.train.networks.network.Architecture`, ``residual``) then adds ``q(n) @ out_normal_quad``
 (Mul, Gather, Mul, Concat, MatMul, Add; ``q(n) = [n, n * n, n * n.yzx]`` of the unit normal).  Initialiser names match
-:meth:`prt.train.network.TransferMLP.arrays`; the GLSL generator reads the weights back from
+:meth:`prt.train.networks.network.TransferMLP.arrays`; the GLSL generator reads the weights back from
 the file by those names.  Metadata (``metadata_props``) records the format, SH bands,
 architecture, encoding and output scale, so a file explains itself.
 """

@@ -75,7 +75,7 @@ class TrainedSegment:
     flops_per_fragment, weight_bytes : int
         Cost of the network (0 when analytic).
     sizing : dict or None
-        How right-sizing chose it (:mod:`prt.train.rightsize`): rule, target, measured, reason, sizes tried.
+        How right-sizing chose it (:mod:`prt.train.networks.rightsize`): rule, target, measured, reason, sizes tried.
     """
 
     id: int
@@ -117,7 +117,7 @@ def export_segment(out: Path, segment: TrainedSegment, glsl_layout: str = "auto"
     save_model(build_model(segment.arrays, arch, name=f"segment{s}"), info.model)
     write_segment_glsl(info, glsl_layout)  # the runtime uploads the weights; it cannot read ONNX initialisers
     info.architecture = {k: arch[k] for k in _ARCHITECTURE_FIELDS}
-    if arch.get("residual"):  # the graph adds the unshadowed transfer back (prt.train.network): informative
+    if arch.get("residual"):  # the graph adds the unshadowed transfer back (prt.train.networks.network): informative
         info.architecture["residual"] = "unshadowed"
     if "code_weight" in segment.arrays:  # shape-conditioned: the code rows, and where the first bias sits among the texels
         if info.glsl_weights is None or not _compact_line(info.glsl):
@@ -161,7 +161,7 @@ def export_geometry(geometry, out: Path, albedo_uv: np.ndarray | None = None) ->
 
     Parameters
     ----------
-    geometry : prt.train.geometry.Geometry
+    geometry : prt.train.inputs.geometry.Geometry
         Uses ``mesh`` (vertices, faces), ``object_ids``, ``object_names``, ``two_sided``,
         ``to_source`` and ``sdf`` (an SDF scene: ``name`` and ``glsl(function_name)``).
     out : Path
@@ -245,7 +245,7 @@ def export_scene(
         The scene folder (must exist).
     name : str
         Scene name.
-    geometry : prt.train.geometry.Geometry
+    geometry : prt.train.inputs.geometry.Geometry
         See :func:`export_geometry`.
     segmentation : dict
         ``roots`` (object id -> node), ``nodes`` and ``leaf_segment`` of the k-d tree.
@@ -268,7 +268,7 @@ def export_scene(
         ``bounces``, ``bounce_rays``, ``layout`` ("direct+rgb") and ``albedos`` (object -> RGB):
         the manifest's ``interreflection`` (the networks then output 4 ``sh_bands**2`` values).
     deformation : dict, optional
-        A deformable object (:mod:`prt.train.deform_build`): ``arrays`` (``rest``, ``frames``, ``theta``,
+        A deformable object (:mod:`prt.train.deform.deform_build`): ``arrays`` (``rest``, ``frames``, ``theta``,
         ``mean``, ``basis``, written to ``deformation.npz``), ``source``, ``code`` and ``frames`` (the
         manifest's ``deformation`` record).
 

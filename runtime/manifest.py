@@ -402,7 +402,7 @@ class InterreflectionInfo:
         Diffuse albedo of each object as it bounced light (fixed at build time).
     auto : dict or None
         With ``prt-train --bounces auto``: what chose ``bounces`` (threshold, truncation PSNR and
-        relative MAE per env map and N, :func:`prt.train.bounce_depth.auto_bounces`).
+        relative MAE per env map and N, :func:`prt.train.transport.bounce_depth.auto_bounces`).
     """
 
     bounces: int

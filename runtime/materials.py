@@ -2,7 +2,7 @@
 
 A mesh scene names its objects (``geometry.objects``; ``object_ids`` in ``geometry.npz`` index
 that list).  The build reads each object's material from the mesh's own files (OBJ/MTL,
-glTF; :mod:`prt.train.materials`) and records it in ``scene.json``::
+glTF; :mod:`prt.train.inputs.materials`) and records it in ``scene.json``::
 
     "materials": [{"object": "leftWall", "type": "diffuse", "albedo": [0.63, 0.065, 0.05]}, ...]
 

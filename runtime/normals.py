@@ -42,7 +42,7 @@ def corner_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray,
     """The normals the G-buffer interpolates: ``(face (F, 3), corner (F, 3, 3))``, float64.
 
     Corner normals are area-weighted vertex normals (:func:`vertex_normals`; vertices are shared
-    within an object only, see prt.train.geometry), except at creases: a corner further than 40
+    within an object only, see prt.train.inputs.geometry), except at creases: a corner further than 40
     degrees from its face's normal keeps the face normal.  Degenerate faces get zero normals.
     Training samples take their normals from here too (barycentric mix, normalised), so the
     networks learn transfer for the normals the runtime asks about.

@@ -37,7 +37,7 @@ HOLD_BYTES = 256 << 20
 path are rendered back to back, as the viewer renders them, and written after.  Writing each frame
 between two renders leaves the renderer's threads idle for the encoding, and they come back slow:
 on the 2-core machine the demo's frames took 1.17x as long, its network stage 1.46x
-(``bench/studies/demo_fps.py``, ``docs/benchmarks/demo_fps.md``)."""
+(``studies/demo_fps.py``, ``docs/benchmarks/demo_fps.md``)."""
 PNG_LEVEL = 1
 """zlib level of the PNG frames: 4x faster to encode than Pillow's default 6, files about a third larger."""
 VIDEO_INSTALL = 'pip install "prt-runtime[video]"  (imageio-ffmpeg)'

@@ -1,6 +1,6 @@
 """The segment rule: which segment a surface point belongs to, by the scene's k-d tree.
 
-Training (:meth:`prt.train.segments.Segmentation.assign`) and the runtime
+Training (:meth:`prt.train.networks.segments.Segmentation.assign`) and the runtime
 (:func:`segment_of`, and per fragment the G-buffer's ``segment_lookup.glsl``) use this one
 rule, so samples, points and fragments agree on every segment boundary.
 

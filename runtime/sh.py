@@ -751,7 +751,7 @@ def unshadowed_quadratic(bands: int = 4) -> tuple[np.ndarray, np.ndarray]:
     Exact up to 4 bands: the clamped cosine's band 3 vanishes, and bands 0-2 of the SH basis are
     polynomials of degree <= 2; from band 4 on the transfer is not a quadratic (ValueError).
     Used where the transfer is split into this known part and a learnt or interpolated residual
-    (:mod:`prt.train.network`, :mod:`prt.runtime.interpolation`).
+    (:mod:`prt.train.networks.network`, :mod:`prt.runtime.interpolation`).
 
     Returns
     -------

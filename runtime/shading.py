@@ -251,7 +251,7 @@ class Lighting:
         return cls.from_sh(load_envmap_sh(path, bands), rotation, window)
 
 
-# Issue 12 (bench/studies/dering.py, README "Deringing"): against the env map itself, Hanning at
+# Issue 12 (studies/dering.py, README "Deringing"): against the env map itself, Hanning at
 # width 6 takes the glossy (exponent 32) black-clamped pixels under ``studio`` from 4.5 % to 0 and
 # its PSNR from 15.7 to 19.4 dB, while it costs 3-10 dB where the light barely rings (potsdamer).
 DERING_WINDOW = ("hanning", 6.0)

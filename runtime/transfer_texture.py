@@ -1,6 +1,6 @@
 """A scene's optional transfer texture (texture-space PRT): its manifest entry and its file.
 
-``transfer_texture.npz`` (written by :func:`prt.train.transfer_texture.save_transfer_texture`):
+``transfer_texture.npz`` (written by :func:`prt.train.transport.transfer_texture.save_transfer_texture`):
 
 - ``transfer`` (A, S, S, n) float16: transfer per texel of each of A atlases (texture sets),
   row 0 at ``v`` near 0 (GL's texture row order), dilated into the gutters between charts; n is

@@ -32,13 +32,13 @@ CORNELL = Path(__file__).resolve().parents[1] / "tests" / "data" / "CornellBox-O
 def layout(args) -> dict:
     import tempfile
 
-    from prt.train.fit import FitSettings, fit_segment
-    from prt.train.geometry import load_geometry
-    from prt.train.interreflection import bounce_stage
-    from prt.train.materials import mesh_materials
-    from prt.train.network import Architecture
-    from prt.train.sampling import VALIDATION_STREAM, sample_surface
-    from prt.train.transfer import compute_transfer
+    from prt.train.networks.fit import FitSettings, fit_segment
+    from prt.train.inputs.geometry import load_geometry
+    from prt.train.transport.interreflection import bounce_stage
+    from prt.train.inputs.materials import mesh_materials
+    from prt.train.networks.network import Architecture
+    from prt.train.inputs.sampling import VALIDATION_STREAM, sample_surface
+    from prt.train.transport.transfer import compute_transfer
 
     geometry = load_geometry(str(CORNELL))
     found = {m.object: m.material.albedo for m in mesh_materials(str(CORNELL), geometry.object_names, {"type": "diffuse", "albedo": [0.7] * 3})}

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from prt.train.gltf_animation import AnimatedScene, pack_accessors, read_gltf, write_glb
+from prt.train.deform.gltf_animation import AnimatedScene, pack_accessors, read_gltf, write_glb
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "tests" / "data" / "character" / "minetest_character.glb"

@@ -5,12 +5,12 @@ from pathlib import Path
 
 import pytest
 
-STUDIES = Path(__file__).resolve().parents[1] / "bench" / "studies"
+STUDIES = Path(__file__).resolve().parents[1] / "studies"
 
 
 @pytest.fixture(scope="session")
 def bench_module():
-    """Import a study script of ``bench/studies/`` (not a package) by name: ``bench_module("paper_table")``."""
+    """Import a study script of ``studies/`` (not a package) by name: ``bench_module("paper_table")``."""
 
     def load(name):
         spec = importlib.util.spec_from_file_location(name, STUDIES / f"{name}.py")

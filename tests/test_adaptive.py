@@ -1,4 +1,4 @@
-"""Adaptive sampling (prt.train.adaptive): the variation score against its brute-force twin, points
+"""Adaptive sampling (prt.train.inputs.adaptive): the variation score against its brute-force twin, points
 put back exactly on the surface, draws concentrated at a contact shadow, and the precompute's
 second pass (deterministic, resumable, validation still uniform)."""
 
@@ -9,11 +9,11 @@ import pytest
 import trimesh
 
 from prt.runtime.errors import SpecError
-from prt.train.adaptive import adaptive_samples, closest_on_triangles, transfer_variation, transfer_variation_reference
-from prt.train.geometry import load_geometry
-from prt.train.precompute import PrecomputeSettings, check_settings, load_precompute, run_precompute
-from prt.train.sampling import sample_surface
-from prt.train.transfer import compute_transfer
+from prt.train.inputs.adaptive import adaptive_samples, closest_on_triangles, transfer_variation, transfer_variation_reference
+from prt.train.inputs.geometry import load_geometry
+from prt.train.transport.precompute import PrecomputeSettings, check_settings, load_precompute, run_precompute
+from prt.train.inputs.sampling import sample_surface
+from prt.train.transport.transfer import compute_transfer
 
 
 @pytest.fixture(scope="module")
@@ -105,7 +105,7 @@ def test_a_bad_adaptive_share_is_one_spec_error(share):
 def test_in_a_mixed_scene_each_point_goes_back_onto_its_own_object():
     from pathlib import Path
 
-    from prt.train.mixed import ObjectSpec, compose_objects
+    from prt.train.inputs.mixed import ObjectSpec, compose_objects
 
     quad = Path(__file__).parent / "data" / "ground_quad.obj"
     geometry = compose_objects([

@@ -1,6 +1,6 @@
 """How many bounces (issue 13): the truncation error of N bounces and ``prt-train --bounces auto``.
 
-Twins: :func:`prt.train.bounce_depth.truncation_errors` against a per-sample loop.  Analytic
+Twins: :func:`prt.train.transport.bounce_depth.truncation_errors` against a per-sample loop.  Analytic
 expectations: on a convex object no bounce ray hits anything, so auto keeps 0 bounces; inside a
 box open at the top the walls light each other, so auto keeps at least one.
 """
@@ -21,7 +21,7 @@ from prt.runtime.envmap import load_envmap_sh  # noqa: E402
 from prt.runtime.envmaps import BUNDLED_ENVMAPS, bundled_envmap_path  # noqa: E402
 from prt.runtime.errors import SpecError  # noqa: E402
 from prt.runtime.shading import tonemap  # noqa: E402
-from prt.train.bounce_depth import AUTO_MAX_BOUNCES, AUTO_PSNR, PSNR_CAP, auto_bounces, choose_bounces, truncation_errors  # noqa: E402
+from prt.train.transport.bounce_depth import AUTO_MAX_BOUNCES, AUTO_PSNR, PSNR_CAP, auto_bounces, choose_bounces, truncation_errors  # noqa: E402
 
 
 def _lights() -> dict:
@@ -73,8 +73,8 @@ def test_choose_bounces_takes_the_smallest_n_under_every_light():
 
 
 def _precompute(mesh: "trimesh.Trimesh", tmp_path: Path):
-    from prt.train.geometry import load_geometry
-    from prt.train.precompute import PrecomputeSettings, load_precompute, run_precompute
+    from prt.train.inputs.geometry import load_geometry
+    from prt.train.transport.precompute import PrecomputeSettings, load_precompute, run_precompute
 
     path = tmp_path / "mesh.obj"
     mesh.export(path)

@@ -11,8 +11,8 @@ pytest.importorskip("embreex")
 
 from scipy.spatial import cKDTree  # noqa: E402
 
-from prt.train.interreflection import NORMAL_WEIGHT, nearest_on_plane, trace_bounce_rays  # noqa: E402
-from prt.train.interreflection import nearest_on_plane_reference  # noqa: E402
+from prt.train.transport.interreflection import NORMAL_WEIGHT, nearest_on_plane, trace_bounce_rays  # noqa: E402
+from prt.train.transport.interreflection import nearest_on_plane_reference  # noqa: E402
 
 
 def test_nearest_on_plane_equals_the_plain_twin():

@@ -14,8 +14,8 @@ import trimesh
 
 from prt.bench.bounce_reference import face_albedo, higher_bounce_samples, indirect_transfer
 from prt.train import compute_transfer
-from prt.train.geometry import Geometry
-from prt.train.transfer import make_tracer
+from prt.train.inputs.geometry import Geometry
+from prt.train.transport.transfer import make_tracer
 
 H = 0.3
 F_OPEN = (1 - H) / 2

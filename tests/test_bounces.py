@@ -38,7 +38,7 @@ def test_spec_bounces_default_auto_and_checked():
     # N = 0: the architecture records (ONNX metadata, fit-cache keys) are those of before the
     # layouts existed, so a direct-only build writes the same bytes (checked by hand against the
     # previous commit: identical ONNX, GLSL, geometry and scene.json).
-    from prt.train.network import Architecture
+    from prt.train.networks.network import Architecture
 
     assert set(Architecture().as_dict()) == {"hidden", "layers", "pos_freqs", "normal_freqs", "bands", "input_dim"}
     assert all(a.layout == "direct" and "layout" not in a.as_dict() and a.outputs == 16 for a in spec.architectures())
@@ -54,7 +54,7 @@ def test_spec_bounces_default_auto_and_checked():
 
 
 def test_total_transfer_error_is_that_of_the_rgb_transfer():
-    from prt.train.fit import total_transfer, transfer_error
+    from prt.train.networks.fit import total_transfer, transfer_error
 
     rng = np.random.default_rng(3)
     direct, indirect = rng.normal(size=(50, N)), rng.normal(size=(50, 3, N))
@@ -70,10 +70,10 @@ def test_total_transfer_error_is_that_of_the_rgb_transfer():
 
 
 def test_bounce_stage_is_deterministic_and_resumes(tmp_path):
-    from prt.train.geometry import load_geometry
-    from prt.train.interreflection import bounce_stage
-    from prt.train.sampling import sample_surface
-    from prt.train.transfer import compute_transfer
+    from prt.train.inputs.geometry import load_geometry
+    from prt.train.transport.interreflection import bounce_stage
+    from prt.train.inputs.sampling import sample_surface
+    from prt.train.transport.transfer import compute_transfer
 
     geometry = load_geometry(str(CORNELL))
     train, valid = sample_surface(geometry, 1500, seed=0), sample_surface(geometry, 300, seed=0, stream=1)

@@ -16,8 +16,8 @@ from prt.runtime.camera import DEFAULT_CAMERA
 from prt.runtime.manifest import load_manifest
 from prt.runtime.errors import SpecError
 from prt.train.build import PRECOMPUTE_FIELDS, BuildSpec, spec_from_dict
-from prt.train.fit import DEFAULT_STEPS, FitSettings
-from prt.train.precompute import PrecomputeSettings
+from prt.train.networks.fit import DEFAULT_STEPS, FitSettings
+from prt.train.transport.precompute import PrecomputeSettings
 from prt.train.train_cli import main as prt_train_main
 
 DATA = Path(__file__).parent / "data"
@@ -168,7 +168,7 @@ def test_old_specs_with_epochs_load_and_steps_reach_the_fit_settings():
 def test_fit_cache_keys_change_with_the_training_settings(tmp_path):
     """Changed training settings must not reuse stale fits (the fit cache is keyed by them)."""
     from prt.train.build import _FitCache
-    from prt.train.network import Architecture
+    from prt.train.networks.network import Architecture
 
     arch = Architecture(hidden=8, layers=1)
     paths = {_FitCache(tmp_path, "key", 0, FitSettings(**kw))._paths(arch)[0].name
@@ -191,10 +191,10 @@ def test_bad_inputs_fail_in_one_line(tmp_path, capsys):
 
 
 def test_static_int8_study_runs_on_a_build(spot_build, tmp_path):
-    """bench/studies/int8_static.py: three versions per segment, each timed and each about as accurate."""
+    """studies/int8_static.py: three versions per segment, each timed and each about as accurate."""
     out, _ = spot_build
     report = tmp_path / "int8.json"
-    script = Path(__file__).resolve().parents[1] / "bench" / "studies" / "int8_static.py"
+    script = Path(__file__).resolve().parents[1] / "studies" / "int8_static.py"
     proc = subprocess.run([sys.executable, str(script), str(out / "scene.json"), "--rows", "256", "--repeats", "2",
                            "--calibration", "256", "--json", str(report)], capture_output=True, text=True)  # fmt: skip
     assert proc.returncode == 0, proc.stderr
@@ -208,10 +208,10 @@ def test_static_int8_study_runs_on_a_build(spot_build, tmp_path):
 
 
 def test_graph_fold_study_runs_on_a_build(spot_build, tmp_path):
-    """bench/studies/onnx_graph_fold.py: both graphs timed per segment, and they agree on held-out samples."""
+    """studies/onnx_graph_fold.py: both graphs timed per segment, and they agree on held-out samples."""
     out, _ = spot_build
     report = tmp_path / "fold.json"
-    script = Path(__file__).resolve().parents[1] / "bench" / "studies" / "onnx_graph_fold.py"
+    script = Path(__file__).resolve().parents[1] / "studies" / "onnx_graph_fold.py"
     proc = subprocess.run([sys.executable, str(script), str(out / "scene.json"), "--rows", "256", "--repeats", "2",
                            "--json", str(report)], capture_output=True, text=True)  # fmt: skip
     assert proc.returncode == 0, proc.stderr

@@ -187,11 +187,11 @@ def test_cli_renders_a_path_and_refuses_a_bad_one(tmp_path, capsys):
 
 
 def test_demo_frame_rate_study_runs_every_configuration(tmp_path):
-    """bench/studies/demo_fps.py: four configurations (tolerance x held / written each), each with its
+    """studies/demo_fps.py: four configurations (tolerance x held / written each), each with its
     rounds, the HOLD_BYTES default restored, and the PNG levels' timings."""
     root = Path(__file__).resolve().parents[1]
     out, md = tmp_path / "fps.json", tmp_path / "fps.md"
-    proc = subprocess.run([sys.executable, str(root / "bench" / "studies" / "demo_fps.py"), "--size", "40", "--frames", "3",
+    proc = subprocess.run([sys.executable, str(root / "studies" / "demo_fps.py"), "--size", "40", "--frames", "3",
                            "--rounds", "2", "--json", str(out), "--md", str(md)], capture_output=True, text=True)  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     data = json.loads(out.read_text())

@@ -22,8 +22,8 @@ LIGHTS = ["scene", "studio"]
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory) -> Path:
     """A bar on a plate bent over 7 frames (4 train, 2 unseen, 1 extrapolated), one tiny network."""
-    from prt.train.deform_build import DeformSpec, run_deform_build
-    from prt.train.deform_sources import procedural
+    from prt.train.deform.deform_build import DeformSpec, run_deform_build
+    from prt.train.deform.deform_sources import procedural
 
     bar = trimesh.creation.box((0.3, 2.0, 0.3)).subdivide().subdivide()
     plate = trimesh.creation.box((2.0, 0.1, 2.0))
@@ -227,7 +227,7 @@ def _farthest_frame(bench) -> int:
 
 def _distance_to_mesh(points, mesh) -> np.ndarray:
     """Each point's distance to the nearest triangle (every pair tried)."""
-    from prt.train.adaptive import closest_on_triangles
+    from prt.train.inputs.adaptive import closest_on_triangles
 
     corners = np.asarray(mesh.vertices)[np.asarray(mesh.faces)]  # (F, 3, 3)
     p = np.asarray(points, np.float64)[:, None, :]

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from prt.runtime.errors import GeometryError, InputError, SpecError
-from prt.train.deform_sources import (
+from prt.train.deform.deform_sources import (
     bend,
     fold,
     load_gltf,
@@ -24,7 +24,7 @@ from prt.train.deform_sources import (
     procedural,
     twist,
 )
-from prt.train.gltf_animation import linear_blend_skinning, sample_channel
+from prt.train.deform.gltf_animation import linear_blend_skinning, sample_channel
 
 DATA = Path(__file__).parent / "data"
 CHARACTER = DATA / "character" / "minetest_character.glb"

@@ -15,7 +15,7 @@ import trimesh
 from prt.export.onnx_model import build_model
 from prt.runtime.deformation import Deformation, code_bias, code_features, code_frequencies
 from prt.runtime.errors import InputError, SpecError
-from prt.train.network import Architecture, TransferMLP, evaluate_numpy
+from prt.train.networks.network import Architecture, TransferMLP, evaluate_numpy
 
 
 def _network(code_dim=3, code_freqs=2, seed=0):
@@ -65,7 +65,7 @@ def test_code_features_and_cost():
 
 
 def test_shape_code_spans_the_training_frames():
-    from prt.train.deform_build import shape_code, split_frames
+    from prt.train.deform.deform_build import shape_code, split_frames
 
     rng = np.random.default_rng(0)
     rest = rng.normal(size=(50, 3))
@@ -83,7 +83,7 @@ def test_shape_code_spans_the_training_frames():
     np.testing.assert_allclose(rebuilt, frames, atol=1e-5)  # every frame, also the held-out ones: the modes span them
     with pytest.raises(SpecError, match="give more frames"):
         split_frames(3, 2, 2)
-    from prt.train.deform_build import DeformSpec
+    from prt.train.deform.deform_build import DeformSpec
 
     with pytest.raises(SpecError, match="extrapolate_from"):
         DeformSpec(extrapolate_from="middle").check()
@@ -104,8 +104,8 @@ def _box_arm():
 @pytest.fixture(scope="module")
 def bent_scene(tmp_path_factory):
     """A small real build: a bar bending over a plate (procedural bend), few samples and steps."""
-    from prt.train.deform_build import DeformSpec, run_deform_build
-    from prt.train.deform_sources import procedural
+    from prt.train.deform.deform_build import DeformSpec, run_deform_build
+    from prt.train.deform.deform_sources import procedural
 
     out = tmp_path_factory.mktemp("deform") / "bar"
     source = procedural("bend", np.linspace(0, 60, 7), mesh=_box_arm(), axis="z", path="bar")
@@ -125,8 +125,8 @@ def test_build_records_the_deformation(bent_scene):
         assert seg["architecture"]["code_dim"] == data["deformation"]["code"]["dim"] and (out / seg["code"]).is_file()
     assert set(report["frame_errors"]["mean"]) == {"train", "unseen", "extrapolated"}
     # resumable: a second run reuses every frame and fit
-    from prt.train.deform_build import DeformSpec, run_deform_build
-    from prt.train.deform_sources import procedural
+    from prt.train.deform.deform_build import DeformSpec, run_deform_build
+    from prt.train.deform.deform_sources import procedural
 
     lines = []
     source = procedural("bend", np.linspace(0, 60, 7), mesh=_box_arm(), axis="z", path="bar")

@@ -1,4 +1,4 @@
-"""The fitting loss option (``loss = "l1" | "relative"``, prt.train.fit): the weighted loss against its
+"""The fitting loss option (``loss = "l1" | "relative"``, prt.train.networks.fit): the weighted loss against its
 plain numpy twin, the default unchanged, and the relative loss fitting dim samples better."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from prt.runtime.errors import SpecError  # noqa: E402
-from prt.train.fit import (  # noqa: E402
+from prt.train.networks.fit import (  # noqa: E402
     RELATIVE_FLOOR,
     FitSettings,
     _as_input,
@@ -20,7 +20,7 @@ from prt.train.fit import (  # noqa: E402
     loss_weights,
     weighted_l1_numpy,
 )
-from prt.train.network import Architecture, target_scaling  # noqa: E402
+from prt.train.networks.network import Architecture, target_scaling  # noqa: E402
 
 
 def _transfer(rng, m, width):

@@ -503,8 +503,8 @@ def test_training_samples_get_the_normals_the_gbuffer_interpolates(gl_ctx, tmp_p
     not the face's, and the G-buffer must agree with the shared helper at its own pixels.
     """
     from prt.runtime.normals import corner_normals, interpolated_normals
-    from prt.train.geometry import load_geometry
-    from prt.train.sampling import sample_surface
+    from prt.train.inputs.geometry import load_geometry
+    from prt.train.inputs.sampling import sample_surface
 
     coarse = trimesh.creation.icosphere(subdivisions=1, radius=RADIUS)
     closed = np.zeros(len(coarse.faces))

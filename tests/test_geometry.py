@@ -12,8 +12,8 @@ import pytest
 import trimesh
 
 from prt.runtime.errors import GeometryError
-from prt.train.geometry import Geometry, load_geometry
-from prt.train.objfile import read_obj
+from prt.train.inputs.geometry import Geometry, load_geometry
+from prt.train.inputs.objfile import read_obj
 
 DATA = Path(__file__).parent / "data"
 SHARED = Path("/work/shared/data/meshes")

@@ -20,7 +20,7 @@ from prt.export.glsl import (
     weight_texture,
 )
 from prt.export.onnx_model import build_model, save_model
-from prt.train.network import Architecture, TransferMLP, frequency_matrix
+from prt.train.networks.network import Architecture, TransferMLP, frequency_matrix
 
 SNAPSHOTS = Path(__file__).parent / "snapshots"
 BOUNDS = np.array([[-1.0, 0.5, -2.0], [1.5, 2.0, 0.25]])

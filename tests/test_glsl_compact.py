@@ -16,8 +16,8 @@ import pytest
 from prt.export import glsl_compact as gc
 from prt.runtime.errors import InputError
 from prt.runtime.manifest import load_manifest
-from prt.train.grid_encoding import GridArchitecture, GridTransfer, evaluate_numpy
-from prt.train.network import Architecture
+from prt.train.networks.grid_encoding import GridArchitecture, GridTransfer, evaluate_numpy
+from prt.train.networks.network import Architecture
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_glsl import export_random, hard_inputs, onnxruntime_transfer  # noqa: E402

@@ -1,4 +1,4 @@
-"""bench/studies/onnx_graph_fold.py's folded graph computes what the exported one does."""
+"""studies/onnx_graph_fold.py's folded graph computes what the exported one does."""
 
 from pathlib import Path
 

@@ -82,7 +82,7 @@ def test_grid_manifest_round_trips_and_records_the_grid(grid_scene):
         Manifest.from_dict(bad, grid_scene)
     # the ONNX file is the grid graph of the stored arrays (fp16 tables)
     from prt.export.grid_onnx import read_arrays
-    from prt.train.grid_encoding import evaluate_numpy
+    from prt.train.networks.grid_encoding import evaluate_numpy
     import onnxruntime as ort
 
     arrays, recorded = read_arrays(nets[0].model)

@@ -1,4 +1,4 @@
-"""The multiresolution feature-grid network (train/grid_encoding.py): its torch forward and ONNX
+"""The multiresolution feature-grid network (train/networks/grid_encoding.py): its torch forward and ONNX
 graph against the numpy reference, dense and hashed indexing, trilinear interpolation, training."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from prt.train.fit import FitSettings
-from prt.train.grid_encoding import (
+from prt.train.networks.fit import FitSettings
+from prt.train.networks.grid_encoding import (
     CORNERS,
     PRIMES,
     GridArchitecture,

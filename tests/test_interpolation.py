@@ -266,7 +266,7 @@ def test_cli_refuses_a_bad_tolerance(tmp_path):
 
 
 def test_frame_rate_study_compares_two_builds_in_one_run(tmp_path):
-    """bench/studies/interpolation_fps.py --against: both scenes' renderers take turns; one row per
+    """studies/interpolation_fps.py --against: both scenes' renderers take turns; one row per
     (scene, tolerance), speed-ups over the first scene's every-pixel frames, PSNR against each scene's own."""
     import json
     from pathlib import Path
@@ -274,7 +274,7 @@ def test_frame_rate_study_compares_two_builds_in_one_run(tmp_path):
     root = Path(__file__).resolve().parents[1]
     demo = root / "runtime" / "data" / "demo" / "scene.json"
     out = tmp_path / "fps.json"
-    proc = subprocess.run([sys.executable, str(root / "bench" / "studies" / "interpolation_fps.py"), "--size", "48", "--views", "2",
+    proc = subprocess.run([sys.executable, str(root / "studies" / "interpolation_fps.py"), "--size", "48", "--views", "2",
                            "--rounds", "1", "--warmup", "1", "--tolerances", "0.1", "--against", str(demo), "--json", str(out)],
                           capture_output=True, text=True)  # fmt: skip
     assert proc.returncode == 0, proc.stderr

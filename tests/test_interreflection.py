@@ -1,4 +1,4 @@
-"""The interreflection operator (train/interreflection.py) against analytic cases."""
+"""The interreflection operator (train/transport/interreflection.py) against analytic cases."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import pytest
 trimesh = pytest.importorskip("trimesh")
 pytest.importorskip("embreex")
 
-from prt.train.interreflection import interreflect, trace_bounce_rays  # noqa: E402
-from prt.train.transfer import compute_transfer  # noqa: E402
+from prt.train.transport.interreflection import interreflect, trace_bounce_rays  # noqa: E402
+from prt.train.transport.transfer import compute_transfer  # noqa: E402
 
 
 def _inside_of_a_box(n: int = 600):

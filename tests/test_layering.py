@@ -28,7 +28,7 @@ def _modules() -> dict[str, Path]:
     for sub in SUBPACKAGES:
         for path in sorted((ROOT / sub).rglob("*.py")):
             rel = path.relative_to(ROOT).with_suffix("")
-            if not (path.parent / "__init__.py").is_file():  # scripts beside the package (bench/studies)
+            if not (path.parent / "__init__.py").is_file():  # scripts beside the package (studies)
                 continue
             parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
             found[".".join(("prt", *parts))] = path

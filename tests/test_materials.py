@@ -20,7 +20,7 @@ from prt.runtime.errors import GeometryError, InputError, SpecError
 from prt.runtime.materials import MaterialTable, ObjectMaterial, object_materials, parse_object_albedo, shade_objects
 from prt.runtime.renderer import Renderer, Scene
 from prt.runtime.shading import Lighting, Material, shade
-from prt.train.materials import mesh_materials, pbr_material, read_mtl, roughness_to_exponent
+from prt.train.inputs.materials import mesh_materials, pbr_material, read_mtl, roughness_to_exponent
 
 DATA = Path(__file__).parent / "data"
 CORNELL = DATA / "CornellBox-Original.obj"
@@ -106,7 +106,7 @@ def test_gltf_base_colour_and_roughness(tmp_path):
         box.visual = trimesh.visual.TextureVisuals(material=PBRMaterial(baseColorFactor=colour, roughnessFactor=rough, metallicFactor=0.0))
         scene.add_geometry(box, node_name=name, geom_name=name)
     scene.export(tmp_path / "two.glb")
-    from prt.train.geometry import load_geometry
+    from prt.train.inputs.geometry import load_geometry
 
     geometry = load_geometry(tmp_path / "two.glb")
     found = {m.object: m.material for m in mesh_materials(str(tmp_path / "two.glb"), geometry.object_names, DEFAULT, print)}
@@ -117,7 +117,7 @@ def test_gltf_base_colour_and_roughness(tmp_path):
 
 
 def test_cornell_box_walls_are_red_and_green():
-    from prt.train.geometry import load_geometry
+    from prt.train.inputs.geometry import load_geometry
 
     geometry = load_geometry(CORNELL)
     found = {m.object: m.material for m in mesh_materials(str(CORNELL), geometry.object_names, DEFAULT, print)}
@@ -296,8 +296,8 @@ def test_missing_texture_warns_and_corrupt_texture_stops(tmp_path):
 
 
 def test_corner_uvs_survive_the_geometry_cleaning():
-    from prt.train.albedo_uv import file_corner_uvs, match_corner_uvs
-    from prt.train.geometry import load_geometry
+    from prt.train.inputs.albedo_uv import file_corner_uvs, match_corner_uvs
+    from prt.train.inputs.geometry import load_geometry
 
     geometry = load_geometry(DATA / "spot.obj")
     positions, uvs = file_corner_uvs(str(DATA / "spot.obj"))

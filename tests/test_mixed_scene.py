@@ -1,4 +1,4 @@
-"""Mixed scenes (prt.train.mixed): spec parsing, composition, sampling, the combined tracer, the
+"""Mixed scenes (prt.train.inputs.mixed): spec parsing, composition, sampling, the combined tracer, the
 manifest, depth compositing in the G-buffer and both backends."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ trimesh = pytest.importorskip("trimesh")
 pytest.importorskip("torch")
 
 from prt.runtime.errors import SpecError  # noqa: E402
-from prt.train.mixed import ObjectSpec, compose_objects, parse_objects, rotation_matrix  # noqa: E402
+from prt.train.inputs.mixed import ObjectSpec, compose_objects, parse_objects, rotation_matrix  # noqa: E402
 
 QUAD = Path(__file__).parent / "data" / "ground_quad.obj"
 
@@ -113,7 +113,7 @@ def test_composition_fits_the_scene_box_and_places_sdfs_like_their_proxies(compo
 
 
 def test_sampling_is_area_uniform_and_projects_onto_each_objects_zero_set(composed):
-    from prt.train.sampling import sample_surface
+    from prt.train.inputs.sampling import sample_surface
 
     g = composed
     s = sample_surface(g, 20_000, seed=3)
@@ -130,7 +130,7 @@ def test_sampling_is_area_uniform_and_projects_onto_each_objects_zero_set(compos
 
 
 def test_combined_tracer_agrees_with_embree_on_a_mesh_twin(composed):
-    from prt.train.transfer import EmbreeTracer, MixedTracer, make_tracer
+    from prt.train.transport.transfer import EmbreeTracer, MixedTracer, make_tracer
 
     g = composed
     tracer = make_tracer(g)
@@ -315,8 +315,8 @@ def test_bench_reference_rebuilds_the_same_tracer(wall_scene):
     """prt-bench's reference geometry (geometry.npz + mixed.json) traces exactly as the build's did."""
     from prt.bench.reference import load_scene_geometry
     from prt.runtime.manifest import load_manifest
-    from prt.train.mixed import compose_objects, parse_objects
-    from prt.train.transfer import make_tracer
+    from prt.train.inputs.mixed import compose_objects, parse_objects
+    from prt.train.transport.transfer import make_tracer
 
     geometry, info = load_scene_geometry(load_manifest(wall_scene / "scene.json"))
     assert geometry.kind == "mixed" and info["type"] == "mixed" and info["checksum"]
@@ -339,7 +339,7 @@ def test_neural_object_is_skipped_by_its_box_bound_without_changing_the_field(tm
     """A neural SDF object: numpy, the culled GLSL (network skipped where its box is farther than
     the nearest other object) and the objects agree; the box is a lower bound of the object."""
     from prt.runtime.gl import run_fragment_program
-    from prt.train.mixed import _lower_bound
+    from prt.train.inputs.mixed import _lower_bound
     from prt.train.sdf.neural import fit_neural_sdf
 
     net = tmp_path / "ball.sdf.onnx"

@@ -12,8 +12,8 @@ import torch
 from prt.export.onnx_model import FORMAT, build_model, read_arrays, read_metadata, save_model
 from prt.runtime import sh
 from prt.train import compute_transfer, load_geometry, sample_surface
-from prt.train.fit import FitSettings, fit_segment, right_size, right_size_matching
-from prt.train.network import Architecture, TransferMLP, target_scaling
+from prt.train.networks.fit import FitSettings, fit_segment, right_size, right_size_matching
+from prt.train.networks.network import Architecture, TransferMLP, target_scaling
 
 DATA = Path(__file__).parent / "data"
 SMALL = Architecture(hidden=32, layers=2, pos_freqs=4)
@@ -248,7 +248,7 @@ def fitted_residual(spot):
 def test_residual_network_adds_the_unshadowed_transfer_in_every_evaluation(tmp_path, spot, fitted_residual):
     """torch, the numpy twin and the ONNX graph agree, and with the learnt part zeroed a residual
     network is exactly the unshadowed transfer of its normal (the graph adds U(n) back)."""
-    from prt.train.network import evaluate_numpy
+    from prt.train.networks.network import evaluate_numpy
 
     _, _, _, valid, _ = spot
     model = fitted_residual.model

@@ -131,7 +131,7 @@ def test_gbuffer_sphere_traces_one_call_site_and_few_loop_iterations():
 
 def _surface_rays(sdf, count, rays, seed=0):
     """Cosine rays from projected surface points, offset along the normal as the precompute does."""
-    from prt.train.transfer import SDF_RAY_OFFSET, cosine_directions, orthonormal_frames
+    from prt.train.transport.transfer import SDF_RAY_OFFSET, cosine_directions, orthonormal_frames
 
     rng = np.random.default_rng(seed)
     m = sdf.to_mesh(resolution=48)
@@ -161,7 +161,7 @@ def test_gbuffer_points_of_a_neural_sdf_lie_on_it_with_its_normals(gl_ctx, neura
     """The G-buffer's sphere tracer agrees with numpy: hits on the zero set, normals = gradient,
     and shadow rays from its points start outside the solid (the reference traces from there)."""
     from prt.runtime.renderer import Renderer, Scene
-    from prt.train.transfer import SDF_RAY_OFFSET
+    from prt.train.transport.transfer import SDF_RAY_OFFSET
 
     scene = Scene.load(neural_scene / "scene.json")
     sdf = load_neural_sdf(neural_scene / "ball.sdf.onnx")
@@ -225,7 +225,7 @@ def test_neural_sdf_scene_renders_alike_in_both_backends(gl_ctx, neural_scene):
 
 def test_neural_sdf_rerun_reuses_the_network(neural_scene):
     before = (neural_scene / "ball.sdf.onnx").stat().st_mtime_ns
-    from prt.train.neural_sdf_build import prepare_neural_sdf
+    from prt.train.sdf.neural_fit import prepare_neural_sdf
 
     import json
 
@@ -246,7 +246,7 @@ def test_neural_sdf_needs_a_watertight_mesh(tmp_path):
 
 def test_missing_torch_is_one_line_naming_the_extra(monkeypatch):
     from prt.runtime.errors import InputError
-    from prt.train.neural_sdf_build import require_torch
+    from prt.train.sdf.neural_fit import require_torch
 
     monkeypatch.setitem(sys.modules, "torch", None)  # import torch now fails as if not installed
     with pytest.raises(InputError, match=r"--neural-sdf needs torch: pip install 'prt-runtime\[train\]'"):

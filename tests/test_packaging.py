@@ -87,8 +87,11 @@ def test_wheel_holds_only_the_prt_package_with_shaders(wheel):
     top = {n.split("/")[0] for n in names}
     assert top == {"prt", next(t for t in top if t.endswith(".dist-info"))}
     for module in ("prt/__init__.py", "prt/runtime/sh.py", "prt/runtime/backends/__init__.py", "prt/runtime/backends/onnx.py",
-                   "prt/train/transfer.py", "prt/export/__init__.py", "prt/shaders/__init__.py"):
+                   "prt/train/transport/transfer.py", "prt/train/inputs/geometry.py", "prt/train/networks/fit.py",
+                   "prt/train/deform/deform_build.py", "prt/train/sdf/neural_fit.py", "prt/export/__init__.py",
+                   "prt/shaders/__init__.py"):
         assert module in names, module
+    assert not any(n.startswith(("prt/studies/", "prt/bench/studies/")) for n in names)  # study scripts are not shipped
     shaders = [n for n in names if n.startswith("prt/shaders/") and not n.endswith(".py")]
     assert "prt/shaders/tonemap.glsl" in shaders and "prt/shaders/viewer_blit.frag" in shaders, shaders
     assert not any(n.startswith("prt/tests/") for n in names)

@@ -1,4 +1,4 @@
-"""The paper table's verdicts (bench/studies/paper_table.py), on the committed full report and edits of it."""
+"""The paper table's verdicts (studies/paper_table.py), on the committed full report and edits of it."""
 
 import copy
 import json
@@ -151,7 +151,7 @@ def test_build_times_list_every_build_and_their_sum(paper_table):
 
 
 def test_vertex_same_bounces_study_relights_a_copy_and_pairs_rows_by_transfer(bench_module, tmp_path):
-    """bench/studies/vertex_same_bounces.py: the relit copy keeps the networks and takes the map's SH;
+    """studies/vertex_same_bounces.py: the relit copy keeps the networks and takes the map's SH;
     the summary pairs each network row with the vertex row of the same transfer only."""
     study = bench_module("vertex_same_bounces")
     from prt.runtime.envmap import load_envmap_sh

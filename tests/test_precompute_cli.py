@@ -14,7 +14,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from prt.train.precompute import PrecomputeSettings
+from prt.train.transport.precompute import PrecomputeSettings
 from prt.train.precompute_cli import build_parser, main, settings_from_args
 
 DATA = Path(__file__).parent / "data"

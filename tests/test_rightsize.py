@@ -22,9 +22,9 @@ from prt.runtime.errors import SpecError
 from prt.runtime.manifest import load_manifest
 from prt.runtime.shading import tonemap
 from prt.train.build import spec_from_dict
-from prt.train.grid_encoding import GridArchitecture
-from prt.train.network import Architecture, TransferMLP, evaluate_numpy, target_scaling
-from prt.train.rightsize import candidates, search_cheapest, shaded_psnr
+from prt.train.networks.grid_encoding import GridArchitecture
+from prt.train.networks.network import Architecture, TransferMLP, evaluate_numpy, target_scaling
+from prt.train.networks.rightsize import candidates, search_cheapest, shaded_psnr
 
 DATA = Path(__file__).parent / "data"
 
@@ -207,7 +207,7 @@ def test_residual_modes_choose_per_segment_and_the_record_says_why(tmp_path):
     and keeps the kind with the lower validation MAE (the training record keeps both), leaves the
     others plain; on makes all residual, off none; a residual build's ONNX and GLSL backends render alike."""
     from prt.runtime.renderer import Renderer, Scene
-    from prt.train.rightsize import RESIDUAL_VISIBILITY
+    from prt.train.networks.rightsize import RESIDUAL_VISIBILITY
 
     flags = {}
     for mode in ("auto", "on", "off"):
@@ -240,7 +240,7 @@ def test_residual_modes_choose_per_segment_and_the_record_says_why(tmp_path):
 def test_residual_choice_follows_the_mean_visibility():
     """The rule on transfers whose DC coefficient is a known share of the unshadowed one."""
     from prt.runtime.sh import unshadowed_transfer
-    from prt.train.rightsize import RESIDUAL_VISIBILITY, residual_choice
+    from prt.train.networks.rightsize import RESIDUAL_VISIBILITY, residual_choice
 
     normals = np.random.default_rng(0).normal(size=(500, 3))
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)

@@ -16,7 +16,7 @@ from prt.runtime.errors import GeometryError, OutputError, PRTError, SpecError
 from prt.runtime.files import atomic_write_json
 from prt.train import precompute_cli
 from prt.train.outdir import MARKER, check_output_folder
-from prt.train.precompute import DamagedPrecompute, load_precompute
+from prt.train.transport.precompute import DamagedPrecompute, load_precompute
 
 TET = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"
 TINY = ["--samples", "256", "--validation", "64", "--rays", "16", "--segments", "2", "--threads", "1", "--no-progress"]
@@ -74,7 +74,7 @@ def test_the_marker_is_written_before_any_other_file(tet, tmp_path, monkeypatch,
     def broken(*args, **kwargs):
         raise GeometryError("stop here")
 
-    monkeypatch.setattr("prt.train.precompute.make_tracer", broken)
+    monkeypatch.setattr("prt.train.transport.precompute.make_tracer", broken)
     out = tmp_path / "out"
     assert _precompute(tet, out) == 2
     assert sorted(p.name for p in out.iterdir()) == [MARKER]
@@ -106,8 +106,8 @@ def test_a_truncated_precompute_file_is_one_line(tet, tmp_path):
 
 def test_cached_training_records_that_are_not_ours_are_ignored(tmp_path):
     from prt.train.build import _FitCache, _loadable, _read_record
-    from prt.train.fit import FitSettings
-    from prt.train.network import Architecture
+    from prt.train.networks.fit import FitSettings
+    from prt.train.networks.network import Architecture
 
     for text in ("{", "[]", '{"kind": "magic"}', "\xff"):
         (tmp_path / "seg000.json").write_text(text, encoding="latin-1")
@@ -216,7 +216,7 @@ def test_a_failed_command_creates_no_folder(tmp_path, capsys):
 
 
 def test_faces_with_nan_vertices_are_counted(tmp_path):
-    from prt.train.geometry import load_geometry
+    from prt.train.inputs.geometry import load_geometry
 
     path = tmp_path / "nan.obj"
     path.write_text(TET + "v nan 0 0\nf 5 1 2\nf 5 2 3\n")
@@ -227,7 +227,7 @@ def test_faces_with_nan_vertices_are_counted(tmp_path):
 
 @pytest.mark.parametrize("scale", [1e300, 1e-300, 1e307])
 def test_huge_and_tiny_coordinates_load_like_unit_ones(tmp_path, scale):
-    from prt.train.geometry import load_geometry
+    from prt.train.inputs.geometry import load_geometry
 
     unit = tmp_path / "unit.obj"
     unit.write_text(TET)

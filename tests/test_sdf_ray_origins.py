@@ -14,7 +14,7 @@ import numpy as np
 from prt.runtime import sh
 from prt.train.sdf import SDF, Sphere
 from prt.train.sdf.glsl import glsl_float
-from prt.train.transfer import SDF_RAY_OFFSET, EmbreeTracer, SDFTracer, TransferIntegrator
+from prt.train.transport.transfer import SDF_RAY_OFFSET, EmbreeTracer, SDFTracer, TransferIntegrator
 
 SLOPE = 0.04  # about the smallest slope measured on the neural bunny's surface samples (0.03 to 0.4)
 

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from prt.train.geometry import load_geometry
-from prt.train.sampling import sample_surface
-from prt.train.segments import segment_samples
-from prt.train.transfer import compute_transfer
+from prt.train.inputs.geometry import load_geometry
+from prt.train.inputs.sampling import sample_surface
+from prt.train.networks.segments import segment_samples
+from prt.train.transport.transfer import compute_transfer
 
 DATA = Path(__file__).parent / "data"
 
@@ -104,7 +104,7 @@ def _floor_and_column(rng, n_floor=6000, n_column=4000):
 
 
 def test_split_value_is_the_median_unless_a_plane_of_samples_lies_there():
-    from prt.train.segments import PLANE_TOLERANCE, split_value
+    from prt.train.networks.segments import PLANE_TOLERANCE, split_value
 
     rng = np.random.default_rng(0)
     smooth = rng.uniform(-1.0, 1.0, 10001)
@@ -138,8 +138,8 @@ def test_precompute_key_changes_only_where_the_off_plane_rule_moves_a_cut(tmp_pa
     folder predates the rule; the creature, whose y-median lies on its ground slab, gets a new one."""
     import json
 
-    from prt.train.precompute import PrecomputeSettings, run_precompute
-    from prt.train.segments import SPLIT_RULE
+    from prt.train.transport.precompute import PrecomputeSettings, run_precompute
+    from prt.train.networks.segments import SPLIT_RULE
 
     settings = PrecomputeSettings(samples=4000, validation=500, rays=16)
     keys = {}
@@ -164,7 +164,7 @@ def test_precompute_key_changes_only_where_the_off_plane_rule_moves_a_cut(tmp_pa
     from dataclasses import asdict
     import hashlib
 
-    from prt.train.precompute import FORMAT_VERSION, _geometry_key
+    from prt.train.transport.precompute import FORMAT_VERSION, _geometry_key
 
     plain = hashlib.sha1(json.dumps([_geometry_key(load_geometry(str(DATA / "CornellBox-Original.obj"))),
                                      {k: v for k, v in asdict(settings).items() if k not in ("adaptive", "split")}, FORMAT_VERSION]).encode()).hexdigest()[:16]  # fmt: skip
@@ -173,7 +173,7 @@ def test_precompute_key_changes_only_where_the_off_plane_rule_moves_a_cut(tmp_pa
 
 def _unexplained(points, transfer, seg, rank=8):
     """Sum over leaves of count x RMS residual^2 of a rank-``rank`` PCA: what per-leaf fits must explain beyond it."""
-    from prt.train.segments import _Moments
+    from prt.train.networks.segments import _Moments
 
     leaves = [seg.assign(points, np.zeros(len(points), int)) == k for k in range(seg.count)]
     return sum(m.sum() * _Moments.of(transfer[m]).residual_rms(rank) ** 2 for m in leaves)
@@ -204,8 +204,8 @@ def test_residual_split_puts_leaves_where_the_transfer_is_complex(tmp_path):
     far = int(np.argmax(sizes))
     assert len(near_box) >= 5 and far not in near_box and sizes[far] >= 0.4 * len(s)
     # its dim weight is the relative loss's (segments.py keeps its own copy to stay free of torch)
-    from prt.train.fit import RELATIVE_FLOOR
-    from prt.train.segments import DIM_FLOOR
+    from prt.train.networks.fit import RELATIVE_FLOOR
+    from prt.train.networks.segments import DIM_FLOOR
 
     assert DIM_FLOOR == RELATIVE_FLOOR
     # the default is the equal-area split, and an unknown rule is refused
@@ -216,7 +216,7 @@ def test_residual_split_puts_leaves_where_the_transfer_is_complex(tmp_path):
 
 def test_split_rule_is_keyed_only_when_not_the_default_and_reuses_the_ray_traced_transfer(tmp_path):
     from prt.runtime.errors import SpecError
-    from prt.train.precompute import PrecomputeSettings, check_settings, run_precompute
+    from prt.train.transport.precompute import PrecomputeSettings, check_settings, run_precompute
 
     geometry = load_geometry(str(DATA / "CornellBox-Original.obj"))
     out, logs = tmp_path / "pre", []

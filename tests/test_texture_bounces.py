@@ -69,7 +69,7 @@ def test_the_texture_holds_direct_and_rgb_indirect_transfer(cornell_texture):
 
 def test_the_direct_part_is_the_direct_only_bake(cornell_texture, gl_ctx):
     """The bounce bake adds channels and changes nothing else: its first 16 are the direct bake's bytes."""
-    from prt.train.transfer_texture import bake_transfer_texture, scene_geometry
+    from prt.train.transport.transfer_texture import bake_transfer_texture, scene_geometry
 
     m = load_manifest(cornell_texture)
     plain = bake_transfer_texture(scene_geometry(m), SIZE, rays=64, ctx=gl_ctx, source_path=str(CORNELL), log=lambda line: None)
@@ -151,9 +151,9 @@ def test_texel_indirect_matches_the_independent_reference(cornell_texture):
     """The texels' gather (nearest build samples) against the benchmark's reference, which traces
     the direct transfer afresh at the exact hit points: the same light on average per wall."""
     from prt.bench.bounce_reference import face_albedo, indirect_transfer
-    from prt.train.transfer import make_tracer
-    from prt.train.transfer_texture import scene_bounces, scene_geometry, texel_indirect, uv_gbuffer
-    from prt.train.uv_atlas import build_atlas
+    from prt.train.transport.transfer import make_tracer
+    from prt.train.transport.transfer_texture import scene_bounces, scene_geometry, texel_indirect, uv_gbuffer
+    from prt.train.inputs.uv_atlas import build_atlas
     from prt.runtime.gl import create_context
 
     m = load_manifest(cornell_texture)
@@ -180,13 +180,13 @@ def test_texel_indirect_matches_the_independent_reference(cornell_texture):
 
 def test_two_bounces_gather_what_the_bounce_stage_computes(cornell_texture, tmp_path):
     """N = 2: the texels gather T_0 + T_1 of the build's samples, T_1 from the bounce operator with
-    the build's rays (seed, stream, chunks): :func:`prt.train.interreflection.interreflect`."""
+    the build's rays (seed, stream, chunks): :func:`prt.train.transport.interreflection.interreflect`."""
     import json
 
-    from prt.train.interreflection import interreflect, trace_bounce_rays
-    from prt.train.precompute import load_precompute
-    from prt.train.transfer import DEFAULT_CHUNK
-    from prt.train.transfer_texture import scene_bounces, scene_geometry
+    from prt.train.transport.interreflection import interreflect, trace_bounce_rays
+    from prt.train.transport.precompute import load_precompute
+    from prt.train.transport.transfer import DEFAULT_CHUNK
+    from prt.train.transport.transfer_texture import scene_bounces, scene_geometry
 
     m = load_manifest(cornell_texture)
     geometry = scene_geometry(m)
@@ -205,7 +205,7 @@ def test_two_bounces_gather_what_the_bounce_stage_computes(cornell_texture, tmp_
 def test_the_bake_resumes_to_the_same_bytes(cornell_texture, tmp_path):
     import shutil
 
-    from prt.train.transfer_texture import add_transfer_texture
+    from prt.train.transport.transfer_texture import add_transfer_texture
 
     folder = tmp_path / "scene"
     shutil.copytree(cornell_texture.parent, folder)

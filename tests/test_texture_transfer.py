@@ -14,9 +14,9 @@ from prt.runtime.camera import Camera
 from prt.runtime.errors import InputError
 from prt.runtime.gbuffer import GBufferPass
 from prt.runtime.renderer import demo_scene_path
-from prt.train.geometry import load_geometry
-from prt.train.transfer_texture import add_transfer_texture, dilate, uv_gbuffer
-from prt.train.uv_atlas import build_atlas, uv_overlap
+from prt.train.inputs.geometry import load_geometry
+from prt.train.transport.transfer_texture import add_transfer_texture, dilate, uv_gbuffer
+from prt.train.inputs.uv_atlas import build_atlas, uv_overlap
 
 SIZE = 64
 # GL's bilinear weights have 8 fractional bits (llvmpipe, most GPUs): a fetch may differ from the
@@ -146,7 +146,7 @@ def test_dilation_fills_the_bilinear_footprint_of_every_covered_texel(box_gbuffe
 
 
 def test_texels_buried_under_a_box_do_not_darken_its_contact_line(gl_ctx, tmp_path):
-    from prt.train.transfer_texture import bake_transfer_texture
+    from prt.train.transport.transfer_texture import bake_transfer_texture
 
     box = trimesh.creation.box((1, 1, 1))
     vertices = [tuple(v + (0, 0.5, 0)) for v in box.vertices] + [(-2, 0, -2), (2, 0, -2), (2, 0, 2), (-2, 0, 2)]
@@ -286,8 +286,8 @@ def test_a_texture_beyond_the_contexts_array_layers_is_refused_in_one_line(gl_ct
 
 
 def test_a_bake_beyond_the_guaranteed_array_layers_warns_in_one_line(gl_ctx, tmp_path, monkeypatch):
-    import prt.train.transfer_texture as baking
-    from prt.train.transfer_texture import bake_transfer_texture
+    import prt.train.transport.transfer_texture as baking
+    from prt.train.transport.transfer_texture import bake_transfer_texture
 
     geometry = load_geometry(_two_objects(tmp_path / "scene.obj"))
     lines = []

@@ -7,9 +7,9 @@ import pytest
 import trimesh
 
 from prt.runtime import sh
-from prt.train.geometry import load_geometry
-from prt.train.sampling import sample_surface
-from prt.train.transfer import compute_transfer, cosine_directions, orthonormal_frames
+from prt.train.inputs.geometry import load_geometry
+from prt.train.inputs.sampling import sample_surface
+from prt.train.transport.transfer import compute_transfer, cosine_directions, orthonormal_frames
 
 Y00 = 0.5 / np.sqrt(np.pi)
 
@@ -174,7 +174,7 @@ def test_normals_of_any_length_are_normalised(tmp_path):
 
 def test_sdf_sphere_tracing_agrees_with_embree_on_its_own_mesh():
     """The same scene two ways: sphere traced SDF vs Embree on its marching-cubes mesh."""
-    from prt.train.transfer import EmbreeTracer, SDFTracer
+    from prt.train.transport.transfer import EmbreeTracer, SDFTracer
 
     geometry = load_geometry("sphere_plane")
     assert geometry.kind == "sdf"

@@ -30,9 +30,9 @@ from prt.bench.bounce_reference import face_albedo
 from prt.bench.vertex_prt import VertexPRT, vertex_bounce_transfer, vertex_indirect, vertex_samples, vertex_transfer
 from prt.runtime.camera import Camera
 from prt.runtime.normals import vertex_normals
-from prt.train.geometry import Geometry
-from prt.train.interreflection import trace_bounce_rays
-from prt.train.transfer import make_tracer
+from prt.train.inputs.geometry import Geometry
+from prt.train.transport.interreflection import trace_bounce_rays
+from prt.train.transport.transfer import make_tracer
 
 DATA = Path(__file__).resolve().parent / "data"
 H = 0.3

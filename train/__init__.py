@@ -10,6 +10,11 @@ May use torch, trimesh and embreex; install with ``pip install "prt-runtime[trai
                             :mod:`prt.train.precompute_cli`)
 - :mod:`prt.train.build`    precompute -> fit -> export, cached (CLI: ``prt-train``,
                             :mod:`prt.train.train_cli`); imports torch, so not loaded here
+
+Subpackages by stage: :mod:`.inputs` (geometry, materials, UVs, samples), :mod:`.transport`
+(ray-traced transfer, precompute, bounces, transfer textures), :mod:`.networks` (segments,
+networks, fitting, right-sizing), :mod:`.deform` (deformable objects), :mod:`.sdf` (SDF scenes
+and neural SDFs).  The build's driver, commands, caches and executors sit at the top.
 """
 
 import importlib
@@ -17,11 +22,11 @@ import importlib
 # Loaded on first use (PEP 562), so that ``prt.train.entry`` can report a missing [train] extra
 # in one line before anything imports trimesh, embreex or torch.
 _LAZY = {
-    "Geometry": ".geometry", "load_geometry": ".geometry",
-    "PrecomputeSettings": ".precompute", "load_precompute": ".precompute", "run_precompute": ".precompute",
-    "SurfaceSamples": ".sampling", "sample_surface": ".sampling",
-    "Segmentation": ".segments", "segment_samples": ".segments",
-    "compute_transfer": ".transfer",
+    "Geometry": ".inputs.geometry", "load_geometry": ".inputs.geometry",
+    "PrecomputeSettings": ".transport.precompute", "load_precompute": ".transport.precompute", "run_precompute": ".transport.precompute",
+    "SurfaceSamples": ".inputs.sampling", "sample_surface": ".inputs.sampling",
+    "Segmentation": ".networks.segments", "segment_samples": ".networks.segments",
+    "compute_transfer": ".transport.transfer",
 }  # fmt: skip
 
 

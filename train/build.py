@@ -2,7 +2,7 @@
 
 Each stage is cached in the output folder and resumes after an interruption:
 
-    OUTDIR/precompute/          samples, ground-truth transfer, segments (prt.train.precompute)
+    OUTDIR/precompute/          samples, ground-truth transfer, segments (prt.train.transport.precompute)
     OUTDIR/train/segNNN.json    per-segment fit: chosen size, errors, sizes tried (+ .npz weights)
     OUTDIR/segments/, geometry.npz, scene.json   the scene folder, written by prt.export.scene
     OUTDIR/build.json           the report: per-segment table, memory, timings
@@ -32,18 +32,18 @@ from ..runtime.envmaps import BUNDLED_ENVMAPS, bundled_envmap_path
 from ..runtime.errors import SpecError
 from ..runtime.files import atomic_save_npz, atomic_write_json
 from ..runtime.manifest import validate_manifest_field
-from .fit import DEFAULT_LADDER, DEFAULT_STEPS, LOSSES, FitResult, FitSettings
-from .geometry import load_geometry
-from .materials import mesh_materials, textured_geometry
-from .mixed import load_scene_geometry, parse_objects, resolve_objects
+from .networks.fit import DEFAULT_LADDER, DEFAULT_STEPS, LOSSES, FitResult, FitSettings
+from .inputs.geometry import load_geometry
+from .inputs.materials import mesh_materials, textured_geometry
+from .inputs.mixed import load_scene_geometry, parse_objects, resolve_objects
 from .executor import LocalExecutor
-from .grid_encoding import DEFAULT_GRID, GridArchitecture, parse_grid
-from .network import Architecture
+from .networks.grid_encoding import DEFAULT_GRID, GridArchitecture, parse_grid
+from .networks.network import Architecture
 from .outdir import check_output_folder, mark_output_folder
-from .interreflection import BOUNCE_RAYS, bounce_stage
-from .bounce_depth import auto_bounces
-from .rightsize import RESIDUAL_MODES, SCENE_LIGHT, SegmentJob, candidates, segment_task
-from .precompute import SPEC_LIMITS, DamagedPrecompute, PrecomputeSettings, SpecLimits, check_settings, load_precompute, run_precompute
+from .transport.interreflection import BOUNCE_RAYS, bounce_stage
+from .transport.bounce_depth import auto_bounces
+from .networks.rightsize import RESIDUAL_MODES, SCENE_LIGHT, SegmentJob, candidates, segment_task
+from .transport.precompute import SPEC_LIMITS, DamagedPrecompute, PrecomputeSettings, SpecLimits, check_settings, load_precompute, run_precompute
 
 __all__ = ["BuildSpec", "SpecLimits", "SPEC_LIMITS", "load_spec", "spec_from_dict", "run_build", "ENV_LIGHTS"]
 
@@ -66,7 +66,7 @@ class BuildSpec:
     geometry: str = ""
     name: str = ""
     precompute: PrecomputeSettings = field(default_factory=PrecomputeSettings)
-    # training (prt.train.fit.FitSettings.plan): ``steps`` Adam steps per network whatever its sample
+    # training (prt.train.networks.fit.FitSettings.plan): ``steps`` Adam steps per network whatever its sample
     # count; ``epochs`` alone (old specs, ``--epochs``): the old epoch-based run; both: steps, with
     # at least ``epochs`` passes over the data; ``time_budget``: seconds per network fit
     steps: int | None = None  # None: DEFAULT_STEPS, unless ``epochs`` alone asks for the old epoch-based run
@@ -76,14 +76,14 @@ class BuildSpec:
     lr: float = 1e-2
     patience: int = 10
     bf16: bool | None = False  # bf16 autocast: about 2x faster on AVX512-BF16, about 9 % higher error
-    loss: str = "l1"  # fitting loss (prt.train.fit.LOSSES): L1 on the coefficients, or "relative" (over each sample's brightness)
+    loss: str = "l1"  # fitting loss (prt.train.networks.fit.LOSSES): L1 on the coefficients, or "relative" (over each sample's brightness)
     # frequency networks learn the direct transfer's residual from the unshadowed transfer of the
-    # normal (prt.train.network): "auto" per segment by its mean visibility (prt.train.rightsize), "on", "off"
+    # normal (prt.train.networks.network): "auto" per segment by its mean visibility (prt.train.networks.rightsize), "on", "off"
     residual: str = "auto"
     # validation coefficient MAE a right-sized network must reach (None: DEFAULT_TARGET; a spec
     # that names no sizing rule gets DEFAULT_MATCH, see spec_from_dict)
     target: float | None = None
-    # right-size to a shaded target instead (prt.train.rightsize): the cheapest size whose held-out
+    # right-size to a shaded target instead (prt.train.networks.rightsize): the cheapest size whose held-out
     # shaded, tone-mapped PSNR (dB, under the scene lighting, rightsize.SCENE_LIGHT) is at least this
     target_db: float | None = None
     ladder: list[dict] | None = None  # [{hidden, layers, pos_freqs, normal_freqs}], small to large
@@ -92,20 +92,20 @@ class BuildSpec:
     match_tolerance: float = 0.05  # with ``match``: validation MAE may exceed the reference's by this share
     analytic: bool = True  # let unshadowed segments skip the network
     # the networks' encoding of position: "freq" (the paper's frequency-encoded MLP) or "grid" (a
-    # multiresolution feature grid feeding a small MLP, prt.train.grid_encoding; ``grid`` spells its
+    # multiresolution feature grid feeding a small MLP, prt.train.networks.grid_encoding; ``grid`` spells its
     # levels, e.g. "L6-F2-T12-N4-32", None: DEFAULT_GRID); ``fixed``/``ladder`` then size its MLP;
     # "auto": right-size per segment over both (the frequency ladder and the grid ladder)
     encoding: str = "freq"
     grid: str | None = None
-    # interreflection (prt.train.interreflection): N diffuse bounces (0: direct transfer only, the
+    # interreflection (prt.train.transport.interreflection): N diffuse bounces (0: direct transfer only, the
     # paper's); N > 0 fits "direct+rgb" networks (direct + indirect R, G, B transfer)
-    bounces: int | Literal["auto"] = "auto"  # "auto": the smallest N whose truncation error is small (prt.train.bounce_depth); 0: the paper's direct transfer
+    bounces: int | Literal["auto"] = "auto"  # "auto": the smallest N whose truncation error is small (prt.train.transport.bounce_depth); 0: the paper's direct transfer
     bounce_rays: int = BOUNCE_RAYS
     # export
     glsl_layout: str = "auto"
     material: dict = field(default_factory=lambda: {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]})
     camera: dict = field(default_factory=lambda: {k: list(v) if isinstance(v, tuple) else v for k, v in DEFAULT_CAMERA.items()})
-    objects: list[dict] | None = None  # a mixed scene (prt.train.mixed): meshes, SDFs, neural SDFs; ``geometry`` is then its label
+    objects: list[dict] | None = None  # a mixed scene (prt.train.inputs.mixed): meshes, SDFs, neural SDFs; ``geometry`` is then its label
 
     @property
     def bands(self) -> int:
@@ -117,7 +117,7 @@ class BuildSpec:
 
     @property
     def layout(self) -> str:
-        """The networks' output layout (:data:`prt.train.network.LAYOUTS`)."""
+        """The networks' output layout (:data:`prt.train.networks.network.LAYOUTS`)."""
         return "direct+rgb" if self.bounces else "direct"
 
     def to_dict(self) -> dict:
@@ -258,7 +258,7 @@ def spec_from_dict(data: dict) -> BuildSpec:
     """A checked spec from flat fields (as :meth:`BuildSpec.to_dict` gives them).  Errors name the field.
 
     Everything is checked here, before any work: types, ranges, finiteness, limits
-    (:data:`SPEC_LIMITS`, :func:`prt.train.precompute.sample_limit`), the ladder, material and camera.
+    (:data:`SPEC_LIMITS`, :func:`prt.train.transport.precompute.sample_limit`), the ladder, material and camera.
     """
     if not isinstance(data, dict):
         raise SpecError(f"expected an object of fields, got {type(data).__name__}")

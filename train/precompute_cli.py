@@ -18,9 +18,9 @@ from ..runtime.envmap import read_envmap
 from ..runtime.errors import InputError, PRTError
 from .cluster import open_executor
 from .executor import add_cluster_argument
-from .geometry import load_geometry
+from .inputs.geometry import load_geometry
 from .outdir import check_output_folder
-from .precompute import PrecomputeSettings, check_settings, run_precompute
+from .transport.precompute import PrecomputeSettings, check_settings, run_precompute
 from .sdf import sdf_names
 
 __all__ = ["main", "build_parser", "settings_from_args", "check_writable"]

@@ -21,17 +21,17 @@ from pathlib import Path
 
 from ..runtime.errors import InputError, PRTError, SpecError
 from .build import DEFAULT_TARGET, BuildSpec, load_spec, run_build, spec_from_dict
-from .fit import DEFAULT_STEPS
+from .networks.fit import DEFAULT_STEPS
 from .cluster import open_executor
 from .executor import add_cluster_argument
 from .outdir import check_output_folder
-from .segments import SPLIT_BY
+from .networks.segments import SPLIT_BY
 
 __all__ = ["main", "build_parser"]
 
 
 def _bounce_count(value: str):
-    """``--bounces``: a count, or "auto" (:func:`prt.train.bounce_depth.auto_bounces`)."""
+    """``--bounces``: a count, or "auto" (:func:`prt.train.transport.bounce_depth.auto_bounces`)."""
     if value == "auto":
         return value
     try:
@@ -183,7 +183,7 @@ def _spec_from_args(args):
 
 def _neural_sdf_spec(args, spec):
     """``--neural-sdf``: fit the mesh's SDF network into OUTDIR; the build's geometry becomes that network."""
-    from .neural_sdf_build import prepare_neural_sdf, require_torch
+    from .sdf.neural_fit import prepare_neural_sdf, require_torch
     from .outdir import mark_output_folder
     from .sdf.neural import parse_sdf_size
 
@@ -205,7 +205,7 @@ def _neural_sdf_spec(args, spec):
 
 def _bake_texture(args, spec) -> None:
     """``--transfer-texture``: bake the scene's transfer texture at the build's rays (resumable)."""
-    from .transfer_texture import add_transfer_texture
+    from .transport.transfer_texture import add_transfer_texture
 
     if args.transfer_texture < 8:
         raise InputError(f"--transfer-texture: expected a size >= 8, got {args.transfer_texture}")
@@ -245,9 +245,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _deform_main(args) -> int:
-    """``--deform``: a deformable object (:mod:`prt.train.deform_build`)."""
-    from .deform_build import DeformSpec, run_deform_build
-    from .deform_sources import parse_deform
+    """``--deform``: a deformable object (:mod:`prt.train.deform.deform_build`)."""
+    from .deform.deform_build import DeformSpec, run_deform_build
+    from .deform.deform_sources import parse_deform
 
     fields = {"samples": args.samples, "validation": args.validation, "rays": args.rays, "segments": args.segments, "steps": args.steps,
               "seed": args.seed, "hidden": args.hidden, "layers": args.layers, "pos_freqs": args.pos_freqs}  # fmt: skip

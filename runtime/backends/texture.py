@@ -1,7 +1,7 @@
 """The ``"texture"`` backend: transfer fetched from a baked transfer texture (texture-space PRT).
 
 The scene's ``transfer_texture`` (:mod:`prt.runtime.transfer_texture`, baked by
-:func:`prt.train.transfer_texture.bake_transfer_texture`) is uploaded once as an RGBA16F
+:func:`prt.train.transport.transfer_texture.bake_transfer_texture`) is uploaded once as an RGBA16F
 texture array (layer ``B * atlas + k`` holds coefficients ``4k .. 4k+3``, B = 4 blocks per texel),
 filtered bilinearly and clamped to the edge.  Per frame, a full-screen pass
 (``shaders/texture_transfer.frag``) reads each pixel's UV from the G-buffer (attachment 2, drawn

@@ -1,4 +1,4 @@
-"""Hostile mixed-scene specs (``objects``, :mod:`prt.train.mixed`) for ``prt-train`` (``train-objects-*``).
+"""Hostile mixed-scene specs (``objects``, :mod:`prt.train.inputs.mixed`) for ``prt-train`` (``train-objects-*``).
 
 All fail in the spec checks, before any geometry is loaded; nothing is left behind.
 """

@@ -1,6 +1,6 @@
 """Neural SDFs: a small MLP fitted to the signed distance of a mesh (Davies et al. 2021).
 
-The network is the transfer network of :mod:`prt.train.network` with one output and no
+The network is the transfer network of :mod:`prt.train.networks.network` with one output and no
 normal input (``Architecture(bands=1, normal_freqs=0)``), so the ONNX exporter of the
 transfer networks exports it unchanged: the file is an ordinary ``prt-transfer-mlp/1`` ONNX
 model whose single output is the distance.  Its ``normal`` input is ignored (its weights are
@@ -200,7 +200,7 @@ def fit_neural_sdf(mesh, out_path, *, size=(64, 4), pos_freqs: int = 0, samples:
     import torch
 
     from ...export.onnx_model import build_model, save_model
-    from ..network import Architecture, TransferMLP
+    from ..networks.network import Architecture, TransferMLP
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # a small MLP: one thread is faster than two that wait on each other
@@ -214,7 +214,7 @@ def _fit(mesh, out_path, size, pos_freqs, samples, steps, batch, lr, seed, log) 
     import torch
 
     from ...export.onnx_model import build_model, save_model
-    from ..network import Architecture, TransferMLP
+    from ..networks.network import Architecture, TransferMLP
 
     if not mesh.is_watertight:
         raise ValueError("the mesh is not watertight: the sign of its distance (ray parity) is undefined")

@@ -1,0 +1,94 @@
+"""``make demo``'s frame rate as its command renders it: the orbit's frames written after rendering
+(held in memory, :data:`prt.runtime.orbit.HOLD_BYTES`) against each written between two renders,
+with interpolation (the default tolerance) and every pixel, as ratios in one run.
+
+usage: python studies/demo_fps.py [--scene scene.json] [--size 512] [--frames 30] [--rounds 3]
+                                        [--json OUT] [--md OUT]
+
+Four configurations take turns, round after round, each a whole :func:`render_orbit` of
+``--frames`` PNG frames into a temporary folder (``make demo``'s call): tolerance 0.1 or 0 (every
+covered pixel runs its network), frames held or written one by one (``HOLD_BYTES`` = 1, what
+``prt-runtime --headless`` did before).  Reported per configuration: the median over rounds of
+the orbit's median frame time, FPS, stage times and seconds spent writing.  Then the PNG
+encoding of one frame at zlib levels 1 (``PNG_LEVEL``) and 6 (Pillow's default): milliseconds
+(median of 5) and bytes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+
+import prt.runtime.orbit as orbit
+from prt.runtime.files import atomic_write_bytes
+from prt.runtime.gl import create_context
+from prt.runtime.interpolation import DEFAULT_TOLERANCE
+from prt.runtime.renderer import Renderer, Scene
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--scene", default=None, help="scene.json (default: the bundled demo)")
+    p.add_argument("--size", type=int, default=512)
+    p.add_argument("--frames", type=int, default=30)
+    p.add_argument("--rounds", type=int, default=3)
+    p.add_argument("--json", type=Path, default=None)
+    p.add_argument("--md", type=Path, default=None)
+    args = p.parse_args(argv)
+    scene = Scene.load(args.scene)
+    ctx = create_context()
+    configs = [(tol, hold) for tol in (DEFAULT_TOLERANCE, None) for hold in ("held", "each")]
+    renderers = {tol: Renderer(scene, args.size, args.size, ctx=ctx, interpolate=tol) for tol in (DEFAULT_TOLERANCE, None)}
+    runs: dict[str, list[dict]] = {}
+    default_hold = orbit.HOLD_BYTES
+    with tempfile.TemporaryDirectory() as tmp:
+        for k in range(args.rounds):
+            for tol, hold in configs:
+                name = f"interpolate {tol or 0} / {hold}"
+                orbit.HOLD_BYTES = default_hold if hold == "held" else 1
+                try:
+                    s = orbit.render_orbit(renderers[tol], args.frames, Path(tmp) / f"{k}-{tol}-{hold}")
+                finally:
+                    orbit.HOLD_BYTES = default_hold
+                runs.setdefault(name, []).append({"median_ms": s.median_ms, "write_s": s.write_s})
+                print(f"round {k + 1}: {name}: {s.fps:.1f} FPS, wrote in {s.write_s:.2f} s", flush=True)
+    png = {}
+    image = renderers[DEFAULT_TOLERANCE].render_srgb()
+    for level in (1, 6):
+        times = []
+        for _ in range(5):
+            t0 = time.perf_counter()
+            data = iio.imwrite("<bytes>", image, extension=".png", compress_level=level)
+            times.append(1e3 * (time.perf_counter() - t0))
+        png[level] = {"ms": float(np.median(times)), "bytes": len(data)}
+    for r in renderers.values():
+        r.close()
+    rows = {}
+    for name, rs in runs.items():
+        stages = {st: float(np.median([r["median_ms"][st] for r in rs])) for st in rs[0]["median_ms"]}
+        rows[name] = {"frame_ms": stages["frame"], "fps": 1000.0 / stages["frame"], "stages_ms": stages,
+                      "write_s": float(np.median([r["write_s"] for r in rs])), "rounds": rs}  # fmt: skip
+    base = rows[f"interpolate {DEFAULT_TOLERANCE} / held"]["frame_ms"]
+    lines = [f"Demo frame rate, {args.size}x{args.size}, {args.frames} frames x {args.rounds} rounds (medians)", "",
+             "| configuration | FPS | ms/frame | vs default | write s | stages (ms) |", "|---|---|---|---|---|---|"]  # fmt: skip
+    for name, row in rows.items():
+        st = ", ".join(f"{k} {v:.1f}" for k, v in row["stages_ms"].items() if k != "frame")
+        lines.append(f"| {name} | {row['fps']:.1f} | {row['frame_ms']:.1f} | {row['frame_ms'] / base:.2f}x | {row['write_s']:.2f} | {st} |")
+    lines += ["", "PNG of one frame: " + ", ".join(f"zlib level {k}: {v['ms']:.1f} ms, {v['bytes']} bytes" for k, v in png.items())]
+    text = "\n".join(lines)
+    print(text)
+    if args.json:
+        atomic_write_bytes(args.json, json.dumps({"size": args.size, "frames": args.frames, "rows": rows, "png": png}, indent=1).encode())
+    if args.md:
+        atomic_write_bytes(args.md, (text + "\n").encode())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,303 @@
+"""Per-object materials read from a mesh's own files: OBJ + MTL, glTF / GLB.
+
+One material per object of :class:`prt.train.inputs.geometry.Geometry` (the objects its reader made:
+OBJ ``o``/``g`` groups, or ``usemtl`` runs in a file without groups; glTF nodes).  An object
+whose faces use several materials takes the one most of its faces use (one warning line).
+
+Rules
+-----
+- MTL: ``Kd`` is the albedo.  ``Ks`` above zero makes the material glossy with specular ``Ks``
+  and Phong exponent ``Ns`` (at least 1); otherwise it is diffuse.  ``map_Kd`` is recorded as
+  the object's albedo texture (multiplied by ``Kd``, as the MTL format defines it); a missing
+  texture file is a warning (``Kd`` alone is used), an unreadable one a one-line error.  ``Ka``,
+  ``Ke``, ``Ni``, ``d`` and ``illum`` are ignored (no emission: lights are the env map).
+- glTF: the albedo is ``baseColorFactor`` (linear RGB; times the base colour texture, if any)
+  times ``1 - metallic``; the specular is
+  ``0.04 (1 - metallic) + baseColor * metallic`` (the glTF BRDF's F0).  Roughness ``r`` maps to a
+  Phong exponent by the Blinn-Phong equivalence of the GGX width ``alpha = r^2``:
+  ``n = 2 / alpha^2 - 2`` (Walter et al. 2007), glossy when ``n >= 1`` (``r <= ~0.9``), capped at
+  :data:`MAX_EXPONENT`; rougher surfaces are diffuse.  glTF's default roughness is 1 (diffuse).
+- Missing: objects with no material (no ``mtllib``, an unknown ``usemtl`` name, a missing MTL
+  file, PLY/STL files) take the scene-wide material; one warning line lists them.
+
+A malformed MTL statement (``Kd`` with a non-number, a negative value) is a one-line
+:class:`~prt.runtime.errors.GeometryError` naming the file and line.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from ...runtime.albedo_textures import read_albedo_texture
+from ...runtime.errors import GeometryError, InputError
+from ...runtime.materials import ObjectMaterial
+from ...runtime.shading import Material
+from .objfile import DEFAULT_OBJECT
+
+__all__ = ["read_mtl", "obj_material_names", "mesh_materials", "roughness_to_exponent", "MAX_EXPONENT"]
+
+# Phong exponents above this are all "mirror" to 4 SH bands (their band factors are ~1).
+MAX_EXPONENT = 1024.0
+# Normal-incidence reflectance of a dielectric (index ~1.5), glTF's F0 for non-metals.
+DIELECTRIC_F0 = 0.04
+
+
+def roughness_to_exponent(roughness: float) -> float:
+    """Phong exponent of a glTF roughness: ``n = 2 / alpha^2 - 2`` with ``alpha = roughness^2``
+    (0 for a surface too rough to be glossy; at most :data:`MAX_EXPONENT`)."""
+    alpha = max(float(roughness), 1e-4) ** 2
+    return float(min(max(2.0 / alpha**2 - 2.0, 0.0), MAX_EXPONENT))
+
+
+# --------------------------------------------------------------------------- MTL
+
+
+def read_mtl(path: str) -> dict[str, dict]:
+    """The materials of an MTL file: ``{name: {"Kd": (3,), "Ks": (3,), "Ns": float, "map_Kd": path}}``
+    (keys present only when the file sets them; ``map_Kd`` resolved against the MTL's folder).
+
+    Raises
+    ------
+    GeometryError
+        Unreadable file, or a malformed ``Kd``/``Ks``/``Ns`` line (file and line named).
+    """
+    try:
+        with open(path, "rb") as handle:
+            data = handle.read()
+    except OSError as error:
+        raise GeometryError(f"{path}: cannot read MTL file ({error.strerror or error})") from None
+    if b"\x00" in data:
+        raise GeometryError(f"{path}: not a text MTL file (contains binary data)")
+    text = data.decode("utf-8-sig", errors="replace")
+    materials: dict[str, dict] = {}
+    current: dict | None = None
+    folder = os.path.dirname(path)
+    for number, line in enumerate(text.replace("\r\n", "\n").replace("\r", "\n").split("\n"), 1):
+        parts = line.partition("#")[0].split()
+        if not parts:
+            continue
+        key = parts[0]
+        if key == "newmtl":
+            current = materials.setdefault(" ".join(parts[1:]) or DEFAULT_OBJECT, {})
+        elif current is None:
+            continue
+        elif key in ("Kd", "Ks"):
+            values = _numbers(path, number, key, parts[1:])
+            if len(values) == 1:
+                values = values * 3
+            if len(values) < 3:
+                raise GeometryError(f"{path}, line {number}: {key} needs 3 numbers (or 1): {line.strip()!r}")
+            current[key] = tuple(values[:3])
+        elif key == "Ns":
+            current["Ns"] = _numbers(path, number, key, parts[1:2])[0] if len(parts) > 1 else 0.0
+        elif key == "map_Kd" and len(parts) > 1:
+            current["map_Kd"] = os.path.join(folder, parts[-1])  # options (-s, -o ...) come before the name
+    return materials
+
+
+def _numbers(path: str, number: int, key: str, tokens: list[str]) -> list[float]:
+    try:
+        values = [float(t) for t in tokens]
+    except ValueError:
+        raise GeometryError(f"{path}, line {number}: {key} values must be numbers, got {' '.join(tokens)!r}") from None
+    if not values or not all(np.isfinite(values)) or min(values) < 0:
+        raise GeometryError(f"{path}, line {number}: {key} needs finite numbers >= 0, got {' '.join(tokens)!r}")
+    return values
+
+
+def obj_material_names(path: str) -> tuple[dict[str, Counter], list[str]]:
+    """Which materials each object of an OBJ file uses, by the object rule of
+    :mod:`prt.train.inputs.objfile`; and the ``mtllib`` files (resolved against the OBJ's folder).
+
+    Returns
+    -------
+    uses : dict of str to Counter
+        Object name -> faces per material name (None: faces before any ``usemtl``).
+    libraries : list of str
+    """
+    with open(path, "rb") as handle:
+        text = handle.read().decode("utf-8-sig", errors="replace")
+    by_group: dict[str, Counter] = {}
+    by_material: dict[str, Counter] = {}
+    libraries: list[str] = []
+    group, material, has_groups = DEFAULT_OBJECT, None, False
+    for line in text.replace("\r\n", "\n").replace("\r", "\n").split("\n"):
+        parts = line.partition("#")[0].split()
+        if not parts:
+            continue
+        key = parts[0]
+        if key == "f":
+            by_group.setdefault(group, Counter())[material] += 1
+            by_material.setdefault(material or DEFAULT_OBJECT, Counter())[material] += 1
+        elif key in ("o", "g"):
+            group, has_groups = " ".join(parts[1:]) or DEFAULT_OBJECT, True
+        elif key == "usemtl":
+            material = " ".join(parts[1:]) or None
+        elif key == "mtllib":
+            libraries.extend(os.path.join(os.path.dirname(path), name) for name in parts[1:])
+    return (by_group if has_groups else by_material), libraries
+
+
+def _mtl_material(entry: dict, default: Material) -> tuple[Material, str | None]:
+    albedo = entry.get("Kd", default.albedo)
+    specular = entry.get("Ks", (0.0, 0.0, 0.0))
+    exponent = max(float(entry.get("Ns", default.exponent)), 1.0)
+    if max(specular) > 0:
+        material = Material("glossy", albedo=albedo, specular=specular, exponent=min(exponent, MAX_EXPONENT))
+    else:
+        material = Material("diffuse", albedo=albedo, exponent=min(exponent, MAX_EXPONENT))
+    return material, entry.get("map_Kd")
+
+
+def _obj_materials(path: str, object_names: list[str], default: Material, warn) -> tuple[list[ObjectMaterial], bool]:
+    """The objects' materials, and whether the file refers to any (mtllib or usemtl)."""
+    uses, libraries = obj_material_names(path)
+    referenced = bool(libraries) or any(m is not None for counts in uses.values() for m in counts)
+    library: dict[str, dict] = {}
+    sources: dict[str, str] = {}
+    for mtl in libraries:
+        if not os.path.isfile(mtl):
+            warn(f"{path}: material library {os.path.basename(mtl)} not found")
+            continue
+        for name, entry in read_mtl(mtl).items():
+            library.setdefault(name, entry)
+            sources.setdefault(name, os.path.basename(mtl))
+    if len(object_names) == 1 and object_names[0] not in uses and len(uses) == 1:
+        uses = {object_names[0]: next(iter(uses.values()))}  # a file without groups, named after the file
+    out = []
+    for name in object_names:
+        counts = uses.get(name, Counter())
+        if len([m for m in counts if m is not None]) > 1:
+            warn(f"{path}: object {name!r} uses {len(counts)} materials; the most used one is taken for all of it")
+        chosen = counts.most_common(1)[0][0] if counts else None
+        if chosen is None or chosen not in library:
+            continue
+        material, texture = _mtl_material(library[chosen], default)
+        if texture is not None and not os.path.isfile(texture):
+            warn(f"{path}: object {name!r}: albedo texture {texture} not found; using Kd")
+            texture = None
+        if texture is not None:
+            read_albedo_texture(texture, error=GeometryError)  # a corrupt image stops the build here
+        out.append(ObjectMaterial(name, material, f"{sources[chosen]}: {chosen}", None if texture is None else Path(texture)))
+    return out, referenced
+
+
+# --------------------------------------------------------------------------- glTF
+
+
+def _gltf_materials(path: str, object_names: list[str], default: Material, warn) -> list[ObjectMaterial]:
+    import trimesh
+
+    from .geometry import _extension
+
+    try:
+        scene = trimesh.load_scene(path, file_type=_extension(path), process=False)
+    except Exception as error:  # already read once by load_geometry; a failure here is unexpected
+        raise GeometryError(f"{path}: cannot read materials ({' '.join(str(error).split())})") from None
+    # The node order and naming of load_geometry's reader.
+    geometry_order = {key: index for index, key in enumerate(scene.geometry)}
+    nodes = sorted(scene.graph.nodes_geometry, key=lambda node: (geometry_order[scene.graph[node][1]], str(node)))
+    nodes = [n for n in nodes if isinstance(scene.geometry[scene.graph[n][1]], trimesh.Trimesh) and len(scene.geometry[scene.graph[n][1]].faces)]
+    names = [str(n) for n in nodes] if len(nodes) > 1 else list(object_names[:1])
+    out = []
+    for node, name in zip(nodes, names):
+        if name not in object_names:
+            continue
+        visual = scene.geometry[scene.graph[node][1]].visual
+        material = getattr(visual, "material", None)
+        if material is None or not hasattr(material, "baseColorFactor"):
+            continue
+        image = getattr(material, "baseColorTexture", None)
+        texture = None if image is None else np.asarray(image.convert("RGB"), dtype=np.uint8)  # embedded: written by the export
+        out.append(ObjectMaterial(name, pbr_material(material.baseColorFactor, material.roughnessFactor, material.metallicFactor),
+                                  f"{os.path.basename(path)}: {getattr(material, 'name', None) or 'material'}", texture))  # fmt: skip
+    return out
+
+
+def pbr_material(base_color, roughness, metallic) -> Material:
+    """A glTF metallic-roughness material as a :class:`Material` (see the module docstring).
+
+    ``base_color`` is RGB(A) in [0, 1] or uint8 (trimesh stores uint8); None means 1.
+    """
+    base = np.ones(3) if base_color is None else np.asarray(base_color, dtype=np.float64).reshape(-1)[:3]
+    if base_color is not None and np.asarray(base_color).dtype.kind in "ui":
+        base = base / 255.0
+    rough = 1.0 if roughness is None else float(np.clip(roughness, 0.0, 1.0))
+    metal = 0.0 if metallic is None else float(np.clip(metallic, 0.0, 1.0))
+    albedo = base * (1.0 - metal)
+    exponent = roughness_to_exponent(rough)
+    if exponent < 1.0:
+        return Material("diffuse", albedo=albedo)
+    specular = DIELECTRIC_F0 * (1.0 - metal) + base * metal
+    return Material("glossy", albedo=albedo, specular=specular, exponent=exponent)
+
+
+# --------------------------------------------------------------------------- entry point
+
+
+def mesh_materials(path: str, object_names: list[str], default: dict, log=print) -> list[ObjectMaterial]:
+    """The materials of a mesh file's objects; objects without one are left out (they take the
+    scene-wide ``default``), listed in one warning line.
+
+    Parameters
+    ----------
+    path : str
+        The mesh file (``.obj``, ``.gltf``, ``.glb``; other formats have no materials).
+    object_names : list of str
+        ``Geometry.object_names``.
+    default : dict
+        The build's scene-wide manifest ``material`` (albedo etc. for what a file leaves out).
+    log : callable
+        Receives warning lines.
+    """
+    try:
+        base = Material(kind=default.get("type", "diffuse"), **{k: default[k] for k in ("albedo", "specular", "exponent") if k in default})
+    except InputError as exc:
+        raise GeometryError(f"material: {exc}") from None
+    warnings: list[str] = []
+    extension = os.path.splitext(path)[1][1:].lower()
+    referenced = False  # a file that names no material at all is not warned about
+    if extension == "obj":
+        found, referenced = _obj_materials(path, object_names, base, warnings.append)
+    elif extension in ("gltf", "glb"):
+        found = _gltf_materials(path, object_names, base, warnings.append)
+    else:
+        found = []
+    named = {m.object for m in found}
+    missing = [n for n in object_names if n not in named]
+    if missing and (found or referenced):
+        shown = ", ".join(missing[:6]) + (f" and {len(missing) - 6} more" if len(missing) > 6 else "")
+        warnings.append(f"{path}: no material for {shown}; using the scene material (albedo {', '.join(f'{a:g}' for a in base.albedo)})")
+    for line in warnings:
+        log(f"warning: {line}")
+    return found
+
+
+def textured_geometry(path: str, geometry, materials: list[ObjectMaterial], log=print):
+    """The corner UVs the materials' albedo textures need, found on ``geometry``'s triangles
+    (:mod:`prt.train.inputs.albedo_uv`); without UVs in the file the textures are dropped (one warning).
+
+    Returns
+    -------
+    materials : list of ObjectMaterial
+    albedo_uv : (F, 3, 2) float32 or None
+        None when no material has a texture.
+    """
+    import dataclasses
+
+    from .albedo_uv import file_corner_uvs, match_corner_uvs
+
+    if not any(m.albedo_texture is not None for m in materials):
+        return materials, None
+    found = file_corner_uvs(path)
+    if found is None:
+        log(f"warning: {path}: albedo textures need texture coordinates and the file has none; using the colours alone")
+        return [dataclasses.replace(m, albedo_texture=None) for m in materials], None
+    albedo_uv, unmatched = match_corner_uvs(geometry, *found)
+    if unmatched:
+        log(f"warning: {path}: {unmatched} triangles matched no triangle of the file; their texture coordinates are 0")
+    return materials, albedo_uv

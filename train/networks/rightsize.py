@@ -1,0 +1,410 @@
+"""Right-sizing one segment: which encoding and size its network gets, and a record of why.
+
+A build's spec picks one rule; every segment's training record and its manifest entry keep what
+was chosen and why (``sizing``: the rule, its target, the measured value, the sizes tried):
+
+- ``"fixed"``: one size for every network (``--hidden/--layers``).
+- ``"target_mae"``: the first size, cheapest first, whose validation coefficient MAE meets
+  ``target`` (:func:`prt.train.networks.fit.right_size`; the default before ``target_db``).
+- ``"match"``: the cheapest size as accurate as a reference size (``--match 64x4``,
+  :func:`prt.train.networks.fit.right_size_matching`).
+- ``"target_db"``: the cheapest candidate, by FLOPs per fragment, whose **shaded PSNR** on the
+  segment's held-out samples meets ``target_db`` (:func:`search_cheapest`).  The shaded PSNR is
+  what ``prt-bench`` measures over pixels, here over samples: the diffuse radiance ``a (T . L)``
+  under each bundled env map, tone-mapped (:func:`prt.runtime.shading.tonemap`), against the
+  ray-traced transfer, under the scene's lighting (:data:`SCENE_LIGHT`, the manifest's default,
+  which ``prt-bench`` renders under; the record keeps the other bundled maps' figures too;
+  :func:`shaded_psnr`).  If every segment meets
+  X dB, the pooled MSE of all held-out samples is at most ``10^(-X/10)``, so the scene's PSNR
+  over its samples is at least X.  With ``encoding: "auto"`` the candidates are the frequency
+  ladder and the grid ladder together (:func:`candidates`).
+
+Fits read back from the fit cache carry only their arrays, so the PSNR is computed from the
+arrays in numpy (:func:`predict_numpy`), for new and cached fits alike.
+
+Before sizing, :func:`residual_choice` decides whether the segment's frequency networks learn
+the direct transfer's residual from the unshadowed transfer (``Architecture.residual``; the
+spec's ``residual``: "on", "off", or "auto": where the segment's mean visibility is high, both
+kinds fitted at one size and the lower validation MAE kept); every size tried, and a ``match``
+reference, is then that kind of network.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass
+
+import numpy as np
+from tqdm import tqdm
+
+from ...runtime.sh import unshadowed_transfer
+from ...runtime.shading import tonemap
+from .fit import FitSettings, fit_segment, right_size, right_size_matching, shaded_error, total_transfer, transfer_error
+from .grid_encoding import GridArchitecture, fit_grid_segment
+from .grid_encoding import evaluate_numpy as grid_evaluate
+from .network import Architecture
+from .network import evaluate_numpy as freq_evaluate
+
+__all__ = ["RULES", "RESIDUAL_MODES", "RESIDUAL_VISIBILITY", "residual_choice", "PSNR_CAP", "shaded_psnr", "predict_numpy", "candidates", "search_cheapest", "weight_bytes", "train_segment", "SegmentJob",
+           "segment_task", "validation_split", "SCENE_LIGHT"]  # fmt: skip
+
+RULES = ("fixed", "target_mae", "match", "target_db")
+PSNR_CAP = 100.0  # the same cap as prt-bench's metrics
+DEFAULT_ALBEDO = (0.7, 0.7, 0.7)  # the spec's default material
+# The lighting a build's manifest gets (prt.train.build) and the shaded target is measured under.
+# The held-out samples cover every surface, the dark ones a view rarely shows too, and the sRGB
+# curve is steep near black: on Spot the pooled sample PSNR sat 2.9-8.0 dB below the rendered
+# images', with no stable offset (docs/benchmarks/rightsize_auto.md): a conservative,
+# view-independent bound, not a prediction of a view's PSNR.
+SCENE_LIGHT = "potsdamer"
+RESIDUAL_MODES = ("auto", "on", "off")
+RESIDUAL_VISIBILITY = 0.8
+"""``residual: "auto"``: a segment whose samples see at least this share of their cosine lobe on
+average is fitted both ways at one size (the ``match`` reference, else the first frequency size),
+and keeps the kind with the lower validation MAE; a segment below it stays plain without the
+extra fit.  In the study (``docs/benchmarks/residual_fit.md``, 20 segments of the bunny, the
+daffodil and the Cornell box, same size, seed and steps) every segment at >= 0.80 fitted better
+as a residual (+0.4 to +2.8 dB), every one at <= 0.797 worse or the same (-2.7 to +0.1 dB): where
+most of the lobe is occluded, the cosine lobe is no longer the part to subtract.  Visibility is not
+enough on its own: the demo's flat ground (0.86; one normal, so nothing for the residual to take
+away) fitted 7 % worse as a residual, and its images lost 1.2 dB (``residual_networks.md``)."""
+
+
+def residual_choice(mode: str, transfer: np.ndarray, normals: np.ndarray, bands: int) -> tuple[bool, float]:
+    """Whether a segment's networks may learn the residual from the unshadowed transfer, and the
+    segment's mean visibility (the mean of its samples' DC coefficient over the unshadowed one's).
+
+    ``mode``: "on", "off", or "auto" (:data:`RESIDUAL_VISIBILITY`; :func:`train_segment` then
+    fits both kinds once and keeps the better); beyond 4 bands the unshadowed transfer is not a
+    quadratic of the normal, so "auto" says no ("on" is refused by the spec)."""
+    u00 = float(unshadowed_transfer(np.array([[0.0, 0.0, 1.0]]), bands)[0, 0])  # the same for every normal
+    visibility = float(np.mean(np.asarray(transfer[:, 0], np.float64))) / u00 if len(transfer) else 0.0
+    if mode == "on":
+        return True, visibility
+    if mode == "off" or bands > 4:
+        return False, visibility
+    return visibility >= RESIDUAL_VISIBILITY, visibility
+
+
+def _as_residual(arch, use: bool):
+    """``arch`` as a residual network where ``use`` and it is a frequency network (grids are not)."""
+    return dataclasses.replace(arch, residual=True) if use and isinstance(arch, Architecture) else arch
+
+
+def shaded_psnr(pred, truth, lights: dict, n: int, albedo=DEFAULT_ALBEDO, exposure: float = 1.0) -> dict[str, float]:
+    """Per env map, the PSNR (dB, capped at :data:`PSNR_CAP`) of the tone-mapped diffuse radiance
+    ``max(0, a_c sum_k T_kc L_kc)`` of ``pred`` against ``truth`` over the samples.
+
+    ``pred``, ``truth``: (M, n) direct transfer or (M, 4 n) "direct+rgb" (the total RGB transfer
+    counts); ``lights``: name -> (n, 3) SH coefficients; ``albedo``: RGB.
+    """
+    albedo = np.asarray(albedo, dtype=np.float64).reshape(3)
+    tp = total_transfer(np.asarray(pred, dtype=np.float64), n)
+    tt = total_transfer(np.asarray(truth, dtype=np.float64), n)
+    out = {}
+    for name, light in lights.items():
+        light = np.asarray(light, dtype=np.float64)
+        if tp.ndim == 2:
+            rp, rt = tp @ light, tt @ light
+        else:
+            rp, rt = np.einsum("mkc,kc->mc", tp, light), np.einsum("mkc,kc->mc", tt, light)
+        a = tonemap(np.maximum(rp * albedo, 0.0), exposure).astype(np.float64)
+        b = tonemap(np.maximum(rt * albedo, 0.0), exposure).astype(np.float64)
+        mse = float(np.mean((a - b) ** 2)) if a.size else 0.0
+        out[name] = PSNR_CAP if mse <= 10.0 ** (-PSNR_CAP / 10.0) else min(PSNR_CAP, float(-10.0 * np.log10(mse)))
+    return out
+
+
+def predict_numpy(arch, arrays: dict, points, normals) -> np.ndarray:
+    """A fitted network's output from its arrays alone (frequency or grid encoding)."""
+    evaluate = grid_evaluate if isinstance(arch, GridArchitecture) else freq_evaluate
+    return evaluate(arrays, points, normals)
+
+
+def weight_bytes(arch) -> int:
+    """Stored bytes of a network: fp32 weights; a grid's tables in fp16 (as exported)."""
+    return arch.bytes() if isinstance(arch, GridArchitecture) else arch.weight_count() * 4
+
+
+def _cost(arch) -> tuple[int, int]:
+    return arch.flops_per_fragment(), weight_bytes(arch)
+
+
+def candidates(*ladders) -> list:
+    """The sizes of every ladder, cheapest first: by FLOPs per fragment, then bytes (duplicates dropped)."""
+    seen, out = set(), []
+    for arch in (a for ladder in ladders for a in ladder):
+        key = (type(arch).__name__, json.dumps(arch.as_dict(), sort_keys=True))
+        if key not in seen:
+            seen.add(key)
+            out.append(arch)
+    return sorted(out, key=_cost)
+
+
+def search_cheapest(fit, archs, quality, target: float, log=print) -> tuple[object, list[dict], bool]:
+    """The cheapest of ``archs`` (sorted cheapest first) whose ``quality(fit(arch))`` is >= ``target``.
+
+    A bisection over the cost order: it assumes quality grows with cost, so it fits about
+    ``log2(len(archs)) + 1`` sizes instead of all of them; of the sizes it fitted it keeps the
+    cheapest that met the target (every fit is in the returned records, so a size that broke the
+    assumption shows).  When none met it, the best quality fitted (the search then ends at the
+    largest size).  Returns ``(chosen fit, records of the sizes tried in cost order, met)``.
+    """
+    if not archs:
+        raise ValueError("search_cheapest: no sizes to choose from")
+    results = {}
+    lo, hi = 0, len(archs) - 1
+    while lo <= hi:
+        mid = (lo + hi) // 2
+        result = fit(archs[mid])
+        q = float(quality(result))
+        results[mid] = (result, q)
+        ok = q >= target
+        flops, size = _cost(archs[mid])
+        log(f"  {archs[mid].label():>12}: {q:.2f} dB, val MAE {result.val_mae:.5f}, {flops:,} FLOPs ({result.seconds:.1f} s)  {'meets' if ok else 'misses'}")
+        if ok:
+            hi = mid - 1
+        else:
+            lo = mid + 1
+    met = [i for i, (_, q) in results.items() if q >= target]
+    pick = min(met) if met else max(results, key=lambda i: results[i][1])
+    tried = []
+    for i in sorted(results):
+        result, q = results[i]
+        flops, size = _cost(archs[i])
+        tried.append({"arch": archs[i].label(), "encoding": _encoding(archs[i]), "val_mae": result.val_mae, "psnr_db": round(q, 3),
+                      "flops": flops, "bytes": size, "seconds": result.seconds})  # fmt: skip
+    return results[pick][0], tried, bool(met)
+
+
+def _encoding(arch) -> str:
+    return "grid" if isinstance(arch, GridArchitecture) else "freq"
+
+
+@dataclass
+class SegmentJob:
+    """What the fits of one build share (sent once to a cluster).  ``log`` None: lines come back."""
+
+    spec: object  # prt.train.build.BuildSpec
+    samples: dict
+    valid: dict
+    members: list
+    archs: list
+    fit_settings: FitSettings
+    lights: dict
+    progress: bool
+    log: object = None
+
+
+def segment_task(job: SegmentJob, item) -> tuple[dict, list, list[str]]:
+    """Fit one segment ``(seg, key, fits)``: a task.  Returns (record, new fits for the cache, log lines)."""
+    seg, key, fits = item
+    lines = []
+    s = seg["id"]
+    record = train_segment(job.spec, s, job.samples, job.valid, job.members[s], job.archs, job.fit_settings, job.lights, job.progress,
+                           job.log or lines.append, fits)  # fmt: skip
+    record["key"] = key
+    return record, getattr(fits, "new", []), lines
+
+
+def validation_split(s, valid, own_idx, seed):
+    """Held-out samples of segment ``s``; if the validation set has too few, hold out 10 % of its own."""
+    vsel = np.flatnonzero(valid["segment"] == s)
+    if len(vsel) >= 32:
+        return vsel, None
+    rng = np.random.default_rng([seed, 0x5E6, s])
+    n_hold = max(1, len(own_idx) // 10)
+    held = rng.choice(own_idx, size=min(n_hold, max(len(own_idx) - 1, 1)), replace=False)
+    return None, held
+
+
+def spec_rule(spec) -> str:
+    """The right-sizing rule a spec asks for (:data:`RULES`)."""
+    if spec.fixed is not None:
+        return "fixed"
+    if spec.match is not None:
+        return "match"
+    return "target_db" if spec.target_db is not None else "target_mae"
+
+
+def _albedo(spec) -> list[float]:
+    albedo = spec.material.get("albedo", DEFAULT_ALBEDO) if isinstance(spec.material, dict) else DEFAULT_ALBEDO
+    return [float(a) for a in albedo]
+
+
+def train_segment(spec, s, samples, valid, member_idx, archs, fit_settings, lights, progress, log, fits=None) -> dict:
+    """Fit segment ``s`` by the spec's rule; its training record (weights in ``arrays``, the choice in ``sizing``)."""
+    own_idx = member_idx[samples["segment"][member_idx] == s]
+    vsel, held = validation_split(s, valid, own_idx, spec.seed)
+    if held is not None:
+        train_idx = np.setdiff1d(member_idx, held)
+        vp, vn, vt = samples["points"][held], samples["normals"][held], samples["transfer"][held]
+        note = f"validation set had {int((valid['segment'] == s).sum())} samples here; held out {len(held)} of its own"
+    else:
+        train_idx = member_idx
+        vp, vn, vt = valid["points"][vsel], valid["normals"][vsel], valid["transfer"][vsel]
+        note = ""
+    p, n, t = samples["points"][train_idx], samples["normals"][train_idx], samples["transfer"][train_idx]
+    bounds = np.array([p.min(axis=0), p.max(axis=0)])
+    bounds = bounds + np.array([[-1.0], [1.0]]) * 0.01 * np.maximum(bounds[1] - bounds[0], 1e-3)
+    base = {
+        "id": s,
+        "samples": int(len(own_idx)),
+        "margin_samples": int(len(member_idx) - len(own_idx)),
+        "validation_samples": int(len(vt)),
+        "bounds": bounds.tolist(),
+        "note": note,
+    }
+    rule = spec_rule(spec)
+    n_coeffs = spec.bands * spec.bands
+    albedo = _albedo(spec)
+
+    def psnr_of(pred) -> dict[str, float]:
+        return {k: round(v, 3) for k, v in shaded_psnr(pred, vt, lights, n_coeffs, albedo).items()}
+
+    reference = spec.reference_architecture()
+    analytic = None
+    if spec.analytic:
+        pred = unshadowed_transfer(vn, spec.bands)
+        if vt.shape[1] > n_coeffs:  # "direct+rgb": an analytic segment has no indirect light
+            pred = np.concatenate([pred, np.zeros((len(pred), vt.shape[1] - n_coeffs), dtype=pred.dtype)], axis=1)
+        mae = transfer_error(pred, vt, n_coeffs)
+        analytic = {**base, "kind": "analytic", "val_mae": mae, "shaded": shaded_error(pred, vt, lights, n_coeffs), "tried": [], "flops_per_fragment": 0,
+                    "weight_bytes": 0}  # fmt: skip
+        a_psnr = psnr_of(pred)
+        a_worst = a_psnr.get(SCENE_LIGHT, min(a_psnr.values(), default=PSNR_CAP))
+        if rule == "target_db" and a_worst >= spec.target_db:
+            log(f"segment {s}: analytic (unshadowed; shaded PSNR {a_worst:.2f} dB >= {spec.target_db} dB)")
+            return {**analytic, "sizing": _sizing(rule, spec, "analytic", a_psnr, True, [],
+                                                  f"unshadowed transfer already meets {spec.target_db} dB ({a_worst:.2f} dB)")}  # fmt: skip
+        if rule == "target_mae" and mae <= spec.target:
+            log(f"segment {s}: analytic (unshadowed; validation MAE {mae:.5f} <= {spec.target})")
+            return {**analytic, "sizing": _sizing(rule, spec, "analytic", a_psnr, True, [],
+                                                  f"unshadowed transfer already meets the validation MAE target {spec.target} ({mae:.5f})")}  # fmt: skip
+
+    log(f"segment {s}: {len(train_idx):,} training samples ({base['margin_samples']:,} margin), {len(vt):,} held out")
+    mode = getattr(spec, "residual", "off")
+    use, visibility = residual_choice(mode, t, n, spec.bands)
+    scores, done = {}, {}
+
+    def fit(arch):
+        if arch in done:  # fitted in this call already (the residual probe, then the sizing rule)
+            return done[arch]
+        cached = fits.get(arch) if fits is not None else None
+        if cached is not None:
+            log(f"  {arch.label():>12}: fitted before on this precompute (cached)")
+            result = cached
+        else:
+            result = _fit(arch)
+            if fits is not None:
+                fits.put(result)
+        scores[arch.label()] = psnr_of(predict_numpy(arch, result.model.arrays(), vp, vn))
+        done[arch] = result
+        return result
+
+    def _fit(arch):
+        bar = None
+        if progress:
+            bar = tqdm(desc=f"  seg {s} {arch.label()}", unit="step", leave=False, mininterval=0.5)
+
+        def on_epoch(step, total_steps, train_l1, val_mae):
+            if bar is not None:
+                bar.total = total_steps
+                bar.update(step - bar.n)
+                bar.set_postfix(val_mae=f"{val_mae:.5f}", refresh=False)
+
+        try:
+            if isinstance(arch, GridArchitecture):
+                return fit_grid_segment(p, n, t, vp, vn, vt, arch, bounds, fit_settings, lights=lights, progress=on_epoch)
+            return fit_segment(p, n, t, vp, vn, vt, arch, bounds, fit_settings, lights=lights, progress=on_epoch)
+        finally:
+            if bar is not None:
+                bar.close()
+
+    def worst(label):  # the target's measure: the scene's lighting (every map's when it is absent)
+        psnr = scores[label]
+        return psnr[SCENE_LIGHT] if SCENE_LIGHT in psnr else min(psnr.values(), default=PSNR_CAP)
+
+    base["residual"] = {"mode": mode, "mean_visibility": round(visibility, 4)}
+    probe = reference if reference is not None else next((a for a in archs if isinstance(a, Architecture)), None)
+    if mode == "auto" and use and probe is not None:  # both kinds at the probe size: the lower validation MAE decides
+        plain, residual = fit(probe), fit(_as_residual(probe, True))
+        use = residual.val_mae < plain.val_mae
+        base["residual"]["val_mae"] = {"plain": plain.val_mae, "residual": residual.val_mae, "size": probe.label()}
+        log(f"segment {s}: mean visibility {visibility:.3f}; validation MAE {plain.val_mae:.5f} plain, {residual.val_mae:.5f} residual: "
+            f"{'residual' if use else 'plain'} networks")  # fmt: skip
+    elif use:
+        log(f"segment {s}: mean visibility {visibility:.3f}: the networks learn the residual from the unshadowed transfer")
+    base["residual"]["used"] = bool(use and probe is not None)
+    if use:
+        archs = [_as_residual(a, True) for a in archs]
+        reference = None if reference is None else _as_residual(reference, True)
+
+    if rule == "target_db":
+        result, tried, met = search_cheapest(fit, archs, lambda r: worst(r.arch.label()), spec.target_db, log=log)
+        bar = spec.target_db
+        chosen = result.arch
+        why = (f"cheapest of {len(archs)} candidates ({'/'.join(sorted({_encoding(a) for a in archs}))}, by FLOPs per fragment) meeting "
+               f"{spec.target_db} dB under {SCENE_LIGHT}: {worst(chosen.label()):.2f} dB at {chosen.flops_per_fragment():,} FLOPs") if met else (
+               f"no candidate met {spec.target_db} dB; the most accurate tried ({worst(chosen.label()):.2f} dB)")  # fmt: skip
+        if not met and analytic is not None and a_worst >= worst(chosen.label()):
+            log(f"segment {s}: analytic (unshadowed transfer is as accurate as the best network tried)")
+            return {**analytic, "tried": tried, "sizing": _sizing(rule, spec, "analytic", a_psnr, False, tried,
+                                                                  "no network met the target and the unshadowed transfer is as accurate")}  # fmt: skip
+    elif reference is not None:
+        result, tried, bar = right_size_matching(fit, reference, archs, tolerance=spec.match_tolerance, log=log)
+        if analytic is not None and analytic["val_mae"] <= min(bar, spec.target):
+            log(f"segment {s}: analytic (unshadowed; validation MAE {analytic['val_mae']:.5f} <= the bar {bar:.5f})")
+            return {**analytic, "tried": tried, "bar": bar,
+                    "sizing": _sizing(rule, spec, "analytic", a_psnr, True, tried, f"unshadowed transfer within the bar {bar:.5f} of {reference.label()}")}  # fmt: skip
+        met = result.val_mae <= bar
+        why = (f"cheapest size within {spec.match_tolerance:.0%} of {reference.label()}'s validation MAE (bar {bar:.5f}): "
+               f"{result.val_mae:.5f} at {result.arch.flops_per_fragment():,} FLOPs")  # fmt: skip
+    else:
+        result, tried = right_size(fit, archs, target=spec.target, log=log)
+        met, bar = result.val_mae <= spec.target, spec.target
+        if rule == "fixed":
+            # analytic only where as accurate as the network asked for: a segment whose mean MAE passes
+            # the plain target may still hold a shadow (Spot: 2.8 dB, docs/benchmarks/many_networks.md)
+            cap = min(result.val_mae * (1.0 + spec.match_tolerance), spec.target)
+            if analytic is not None and analytic["val_mae"] <= cap:
+                log(f"segment {s}: analytic (unshadowed; validation MAE {analytic['val_mae']:.5f} <= {cap:.5f}, the fixed network's)")
+                return {**analytic, "tried": tried, "sizing": _sizing(rule, spec, "analytic", a_psnr, True, tried,
+                        f"unshadowed transfer as accurate as the fixed {result.arch.label()} network (MAE {analytic['val_mae']:.5f} <= {cap:.5f})")}  # fmt: skip
+            why = f"fixed size {result.arch.label()} (--hidden/--layers)"
+        else:
+            why = (f"first size, cheapest first, meeting validation MAE {spec.target}: {result.val_mae:.5f}" if met else
+                   f"no size met validation MAE {spec.target}; the most accurate tried ({result.val_mae:.5f})")  # fmt: skip
+    if rule != "target_db":
+        for record in tried:
+            record["psnr_db"] = round(worst(record["arch"]), 3) if record["arch"] in scores else None
+    arch = result.arch
+    return {
+        **base,
+        "kind": "network",
+        "arch": arch.as_dict(),
+        "arch_label": arch.label(),
+        "val_mae": result.val_mae,
+        "shaded": result.shaded,
+        "epochs": result.epochs,
+        "steps": result.steps,
+        "train_s": result.seconds,
+        "tried": tried,
+        "met_target": met,
+        "bar": bar,
+        "flops_per_fragment": arch.flops_per_fragment(),
+        "weight_bytes": weight_bytes(arch),
+        "arrays": result.model.arrays(),
+        "history": result.history,
+        "sizing": _sizing(rule, spec, arch.label(), scores[arch.label()], met, tried, why, encoding=_encoding(arch)),
+    }
+
+
+def _sizing(rule, spec, chosen, psnr, met, tried, reason, encoding=None) -> dict:
+    """The manifest's ``sizing`` of a segment: what was chosen, by which rule, and why."""
+    target = {"target_db": spec.target_db, "target_mae": spec.target, "match": spec.match, "fixed": spec.fixed}[rule]
+    out = {"rule": rule, "target": target, "chosen": chosen, **({"encoding": encoding} if encoding else {}),
+           "psnr_db": psnr, "met": bool(met), "reason": reason,
+           "tried": [{k: r[k] for k in ("arch", "encoding", "flops", "bytes", "val_mae", "psnr_db") if k in r} for r in tried]}  # fmt: skip
+    return out

@@ -1,0 +1,429 @@
+"""Interreflected transfer (Sloan, Kautz and Snyder 2002, section 6): the bounce operator.
+
+Direct transfer ``T_0(p)`` (16 SH coefficients, including the ``1/pi``: see docs/design.md)
+gives the irradiance-weighted light a point receives straight from the environment.  Light that
+reaches ``p`` after bouncing off another surface point ``q`` is, for a diffuse ``q`` with albedo
+``a(q)``, ``a(q) dot(T_{b-1}(q), L)``; with the cosine-importance-sampled rays of
+:mod:`prt.train.transport.transfer` (pdf ``cos / pi``, which cancels the cosine and the ``1/pi``)
+
+    T_b(p) = mean_j  hit_j * a(q_j) * T_{b-1}(q_j)          (RGB: a is a colour)
+
+and the interreflected transfer is ``T_0 + T_1 + ... + T_N``.  Every term is linear in the
+lighting ``L``, so relighting stays a dot product per channel; with coloured albedos the result
+is RGB transfer, shape (S, n, 3).
+
+Estimator of ``T_{b-1}(q)`` at a hit point: the ray-traced transfer of the precomputed sample
+nearest to ``q`` in (position, NORMAL_WEIGHT * normal), the hit's normal turned towards the ray's
+origin: so the sample is on the side of the surface the ray sees (open surfaces have samples
+on both sides at the same places); of the :data:`PLANE_CANDIDATES` nearest, the one nearest the
+hit's tangent plane wins ties between parallel sheets facing the same way (:func:`nearest_on_plane`:
+the Cornell box's light quad below the ceiling, issue #13).  The search is bounded
+(:data:`SEARCH_RADIUS`); a hit with no sample of its side that near takes the best of the
+samples nearest in position.
+Chosen over the fitted direct networks because it needs nothing beyond the precompute (the
+bounce stage runs before fitting, stays chunked and deterministic, and its error does not depend
+on how well a network fitted), and because each bounce then costs a sparse product: the rays,
+hit points and nearest samples are found once (:func:`trace_bounce_rays`) and every bounce is
+``T_b[:, :, c] = W_c @ T_{b-1}[:, :, c]`` with ``W_c[p, q] = sum of a_c(hit) / M`` over p's
+rays landing nearest to q.  Indirect light is smooth, so it takes fewer rays than the direct
+term (:data:`BOUNCE_RAYS`).
+
+``prt-train --bounces N`` runs :func:`bounce_stage` after the direct precompute and fits
+networks of the "direct+rgb" layout (:mod:`prt.train.networks.network`) to ``[T_0, T_ind_R, T_ind_G,
+T_ind_B]``; the albedos of the bouncing surfaces are the diffuse albedos (``Kd``) of the mesh's
+own per-object materials, fixed at build time and recorded in the manifest's ``interreflection``.
+Bounces are diffuse: a glossy surface bounces its diffuse albedo only.  ``--bounces auto``
+(:mod:`prt.train.transport.bounce_depth`) measures the terms on the validation samples first and keeps the
+smallest N whose truncation error is small; the rays are traced once for both.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .transfer import _unit, cosine_directions, orthonormal_frames
+
+__all__ = ["BounceRays", "BounceJob", "trace_bounce_rays", "bounce_chunk", "trace_stage", "bounce_terms", "bounce_stage", "interreflect", "bounce_matrices",
+           "nearest_on_plane",
+           "BOUNCE_RAYS", "NORMAL_WEIGHT"]
+
+# Rays per sample of the bounce stage (the direct transfer keeps its own count).  32: on the
+# Cornell box (105k samples, 512 direct rays) 64 bounce rays made the stage 3.5x the direct
+# transfer's time (the nearest-sample searches dominate), over the issue's 3x budget for the
+# whole precompute; the networks average the gather's noise over many samples.
+BOUNCE_RAYS = 32
+# Weight of the normal against the position in the nearest-sample search: the other side of
+# a sheet is 2 * NORMAL_WEIGHT away, far beyond the sample spacing (~0.03 at 20k samples).
+NORMAL_WEIGHT = 0.25
+# The search looks this far (in the weighted 6-d distance) and no farther: a hit with no sample of
+# its side that near (e.g. the underside of a box standing on the floor, a few % of the hits in the
+# Cornell box) makes an unbounded k-d search visit much of the tree (2-3x the time of all other
+# hits together); those take the best of the FALLBACK_CANDIDATES samples nearest in position.
+SEARCH_RADIUS = 0.15
+FALLBACK_CANDIDATES = 8
+# Parallel sheets facing the same way a few sample spacings apart (the Cornell box's light quad,
+# 0.01 below the ceiling) are not told apart by the normal term: a hit on the light's underside
+# took the ceiling sample above it (inside the light/ceiling gap, whose estimate is wrong) about
+# as often as a light sample, and a hit on the light's top the ceiling's roof side (sky light).
+# So the search takes the PLANE_CANDIDATES nearest samples and keeps the one minimising the 6-d
+# distance squared plus (PLANE_WEIGHT * its distance from the hit's tangent plane) squared.
+PLANE_CANDIDATES = 8
+PLANE_WEIGHT = 4.0
+
+
+class BounceRays:
+    """Which sample each ray of each sample lands nearest to, found once for all bounces.
+
+    Attributes
+    ----------
+    nearest : (S, M) int64
+        Sample index nearest to the ray's hit point on a surface facing the ray, -1 for a miss.
+    hit_face : (S, M) int64
+        Triangle hit (-1: miss).
+    """
+
+    def __init__(self, nearest: np.ndarray, hit_face: np.ndarray):
+        self.nearest = nearest
+        self.hit_face = hit_face
+
+
+def trace_bounce_rays(mesh, points, normals, sample_faces=None, *, rays: int = BOUNCE_RAYS, seed: int = 0, chunk: int = 4096,
+                      workers: int = -1, targets=None, candidates: int | None = None, plane_weight: float | None = None) -> BounceRays:
+    """Trace ``rays`` cosine-distributed rays per sample and find, at every hit, the nearest sample.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        The scene (scene units).
+    points, normals : (S, 3) float
+        The precomputed samples.
+    sample_faces : (S,) int, optional
+        Unused (kept for callers that have it); the normal term of the search finds the side.
+    rays : int
+    seed : int
+        Ray frames are spun by angles drawn from (seed, chunk index): deterministic.
+    targets : (points, normals), optional
+        The samples searched at the hit points; default: ``points, normals`` themselves (the
+        bounce stage).  Other query points (the benchmark's pixels) pass the precomputed samples.
+    candidates, plane_weight : optional
+        Of :func:`nearest_on_plane` (defaults :data:`PLANE_CANDIDATES`, :data:`PLANE_WEIGHT`).
+    """
+    from .transfer import EmbreeTracer
+
+    points = np.asarray(points, dtype=np.float64)
+    normals = _unit(np.asarray(normals, dtype=np.float64))
+    if targets is None:
+        targets = (points, normals)
+    job = BounceJob(EmbreeTracer(mesh), targets[0], targets[1], rays=rays, seed=seed, workers=workers, candidates=candidates,
+                    plane_weight=plane_weight)  # fmt: skip
+    nearest = np.full((len(points), rays), -1, dtype=np.int64)
+    hit_face = np.full((len(points), rays), -1, dtype=np.int64)
+    for c, start in enumerate(range(0, len(points), chunk)):
+        rows = slice(start, start + chunk)
+        nearest[rows], hit_face[rows] = job.chunk(points[rows], normals[rows], c)
+    del sample_faces
+    return BounceRays(nearest, hit_face)
+
+
+class BounceJob:
+    """What the chunks of one set of bounce rays share (picklable: the tracer sends its triangles,
+    the k-d tree of the target samples travels as it is)."""
+
+    def __init__(self, tracer, target_points, target_normals, *, rays: int = BOUNCE_RAYS, seed: int = 0, stream: int = 0,
+                 workers: int = -1, candidates: int | None = None, plane_weight: float | None = None):  # fmt: skip
+        from scipy.spatial import cKDTree
+
+        target_points = np.asarray(target_points, dtype=np.float64)
+        target_normals = _unit(np.asarray(target_normals, dtype=np.float64))
+        self.tracer, self.rays, self.seed, self.stream, self.workers = tracer, int(rays), int(seed), int(stream), workers
+        self.tree = cKDTree(np.concatenate([target_points, NORMAL_WEIGHT * target_normals], axis=1))
+        self.positions = cKDTree(target_points)
+        self.local = cosine_directions(self.rays).astype(np.float32)
+        self.candidates, self.plane_weight = candidates, plane_weight
+
+    def chunk(self, points, normals, c: int) -> tuple[np.ndarray, np.ndarray]:
+        """(nearest, hit_face), each (S, rays) int64, of the rays of chunk ``c`` (deterministic in seed, stream, c)."""
+        points = np.asarray(points, dtype=np.float64)
+        normals = _unit(np.asarray(normals, dtype=np.float64))
+        rays, tracer = self.rays, self.tracer
+        # Stream 0 keeps the seeding trace_bounce_rays always had; other streams (validation) add theirs.
+        rng = np.random.default_rng(np.random.SeedSequence([self.seed, 0xB0B, int(c)] + ([self.stream] if self.stream else [])))
+        frames = orthonormal_frames(normals, rng.uniform(0.0, 2.0 * np.pi, len(points))).astype(np.float32)
+        dirs = np.matmul(self.local[None], frames.transpose(0, 2, 1)).reshape(-1, 3)
+        origins = np.repeat((points + tracer.offset * normals).astype(np.float32), rays, axis=0)
+        result = tracer._scene.run(origins, dirs, output=1)
+        faces = result["primID"].astype(np.int64)
+        hit = faces >= 0
+        w = dirs[hit].astype(np.float64)
+        q = origins[hit] + result["tfar"][hit, None] * dirs[hit]
+        ng = _unit(result["Ng"][hit].astype(np.float64))
+        ng *= -np.sign(np.einsum("qc,qc->q", ng, w))[:, None]  # the side facing the ray's origin
+        key = np.concatenate([q, NORMAL_WEIGHT * ng], axis=1)
+        chosen = nearest_on_plane(self.tree, key, candidates=self.candidates, plane_weight=self.plane_weight, workers=self.workers)
+        far = np.flatnonzero(chosen < 0)
+        if len(far):  # the same 6-d distance, over the samples nearest in position
+            k = min(FALLBACK_CANDIDATES, self.tree.n)
+            _, near = self.positions.query(q[far], k=k, workers=self.workers)
+            near = near.reshape(len(far), k)
+            d2 = ((self.tree.data[near] - key[far, None, :]) ** 2).sum(axis=2)
+            chosen[far] = near[np.arange(len(far)), np.argmin(d2, axis=1)]
+        flat_nearest = np.full(len(origins), -1, dtype=np.int64)
+        flat_nearest[hit] = chosen
+        return flat_nearest.reshape(-1, rays), faces.reshape(-1, rays)
+
+
+def nearest_on_plane(tree, key, *, candidates: int | None = None, plane_weight: float | None = None, bound: float = SEARCH_RADIUS, workers: int = -1) -> np.ndarray:
+    """Index of the sample for each hit ``key`` (Q, 6) = (position, NORMAL_WEIGHT * normal) in ``tree``
+    (built on the same key): of the ``candidates`` (default :data:`PLANE_CANDIDATES`) nearest within ``bound``, the one minimising the
+    6-d distance squared plus ``(plane_weight * (sample - hit) . normal)**2`` (default
+    :data:`PLANE_WEIGHT`); -1 where none is
+    within ``bound``.  See :data:`PLANE_WEIGHT`; :func:`nearest_on_plane_reference` is its plain twin."""
+    key = np.asarray(key, dtype=np.float64)
+    k = min(int(PLANE_CANDIDATES if candidates is None else candidates), tree.n)
+    distance, index = tree.query(key, k=k, distance_upper_bound=bound, workers=workers)
+    distance, index = distance.reshape(len(key), k), index.reshape(len(key), k)
+    found = np.isfinite(distance)
+    safe = np.where(found, index, 0)
+    normal = key[:, 3:] / NORMAL_WEIGHT
+    off = np.einsum("qkc,qc->qk", tree.data[safe, :3] - key[:, None, :3], normal)
+    weight = PLANE_WEIGHT if plane_weight is None else float(plane_weight)
+    score = np.where(found, distance**2 + (weight * off) ** 2, np.inf)
+    best = np.argmin(score, axis=1)
+    chosen = index[np.arange(len(key)), best]
+    return np.where(found.any(axis=1), chosen, -1).astype(np.int64)
+
+
+def nearest_on_plane_reference(data, key, *, candidates: int | None = None, plane_weight: float | None = None, bound: float = SEARCH_RADIUS) -> np.ndarray:
+    """Plain twin of :func:`nearest_on_plane` (brute force over ``data`` (T, 6), one hit at a time)."""
+    data = np.asarray(data, dtype=np.float64)
+    out = []
+    for row in np.asarray(key, dtype=np.float64):
+        d = np.sqrt(((data - row) ** 2).sum(axis=1))
+        k = min(int(PLANE_CANDIDATES if candidates is None else candidates), len(data))
+        order = [i for i in np.argsort(d, kind="stable")[:k] if d[i] <= bound]
+        if not order:
+            out.append(-1)
+            continue
+        normal = row[3:] / NORMAL_WEIGHT
+        weight = PLANE_WEIGHT if plane_weight is None else float(plane_weight)
+        scores = [d[i] ** 2 + (weight * float((data[i, :3] - row[:3]) @ normal)) ** 2 for i in order]
+        out.append(order[int(np.argmin(scores))])
+    return np.asarray(out, dtype=np.int64)
+
+
+def bounce_chunk(job: BounceJob, item) -> np.ndarray:
+    """One chunk ``(c, points, normals)`` of bounce rays -> (S, 2, rays) int32 [nearest, hit_face]: a task."""
+    c, points, normals = item
+    nearest, faces = job.chunk(points, normals, c)
+    return np.stack([nearest, faces], axis=1).astype(np.int32)  # sample and face counts are far below 2^31
+
+
+class _IndexStore:
+    """A :class:`prt.train.cache.ChunkStore` of int32 chunks (its ``load`` takes float chunks only)."""
+
+    def __init__(self, folder, n_chunks: int):
+        from ..cache import ChunkStore
+
+        self.store = ChunkStore(folder, n_chunks)
+
+    def has(self, k: int) -> bool:
+        return self.store.has(k)
+
+    def save(self, k: int, value: np.ndarray) -> None:
+        self.store.save(k, value)
+
+    def load(self, k: int, shape: tuple) -> np.ndarray | None:
+        """Chunk ``k``; None (trace it again) if damaged, foreign or not int32 of ``shape``."""
+        try:
+            value = np.load(self.store.path(k), allow_pickle=False)
+        except (OSError, ValueError, EOFError):
+            return None
+        return value if value.shape == tuple(shape) and value.dtype == np.int32 else None
+
+    def load_into(self, out: np.ndarray, chunk_size: int) -> list[int]:
+        """Copy every sound cached chunk into its rows of ``out`` (count, ...); the chunks still to trace."""
+        todo = []
+        for k in range(self.store.n_chunks):
+            rows = slice(k * chunk_size, (k + 1) * chunk_size)
+            cached = self.load(k, out[rows].shape) if self.has(k) else None  # damaged: traced again
+            if cached is None:
+                todo.append(k)
+            else:
+                out[rows] = cached
+        return todo
+
+
+def interreflect(direct, bounce_rays: BounceRays, face_albedo, bounces: int, transfer_at=None, chunk: int = 1024) -> np.ndarray:
+    """Interreflected transfer ``T_0 + ... + T_N`` (see the module docstring).
+
+    Parameters
+    ----------
+    direct : (S, n) float
+        Direct transfer of the samples.
+    bounce_rays : BounceRays
+    face_albedo : (F, 3) float
+        Albedo of every triangle (fixed at build time).
+    bounces : int
+        N >= 0; 0 returns the direct transfer (as RGB).
+    transfer_at : callable, optional
+        ``transfer_at(sample_indices, previous)`` -> transfer of the previous bounce at the hit
+        points; default: ``previous[sample_indices]`` (the nearest sample's).
+
+    Returns
+    -------
+    (S, n, 3) float64
+    """
+    direct = np.asarray(direct, dtype=np.float64)
+    albedo = np.asarray(face_albedo, dtype=np.float64)
+    total = np.repeat(direct[:, :, None], 3, axis=2)
+    previous = total.copy()
+    hit = bounce_rays.nearest >= 0
+    rays = bounce_rays.nearest.shape[1]
+    if transfer_at is not None:  # a general estimator: gather its values chunk by chunk
+        index = np.where(hit, bounce_rays.nearest, 0)
+        for _ in range(int(bounces)):
+            current = np.empty_like(previous)
+            for start in range(0, len(direct), chunk):  # (chunk, M, n, 3) at a time
+                rows = slice(start, start + chunk)
+                weight = np.where(hit[rows, :, None], albedo[np.where(hit[rows], bounce_rays.hit_face[rows], 0)], 0.0)
+                current[rows] = np.einsum("smc,smnc->snc", weight, transfer_at(index[rows], previous)) / rays
+            total += current
+            previous = current
+        return total
+    matrices = bounce_matrices(bounce_rays, albedo)
+    for _ in range(int(bounces)):
+        previous = np.stack([matrices[c] @ previous[:, :, c] for c in range(3)], axis=2)
+        total += previous
+    return total
+
+
+def bounce_matrices(bounce_rays: BounceRays, face_albedo, targets: int | None = None) -> list:
+    """``W_c`` (S, T) sparse, per channel: ``W_c[p, q]`` = sum over p's rays landing nearest to q of
+    ``a_c(hit face) / M``; ``targets`` T: the samples searched (default: S, the rays' own samples)."""
+    from scipy.sparse import csr_matrix
+
+    nearest = bounce_rays.nearest
+    count, rays = nearest.shape
+    rows, cols = np.nonzero(nearest >= 0)
+    landed = nearest[rows, cols]
+    albedo = np.asarray(face_albedo, dtype=np.float64)[bounce_rays.hit_face[rows, cols]] / rays
+    shape = (count, count if targets is None else int(targets))
+    return [csr_matrix((albedo[:, c], (rows, landed)), shape=shape) for c in range(3)]
+
+
+def run_ray_chunks(executor, job, items, out: np.ndarray, chunk_size: int, rays: int, *, store=None, bar=None) -> None:
+    """Trace the chunks ``items`` (``(k, points, normals)``) of bounce rays through ``executor``
+    (:func:`bounce_chunk`): each chunk's rows into ``out[k * chunk_size ...]`` and, when given, into
+    ``store`` (the driver alone writes the cache); ``bar`` advances by rays and is closed at the end."""
+    from contextlib import closing
+
+    try:
+        with closing(executor.map(bounce_chunk, job, items, task_threads=1)) as finished:
+            for (k, chunk_points, _), value in finished:
+                if store is not None:
+                    store.save(k, value)
+                out[k * chunk_size : (k + 1) * chunk_size] = value
+                if bar is not None:
+                    bar.update(len(chunk_points) * rays)
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+def trace_stage(mesh, folder, train: dict, valid: dict, *, rays: int = BOUNCE_RAYS, seed: int = 0, chunk_size: int = 2048, key: str = "",
+                executor=None, threads: int | None = None, progress: bool = True, log=print) -> dict:  # fmt: skip
+    """The rays of the bounce stage, traced in chunks (cached in ``folder``): {"train", "validation"} -> :class:`BounceRays`.
+
+    The hit points and nearest training samples do not depend on the albedos or the bounce count
+    (see :func:`bounce_stage`); validation samples shoot their own rays (another seed stream).
+    """
+    from pathlib import Path
+
+    from ..executor import LocalExecutor
+    from .transfer import EmbreeTracer
+
+    import time
+
+    executor = executor if executor is not None else LocalExecutor(threads)
+    tracer = EmbreeTracer(mesh)
+    found = {}
+    t0 = time.perf_counter()
+    for stream, (name, data) in enumerate((("train", train), ("validation", valid))):
+        points = np.ascontiguousarray(data["points"], dtype=np.float64)
+        normals = np.ascontiguousarray(data["normals"], dtype=np.float64)
+        count = len(points)
+        n_chunks = (count + chunk_size - 1) // chunk_size
+        store = _IndexStore(Path(folder) / f"bounce-{name}-{key}", n_chunks)
+        out = np.empty((count, 2, rays), dtype=np.int32)
+        todo = store.load_into(out, chunk_size)
+        job = BounceJob(tracer, train["points"], train["normals"], rays=rays, seed=seed, stream=stream, workers=1)
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=count * rays, initial=(count - sum(min(chunk_size, count - k * chunk_size) for k in todo)) * rays,
+                       unit="ray", unit_scale=True, desc=f"bounce rays ({name})", mininterval=0.5)  # fmt: skip
+        items = [(k, points[k * chunk_size : (k + 1) * chunk_size], normals[k * chunk_size : (k + 1) * chunk_size]) for k in todo]
+        run_ray_chunks(executor, job, items, out, chunk_size, rays, store=store, bar=bar)
+        found[name] = BounceRays(out[:, 0].astype(np.int64), out[:, 1].astype(np.int64))
+    log(f"bounce rays: {sum(len(f.nearest) for f in found.values()):,} samples x {rays} rays in {time.perf_counter() - t0:.1f} s")
+    return found
+
+
+def bounce_terms(found: dict, face_albedo, direct, bounces: int):
+    """Yield ``(b, T_b of the training samples, T_b of the validation samples)`` for b = 1 .. ``bounces``.
+
+    ``found``: :func:`trace_stage`'s rays; ``direct`` (S, n): the training samples' direct
+    transfer.  Training: ``T_b = W @ T_{b-1}`` (:func:`bounce_matrices`, per channel);
+    validation: its own rays gather the training samples' ``T_{b-1}`` (the same estimator).
+    Each term is (count, n, 3) float64; only the previous training term is kept.
+    """
+    albedo = np.asarray(face_albedo, dtype=np.float64)
+    matrices = bounce_matrices(found["train"], albedo)
+    valid_matrices = bounce_matrices(found["validation"], albedo, targets=len(direct))
+    previous = np.repeat(np.asarray(direct, dtype=np.float64)[:, :, None], 3, axis=2)
+    for b in range(1, int(bounces) + 1):
+        valid_term = np.stack([valid_matrices[c] @ previous[:, :, c] for c in range(3)], axis=2)
+        previous = np.stack([matrices[c] @ previous[:, :, c] for c in range(3)], axis=2)
+        yield b, previous, valid_term
+
+
+def bounce_stage(mesh, folder, train: dict, valid: dict, face_albedo, bounces: int, *, rays: int = BOUNCE_RAYS, seed: int = 0,
+                 chunk_size: int = 2048, key: str = "", executor=None, threads: int | None = None, progress: bool = True,
+                 log=print) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The build's bounce stage: indirect transfer ``T_1 + ... + T_N`` of the training and validation samples.
+
+    Runs after the direct precompute and before fitting.  The rays (hit points and nearest
+    training samples, which do not depend on the albedos) are traced in deterministic chunks
+    through ``executor`` and stored in ``folder`` (:class:`prt.train.cache.ChunkStore`, keyed by
+    ``key``: the precompute's key, rays, seed, chunk size; int32 indices), so an interrupted stage resumes and a
+    change of albedo or bounce count retraces nothing (:func:`trace_stage`).  The bounces are
+    sparse products (:func:`bounce_terms`).  Validation samples shoot their own rays (another
+    seed stream) and gather the training samples' transfer of the previous bounce: the same estimator.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+    folder : path of the chunk stores
+    train, valid : dicts with ``points``, ``normals``, ``transfer`` (direct, (S, n))
+    face_albedo : (F, 3) diffuse albedo of every triangle
+    bounces : N >= 1
+
+    Returns
+    -------
+    (S, n, 3), (V, n, 3) float32: the indirect RGB transfer (without the direct term)
+    """
+    import time
+
+    found = trace_stage(mesh, folder, train, valid, rays=rays, seed=seed, chunk_size=chunk_size, key=key, executor=executor,
+                        threads=threads, progress=progress, log=log)  # fmt: skip
+    t0 = time.perf_counter()
+    direct = np.asarray(train["transfer"], dtype=np.float64)
+    indirect = np.zeros(direct.shape + (3,))
+    valid_indirect = np.zeros((len(found["validation"].nearest),) + direct.shape[1:] + (3,))
+    for b, term, valid_term in bounce_terms(found, face_albedo, direct, bounces):
+        indirect += term
+        valid_indirect += valid_term
+        log(f"bounce {b}/{bounces}: mean |T_{b}_0| {float(np.abs(term[:, 0]).mean()):.5f} (direct {float(np.abs(direct[:, 0]).mean()):.5f})")
+    log(f"bounces: {bounces} in {time.perf_counter() - t0:.1f} s")
+    return indirect.astype(np.float32), valid_indirect.astype(np.float32)
