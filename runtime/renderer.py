@@ -137,6 +137,8 @@ class Renderer:
         and where interpolating from neighbours is unsafe, the rest is interpolated.  None (the
         default) or 0: every covered pixel runs its network.
 
+    Notes
+    -----
     Every argument is checked: a wrong type raises :class:`~prt.runtime.errors.ArgumentTypeError`,
     a wrong value (a size the GL driver cannot allocate, ``threads < 1``) an
     :class:`~prt.runtime.errors.InputError`, each one line.

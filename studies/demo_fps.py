@@ -26,6 +26,8 @@ import imageio.v3 as iio
 import numpy as np
 
 import prt.runtime.orbit as orbit
+from prt.bench.machine import busy_seconds, other_cpu_share
+from prt.bench.provenance import provenance
 from prt.runtime.files import atomic_write_bytes
 from prt.runtime.gl import create_context
 from prt.runtime.interpolation import DEFAULT_TOLERANCE
@@ -43,6 +45,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     scene = Scene.load(args.scene)
     ctx = create_context()
+    load_start, wall_start = busy_seconds(), time.perf_counter()
     configs = [(tol, hold) for tol in (DEFAULT_TOLERANCE, None) for hold in ("held", "each")]
     renderers = {tol: Renderer(scene, args.size, args.size, ctx=ctx, interpolate=tol) for tol in (DEFAULT_TOLERANCE, None)}
     runs: dict[str, list[dict]] = {}
@@ -82,9 +85,13 @@ def main(argv=None) -> int:
         lines.append(f"| {name} | {row['fps']:.1f} | {row['frame_ms']:.1f} | {row['frame_ms'] / base:.2f}x | {row['write_s']:.2f} | {st} |")
     lines += ["", "PNG of one frame: " + ", ".join(f"zlib level {k}: {v['ms']:.1f} ms, {v['bytes']} bytes" for k, v in png.items())]
     text = "\n".join(lines)
+    load = other_cpu_share(load_start, time.perf_counter() - wall_start)
+    text += f"\n\nOther processes' share of the CPUs during the run: {load}"
     print(text)
     if args.json:
-        atomic_write_bytes(args.json, json.dumps({"size": args.size, "frames": args.frames, "rows": rows, "png": png}, indent=1).encode())
+        record = {"provenance": provenance(gl_renderer=ctx.info.get("GL_RENDERER"), other_cpu_share=load),
+                  "size": args.size, "frames": args.frames, "rows": rows, "png": png}  # fmt: skip
+        atomic_write_bytes(args.json, json.dumps(record, indent=1).encode())
     if args.md:
         atomic_write_bytes(args.md, (text + "\n").encode())
     return 0

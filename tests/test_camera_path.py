@@ -198,6 +198,8 @@ def test_demo_frame_rate_study_runs_every_configuration(tmp_path):
     assert sorted(data["rows"]) == ["interpolate 0 / each", "interpolate 0 / held", "interpolate 0.1 / each", "interpolate 0.1 / held"]
     assert all(len(r["rounds"]) == 2 and r["fps"] > 0 and r["write_s"] > 0 for r in data["rows"].values())
     assert "interpolate" in data["rows"]["interpolate 0.1 / held"]["stages_ms"]
+    prov = data["provenance"]  # the machine beside the figures
+    assert prov["machine"]["cpu"] and prov["machine"]["gl_renderer"] and "demo_fps.py" in prov["command"]
     assert "interpolate" not in data["rows"]["interpolate 0 / held"]["stages_ms"]
     assert set(data["png"]) == {"1", "6"} and data["png"]["1"]["bytes"] >= data["png"]["6"]["bytes"] * 0.9
     assert "| interpolate 0.1 / held |" in md.read_text()

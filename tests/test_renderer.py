@@ -232,10 +232,12 @@ def test_viewer_cli_headless_frames_and_errors(tmp_path):
 
 
 def test_readme_embedding_example_runs():
-    """The example in README.md, executed as written (with the bundled demo scene)."""
+    """The example in README.md, executed as written (with the bundled demo scene for the tour's build)."""
     readme = (Path(__file__).parents[1] / "README.md").read_text()
     code = readme.split("```python\nfrom prt.runtime import Scene, Renderer", 1)[1].split("```", 1)[0]
     code = "from prt.runtime import Scene, Renderer" + code
+    assert 'Scene.load("my_scene")' in code
+    code = code.replace('Scene.load("my_scene")', "Scene.load()")
     namespace: dict = {}
     exec(compile(code, "README.md", "exec"), namespace)
     image = namespace["image"]
