@@ -21,6 +21,7 @@ import argparse
 import contextlib
 import importlib
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -104,6 +105,7 @@ def _option_row(action: argparse.Action) -> str | None:
 
 
 def cli_page() -> str:
+    os.environ["COLUMNS"] = "100"  # argparse wraps usage lines to the terminal: the page must not depend on it
     lines = [GENERATED.format(source="the commands' argparse parsers"), "# Command-line reference\n",
              "Every option of every command, read from the parsers the commands run. "
              "`COMMAND --help` prints the same.\n"]  # fmt: skip
