@@ -25,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["CHROMIUM", "CHROMEDRIVER", "CHROMIUM_FLAGS", "missing_browser", "serve", "chromium", "load_page", "decode_png_data_url"]
+__all__ = ["CHROMIUM", "CHROMEDRIVER", "CHROMIUM_FLAGS", "missing_browser", "serve", "chromium", "load_page", "decode_png_data_url",
+           "page_query", "python_frame", "covered_psnr"]
 
 CHROMIUM = os.environ.get("PRT_CHROMIUM", "/usr/bin/chromium")
 CHROMEDRIVER = os.environ.get("PRT_CHROMEDRIVER", "/usr/bin/chromedriver")
@@ -124,3 +125,49 @@ def decode_png_data_url(text: str) -> np.ndarray:
         raise ValueError(f"not a PNG data URL: {text[:40]!r}")
     image = iio.imread(io.BytesIO(base64.b64decode(text[len(prefix):])), extension=".png")
     return np.asarray(image)[..., :3]
+
+
+def page_query(eye, target, fov: float, size: int, envmap: str, *, exposure: float = 1.0, background: str = "black",
+               capture: bool = True, **extra) -> str:
+    """The page's query string (docs/guides/web.md): the view, and ``extra`` parameters as they are
+    (``rotation``, ``material``, ``exponent``, ``frame``)."""
+    vec = lambda v: ",".join(repr(float(x)) for x in v)  # noqa: E731
+    parts = [f"eye={vec(eye)}", f"target={vec(target)}", f"fov={float(fov)!r}", f"size={int(size)}", f"envmap={envmap}",
+             f"exposure={float(exposure)!r}", f"background={background}"]  # fmt: skip
+    parts += [f"{k}={v}" for k, v in extra.items()]
+    return "?" + "&".join(parts + (["capture=1"] if capture else []))
+
+
+def python_frame(scene, size: int, eye, target, fov: float, envmap: str, *, exposure: float = 1.0, rotation: float = 0.0,
+                 material: str = "scene", exponent: float = 16.0, frame: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The same view rendered by ``Renderer(backend="glsl")`` (llvmpipe here), as the page draws it
+    with these query parameters: the tone-mapped sRGB image (H, W, 3) uint8 and the covered pixels
+    (H, W) bool.  ``rotation``: degrees about +Y (the viewer's light rotation)."""
+    import math
+
+    from ..export.web_assets import GLOSSY_SPECULAR
+    from ..runtime.renderer import Renderer
+
+    a = math.radians(rotation)
+    turn = [[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]]
+    with Renderer(scene, size, size, backend="glsl") as r:
+        r.set_camera(eye=eye, target=target, fov=fov)
+        r.set_envmap(envmap, rotation=turn)
+        r.set_background(False)
+        if material == "glossy":
+            r.set_material("glossy", albedo=r.material.albedo, specular=GLOSSY_SPECULAR, exponent=exponent)
+        elif material == "diffuse":
+            r.set_material("diffuse", albedo=r.material.albedo)
+        if frame is not None:
+            r.set_deformation(frame=frame)
+        image = r.render_srgb(exposure)
+        covered = r.gbuffer_image().covered
+    return image, covered
+
+
+def covered_psnr(image: np.ndarray, reference: np.ndarray, covered: np.ndarray) -> float:
+    """PSNR in dB of two tone-mapped uint8 images over the covered pixels (on [0, 1])."""
+    from .metrics import psnr_from_mse
+
+    diff = (image.astype(np.float64) - reference.astype(np.float64))[covered] / 255.0
+    return psnr_from_mse(float(np.mean(diff**2)))

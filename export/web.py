@@ -101,9 +101,13 @@ def write_web(scene_path, out, *, force: bool = False) -> dict:
     table = {name: len(data) for name, data in files.items()}
     web = {"format": WEB_FORMAT, "version": WEB_VERSION, "generator": GENERATOR, **assets.info, "files": table,
            "programs": {name: f"shaders/{name}" for name in assets.programs}}  # fmt: skip
-    text = json.dumps(web, separators=(",", ":")).encode()
-    web["scene"]["payload_bytes"] = sum(table.values()) + len(text)
-    text = json.dumps(web, separators=(",", ":")).encode()
+    web["scene"]["payload_bytes"] = 0
+    while True:  # the payload counts web.json itself, which holds the figure: its fixed point (two rounds)
+        text = json.dumps(web, separators=(",", ":")).encode()
+        total = sum(table.values()) + len(text)
+        if total == web["scene"]["payload_bytes"]:
+            break
+        web["scene"]["payload_bytes"] = total
     try:
         out.mkdir(parents=True, exist_ok=True)
         atomic_write_json(out / MARKER, {"format": WEB_FORMAT, "version": WEB_VERSION})

@@ -16,7 +16,8 @@ const $ = (id) => document.getElementById(id);
 
 class PageError extends Error {}
 
-function fail(message) {
+function fail(message) {  // the first error is the one shown (later ones follow from it)
+  if (document.body.dataset.prtState === "error") return;
   const box = $("prt-error");
   box.textContent = String(message).split("\n")[0];
   box.hidden = false;
