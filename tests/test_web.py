@@ -100,6 +100,25 @@ def test_prt_web_rejects_bad_scenes_with_one_line(tmp_path):
     assert proc.returncode == 2 and "usage: prt-web" in proc.stderr
 
 
+NO_TORCH = """
+import importlib.abc, sys
+class Block(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in ("torch", "onnx", "trimesh", "embreex", "scipy"):
+            raise ModuleNotFoundError("No module named " + repr(name), name=name)
+sys.meta_path.insert(0, Block())
+from prt.export.web import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_prt_web_runs_without_the_train_extra(tmp_path):
+    """A deployment machine has the runtime only: prt-web imports neither torch nor onnx."""
+    proc = subprocess.run([sys.executable, "-c", NO_TORCH, str(demo_scene_path()), "-o", str(tmp_path / "page")], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert "python3 -m http.server -d" in proc.stdout and (tmp_path / "page" / "web.json").is_file()
+
+
 def test_rotation_polynomial_is_the_sh_rotation():
     fourier = rotation_fourier(4)
     for theta in (0.0, 0.3, -1.7, 2.9, 5.5):
@@ -150,7 +169,9 @@ def test_demo_page_draws_the_glsl_backends_frame(browser, demo_web, record_prope
         if os.environ.get("PRT_WEB_SCREENSHOT"):  # docs/images/web_demo.png: the page as a person sees it
             shot = load_page(browser, url + "index.html" + page_query(*view, 512, "potsdamer", background="envmap", capture=False))
             assert shot["state"] == "ready", shot["error"]
+            browser.set_window_size(900, 720)  # the canvas and the panel
             browser.save_screenshot(os.environ["PRT_WEB_SCREENSHOT"])
+            browser.set_window_size(1200, 1200)
             assert load_page(browser, url + "index.html" + page_query(*view, SIZE, "potsdamer", capture=False))["state"] == "ready"
         reference, covered = python_frame(scene, SIZE, *view, "potsdamer")
         assert covered.sum() > 20_000 and covered_psnr(image, reference, covered) >= 40.0

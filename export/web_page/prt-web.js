@@ -779,7 +779,8 @@ async function main() {
       if (r.size !== view.size) return r;  // a reduced frame while moving: the figures stay those of full frames
       if (r.networks) this.networkMs = r.ms; else this.relightMs = r.ms;
       const ms = this.networkMs;
-      stats.textContent = `${ms.toFixed(1)} ms a frame (${(1000 / ms).toFixed(1)} FPS) at ${view.size} x ${view.size}`
+      const fps = 1000 / ms;
+      stats.textContent = `${ms.toFixed(1)} ms a frame (${fps.toFixed(fps >= 10 ? 0 : fps >= 1 ? 1 : 2)} FPS) at ${view.size} x ${view.size}`
         + (this.relightMs === null ? "" : `; relight ${this.relightMs.toFixed(1)} ms`);
       stats.dataset.frameMs = ms.toFixed(3);
       stats.dataset.fps = (1000 / ms).toFixed(2);
