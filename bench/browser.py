@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["CHROMIUM", "CHROMEDRIVER", "CHROMIUM_FLAGS", "missing_browser", "serve", "chromium", "load_page", "decode_png_data_url",
-           "page_query", "python_frame", "covered_psnr"]
+           "page_query", "python_frame", "covered_psnr", "interior_pixels"]
 
 CHROMIUM = os.environ.get("PRT_CHROMIUM", "/usr/bin/chromium")
 CHROMEDRIVER = os.environ.get("PRT_CHROMEDRIVER", "/usr/bin/chromedriver")
@@ -171,3 +171,16 @@ def covered_psnr(image: np.ndarray, reference: np.ndarray, covered: np.ndarray) 
 
     diff = (image.astype(np.float64) - reference.astype(np.float64))[covered] / 255.0
     return psnr_from_mse(float(np.mean(diff**2)))
+
+
+def interior_pixels(covered: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Covered pixels whose 3 x 3 neighbourhood is covered and has no crease (normals within 0.1):
+    where two rasterisers agree on the surface, away from silhouettes and edges (SwiftShader and
+    llvmpipe snap vertices to different sub-pixel grids, so an edge pixel may take the other surface)."""
+    pad, npad = np.pad(covered, 1), np.pad(normal, ((1, 1), (1, 1), (0, 0)))
+    h, w = covered.shape
+    keep = covered.copy()
+    for dy in range(3):
+        for dx in range(3):
+            keep &= pad[dy : dy + h, dx : dx + w] & (np.abs(npad[dy : dy + h, dx : dx + w] - normal).max(axis=2) < 0.1)
+    return keep

@@ -34,7 +34,9 @@ import numpy as np
 
 from common import ROOT, write_figures  # beside this script (its folder is sys.path[0])
 
-from prt.bench.browser import chromium, covered_psnr, decode_png_data_url, load_page, missing_browser, page_query, python_frame, serve
+from prt.bench.browser import (
+    chromium, covered_psnr, decode_png_data_url, interior_pixels, load_page, missing_browser, page_query, python_frame, serve,
+)  # fmt: skip
 from prt.bench.machine import busy_seconds, other_cpu_share
 from prt.bench.provenance import cpu_label, provenance
 from prt.export.web import write_web
@@ -55,17 +57,6 @@ def cornell_scene() -> Path:
     return out / "scene.json"
 
 
-def interior(covered: np.ndarray, normal: np.ndarray) -> np.ndarray:
-    """Covered pixels with a covered 3 x 3 neighbourhood without a crease (normals within 0.1)."""
-    pad, npad = np.pad(covered, 1), np.pad(normal, ((1, 1), (1, 1), (0, 0)))
-    h, w = covered.shape
-    keep = covered.copy()
-    for dy in range(3):
-        for dx in range(3):
-            keep &= pad[dy : dy + h, dx : dx + w] & (np.abs(npad[dy : dy + h, dx : dx + w] - normal).max(axis=2) < 0.1)
-    return keep
-
-
 def same_pixels(driver, url: str, scene: Scene, size: int, eye, target, fov: float, envmap: str) -> dict:
     page = load_page(driver, url + "index.html" + page_query(eye, target, fov, size, envmap), timeout=600)
     if page["state"] != "ready":
@@ -78,7 +69,7 @@ def same_pixels(driver, url: str, scene: Scene, size: int, eye, target, fov: flo
     flips = int(np.count_nonzero(np.abs(image.astype(int) - reference).max(axis=2)[covered] > 10))
     return {"size": size, "eye": list(eye), "target": list(target), "fov": fov, "envmap": envmap, "covered_pixels": int(covered.sum()),
             "psnr_db": round(covered_psnr(image, reference, covered), 2),
-            "psnr_db_away_from_edges": round(covered_psnr(image, reference, interior(covered, normal)), 2),
+            "psnr_db_away_from_edges": round(covered_psnr(image, reference, interior_pixels(covered, normal)), 2),
             "pixels_off_by_more_than_10": flips}  # fmt: skip
 
 

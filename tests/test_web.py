@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 
 from prt.bench.browser import (
-    chromium, covered_psnr, decode_png_data_url, load_page, missing_browser, page_query, python_frame, serve,
+    chromium, covered_psnr, decode_png_data_url, interior_pixels, load_page, missing_browser, page_query, python_frame, serve,
 )  # fmt: skip
 from prt.export.web import MARKER, main as web_main, write_web
 from prt.export.web_assets import gaunt_entries, rgbe_bytes, rotation_fourier, rotation_from_fourier
@@ -198,7 +198,8 @@ def test_bounce_page_draws_the_glsl_backends_frame(browser, cornell_rgb, tmp_pat
     """Interreflection: 16 transfer blocks, drawn 4 targets at a time (SwiftShader offers 6 draw
     buffers), per-object materials (the box's MTL colours).  A view into the box that sees no
     surface edge-on (the manifest's camera sees the ceiling at a grazing angle, where the tiny,
-    noisy test networks turn the two rasterisers' position differences into ~37 dB)."""
+    noisy test networks turn the two rasterisers' position differences into ~37 dB at 256 x 256;
+    docs/benchmarks/web.md has both views at 512)."""
     out = tmp_path / "cornell"
     write_web(cornell_rgb, out)
     web = json.loads((out / "web.json").read_text())
@@ -262,20 +263,6 @@ def test_bad_folders_show_one_line_in_the_page(browser, demo_web, tmp_path):
     assert page["state"] == "error" and "python3 -m http.server" in page["error"]
 
 
-def _interior(covered: np.ndarray, normal: np.ndarray) -> np.ndarray:
-    """Covered pixels whose 3 x 3 neighbourhood is covered and has no crease (normals within 0.1):
-    the pixels where the two rasterisers agree on the surface (away from silhouettes and edges)."""
-    pad = np.pad(covered, 1)
-    npad = np.pad(normal, ((1, 1), (1, 1), (0, 0)))
-    h, w = covered.shape
-    keep = covered.copy()
-    for dy in (0, 1, 2):
-        for dx in (0, 1, 2):
-            keep &= pad[dy : dy + h, dx : dx + w]
-            keep &= np.abs(npad[dy : dy + h, dx : dx + w] - normal).max(axis=2) < 0.1
-    return keep
-
-
 @pytest.mark.slow  # a deformable build (~45 s); the page's other passes are covered above
 def test_deformable_page_plays_the_recorded_poses(browser, tmp_path):
     from test_deformation import _box_arm
@@ -304,5 +291,5 @@ def test_deformable_page_plays_the_recorded_poses(browser, tmp_path):
             # Silhouettes and the box's edges differ by a few pixels (sub-pixel grids): ~36 dB on all
             # covered pixels at this size; away from them the frames agree.
             assert covered_psnr(images[frame], reference, covered) >= 30.0
-            assert covered_psnr(images[frame], reference, _interior(covered, normal)) >= 40.0
+            assert covered_psnr(images[frame], reference, interior_pixels(covered, normal)) >= 40.0
     assert np.abs(images[0].astype(int) - images[6]).mean() > 1.0  # the pose changed the frame
