@@ -36,7 +36,7 @@ from ..runtime.errors import InputError
 from ..runtime.gbuffer import _mesh_vertices, load_mesh, segment_tables
 from ..runtime.materials import MaterialTable, load_albedo_textures, object_materials
 from ..runtime.shading import GLSL_DEFINES, GLSL_FILES, MATERIAL_KINDS, Material
-from ..shaders import GLSL_ES_VERSION, Source, assemble, source
+from ..shaders import GLSL_ES_VERSION, Source, assemble
 
 __all__ = ["WebAssets", "scene_assets", "rotation_fourier", "gaunt_entries", "rgbe_bytes", "EXPONENTS", "GLOSSY_SPECULAR"]
 
@@ -244,7 +244,8 @@ def scene_assets(scene) -> WebAssets:
     """
     manifest = scene.manifest
     if manifest.geometry.type != "mesh":
-        raise InputError(f"{manifest.path}: a {manifest.geometry.type} scene (sphere-traced SDF); the web page draws triangle meshes only")
+        kind = {"sdf": "an SDF scene", "mixed": "a mixed scene (meshes and SDFs)"}.get(manifest.geometry.type, f"a {manifest.geometry.type} scene")
+        raise InputError(f"{manifest.path}: {kind}, whose G-buffer is sphere traced; the web page draws triangle meshes only")
     if manifest.sh_bands != 4:
         raise InputError(f"{manifest.path}: the shaders handle 4 SH bands, the scene has {manifest.sh_bands}")
     blocks = manifest.transfer_width // 4

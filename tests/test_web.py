@@ -90,7 +90,15 @@ def test_prt_web_rejects_bad_scenes_with_one_line(tmp_path):
     (broken / "segments" / "seg001_weights.npy").write_bytes(b"not an array")
     corrupt = tmp_path / "corrupt.json"
     corrupt.write_text('{"format": "prt-scene"')
-    cases = [(tmp_path / "nothing", "nothing"), (scene, "version"), (broken, "seg001_weights.npy"), (corrupt, "corrupt.json")]
+    sdf = tmp_path / "sdf"  # an SDF scene (the demo's networks over a sphere): the page rasterises meshes only
+    shutil.copytree(demo_scene_path().parent, sdf)
+    data = json.loads((sdf / "scene.json").read_text())
+    data["geometry"] = {"type": "sdf", "name": "sphere", "glsl": "scene.glsl", "to_source": data["geometry"]["to_source"]}
+    data["segmentation"]["roots"] = {"0": 0}
+    (sdf / "scene.json").write_text(json.dumps(data))
+    (sdf / "scene.glsl").write_text("float scene_sdf(vec3 p) { return length(p) - 0.5; }\n")
+    cases = [(tmp_path / "nothing", "nothing"), (scene, "version"), (broken, "seg001_weights.npy"), (corrupt, "corrupt.json"),
+             (sdf, "an SDF scene")]  # fmt: skip
     for path, words in cases:
         out = tmp_path / f"out_{path.name}"
         proc = subprocess.run([sys.executable, "-m", "prt.export.web", str(path), "-o", str(out)], capture_output=True, text=True)
