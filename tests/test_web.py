@@ -191,6 +191,14 @@ def test_demo_page_draws_the_glsl_backends_frame(browser, demo_web, record_prope
         glossy, covered = python_frame(scene, SIZE, *view, "potsdamer", rotation=40, material="glossy")
         assert covered_psnr(_canvas(browser), glossy, covered) >= 40.0
         uniforms = browser.execute_script("return window.prtWeb.uniforms();")
+        # A drag orbits the camera (pointer events, as a finger's), the wheel zooms.
+        from selenium.webdriver.common.action_chains import ActionChains
+
+        canvas = browser.find_element("id", "prt-canvas")
+        ActionChains(browser).move_to_element(canvas).click_and_hold().move_by_offset(40, 15).release().perform()
+        browser.execute_script("document.getElementById('prt-canvas').dispatchEvent(new WheelEvent('wheel', {deltaY: 200, cancelable: true}));")
+        orbit = browser.execute_script("return window.prtWeb.view.orbit;")
+        assert orbit["yaw"] < 0 and orbit["pitch"] > 0 and orbit["zoom"] > 1.1, orbit
     from prt.export.web_assets import GLOSSY_SPECULAR
     from prt.runtime.shading import Lighting, Material, shader_uniforms
 
