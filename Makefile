@@ -1,11 +1,15 @@
 # The two commands a newcomer needs (see README.md); both install what is missing first.
-.PHONY: demo test bench install docs
+.PHONY: demo test bench install docs web
 
 install:
 	@bash scripts/bootstrap.sh
 
 demo: install
 	.venv/bin/prt-runtime --headless --frames 30 --out demo_out
+
+# The demo scene as a static web page (WebGL2, the viewer's GPU): docs/guides/web.md.
+web: install
+	.venv/bin/prt-web runtime/data/demo -o web_demo
 
 test: install
 	.venv/bin/python -m pytest -q

@@ -5,6 +5,7 @@
 - :mod:`prt.export.glsl`        GLSL generated from an ONNX segment network
 - :mod:`prt.export.manifest`    writing ``scene.json`` (validated, atomic, byte-stable)
 - :mod:`prt.export.precision`   reduced-precision variants of the ONNX networks (fp16, int8)
+- :mod:`prt.export.web`         ``prt-web``: a built scene as a static WebGL2 page (``web_assets``: its data)
 """
 
 __all__: list[str] = []

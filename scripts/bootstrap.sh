@@ -6,7 +6,9 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-apt_packages=(libegl1 libegl-mesa0 libgl1-mesa-dri qemu-user)  # qemu-user: tests/test_cpu_portability.py
+# qemu-user: tests/test_cpu_portability.py; chromium + chromium-driver: tests/test_web.py (the web page in a
+# real browser, driven by selenium through Debian's chromedriver, built from the same source as the browser)
+apt_packages=(libegl1 libegl-mesa0 libgl1-mesa-dri qemu-user chromium chromium-driver)
 missing=()
 for pkg in "${apt_packages[@]}"; do
   dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")

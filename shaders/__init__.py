@@ -17,10 +17,18 @@ from collections.abc import Mapping
 from importlib import resources
 from string import Template
 
-__all__ = ["source", "assemble", "Source", "GLSL_VERSION"]
+__all__ = ["source", "assemble", "Source", "GLSL_VERSION", "GLSL_ES_VERSION"]
 
 GLSL_VERSION = 330
 """The GLSL version every program is written for (OpenGL 3.3 core)."""
+
+GLSL_ES_VERSION = "300 es"
+"""The dialect of the web page's programs (WebGL2, :mod:`prt.export.web`): the same files, with
+this ``#version`` and the precision statements GLSL ES needs (:data:`ES_PRECISION`)."""
+
+ES_PRECISION = ("float", "int", "sampler2D", "sampler2DArray")
+"""Types given ``highp`` in a GLSL ES program: a fragment stage's ints are ``mediump`` by default
+(too few bits for the weight texture's texel indices) and ``sampler2DArray`` has no default."""
 
 
 def source(name: str) -> str:
@@ -29,7 +37,7 @@ def source(name: str) -> str:
 
 
 def assemble(*files: str, defines: Mapping[str, object] | None = None, fills: Mapping[str, str] | None = None,
-             version: int | None = GLSL_VERSION) -> str:
+             version: int | str | None = GLSL_VERSION) -> str:
     """One shader stage's source from files of this package.
 
     Parameters
@@ -43,8 +51,10 @@ def assemble(*files: str, defines: Mapping[str, object] | None = None, fills: Ma
     fills : mapping of str to str, optional
         Text for the files' ``${name}`` placeholders (:class:`string.Template`; the values are
         inserted as they are, never scanned for placeholders themselves).
-    version : int or None
-        The ``#version`` of the stage; None for a part to paste into another source.
+    version : int, str or None
+        The ``#version`` of the stage (:data:`GLSL_VERSION`; :data:`GLSL_ES_VERSION` for WebGL2,
+        which adds ``precision highp`` statements for :data:`ES_PRECISION`); None for a part to
+        paste into another source.
 
     Returns
     -------
@@ -58,6 +68,8 @@ def assemble(*files: str, defines: Mapping[str, object] | None = None, fills: Ma
     """
     fills = dict(fills or {})
     lines: list[tuple[str, tuple[str, int]]] = [] if version is None else [(f"#version {version}", ("#version", 1))]
+    if isinstance(version, str) and version.endswith(" es"):
+        lines += [(f"precision highp {t};", ("#precision", i + 1)) for i, t in enumerate(ES_PRECISION)]
     for i, (name, value) in enumerate((defines or {}).items()):
         lines.append((f"#define {name} {_glsl_value(value)}", ("#define", i + 1)))
     for name in files:

@@ -5,12 +5,20 @@
 uniform sampler2D u_position;  // xyz, covered
 uniform sampler2D u_normal;    // xyz, segment
 uniform vec3 u_eye;
+#ifdef PRT_TRANSFER_ARRAY
+// The web page (prt.export.web): block k of the transfer is layer k of one array texture (WebGL2
+// may offer only 16 texture units, fewer than 16 blocks + the G-buffer + the materials need).
+uniform sampler2DArray u_transfer;
+#define PRT_T(k, name) texelFetch(u_transfer, ivec3(px, k), 0)
+#else
 uniform sampler2D u_t0;
 uniform sampler2D u_t1;
 uniform sampler2D u_t2;
 uniform sampler2D u_t3;
+#define PRT_T(k, name) texelFetch(name, px, 0)
+#endif
 out vec4 f_color;
-#ifdef PRT_INTERREFLECTION
+#if defined(PRT_INTERREFLECTION) && !defined(PRT_TRANSFER_ARRAY)
 // Interreflection ("direct+rgb"): the indirect transfer of R, G, B, coefficients 4k .. 4k+3 of
 // channel c in u_t{4 + 4c + k} (the GLSL backend's second set of targets, or the CPU's upload).
 uniform sampler2D u_t4, u_t5, u_t6, u_t7, u_t8, u_t9, u_t10, u_t11, u_t12, u_t13, u_t14, u_t15;
@@ -78,10 +86,10 @@ void main() {
     }
     vec3 n = texelFetch(u_normal, px, 0).xyz;
     vec4 t[4];
-    t[0] = texelFetch(u_t0, px, 0);
-    t[1] = texelFetch(u_t1, px, 0);
-    t[2] = texelFetch(u_t2, px, 0);
-    t[3] = texelFetch(u_t3, px, 0);
+    t[0] = PRT_T(0, u_t0);
+    t[1] = PRT_T(1, u_t1);
+    t[2] = PRT_T(2, u_t2);
+    t[3] = PRT_T(3, u_t3);
     // Alpha 2 marks a transfer that is NaN or Inf (a broken network): shading would clamp it to
     // black, so the renderer reads the flag and refuses the frame.
     bool broken = false;
@@ -89,9 +97,9 @@ void main() {
     vec3 indirect = vec3(0.0);
 #ifdef PRT_INTERREFLECTION
     vec4 tr[4], tg[4], tb[4];
-    tr[0] = texelFetch(u_t4, px, 0); tr[1] = texelFetch(u_t5, px, 0); tr[2] = texelFetch(u_t6, px, 0); tr[3] = texelFetch(u_t7, px, 0);
-    tg[0] = texelFetch(u_t8, px, 0); tg[1] = texelFetch(u_t9, px, 0); tg[2] = texelFetch(u_t10, px, 0); tg[3] = texelFetch(u_t11, px, 0);
-    tb[0] = texelFetch(u_t12, px, 0); tb[1] = texelFetch(u_t13, px, 0); tb[2] = texelFetch(u_t14, px, 0); tb[3] = texelFetch(u_t15, px, 0);
+    tr[0] = PRT_T(4, u_t4); tr[1] = PRT_T(5, u_t5); tr[2] = PRT_T(6, u_t6); tr[3] = PRT_T(7, u_t7);
+    tg[0] = PRT_T(8, u_t8); tg[1] = PRT_T(9, u_t9); tg[2] = PRT_T(10, u_t10); tg[3] = PRT_T(11, u_t11);
+    tb[0] = PRT_T(12, u_t12); tb[1] = PRT_T(13, u_t13); tb[2] = PRT_T(14, u_t14); tb[3] = PRT_T(15, u_t15);
     for (int k = 0; k < 4; ++k) {
         broken = broken || any(isnan(tr[k])) || any(isinf(tr[k])) || any(isnan(tg[k])) || any(isinf(tg[k]))
                  || any(isnan(tb[k])) || any(isinf(tb[k]));

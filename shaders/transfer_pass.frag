@@ -8,11 +8,16 @@
 
 // With interreflection ("direct+rgb") the networks give 16 vec4 blocks (direct, indirect R, G,
 // B): PRT_TRANSFER_BLOCKS 16, written in two draws of 8 targets (u_part 0: blocks 0..7, 1:
-// blocks 8..15), since OpenGL 3.3 guarantees 8 draw buffers.
+// blocks 8..15), since OpenGL 3.3 guarantees 8 draw buffers.  PRT_TRANSFER_TARGETS 4 (the web
+// page, prt.export.web, where WebGL2 guarantees 4 and SwiftShader offers 6): four draws of 4
+// targets, u_part 0..3 writing blocks 4 u_part .. 4 u_part + 3.
 
 ${networks}
 #ifndef PRT_TRANSFER_BLOCKS
 #define PRT_TRANSFER_BLOCKS 4
+#endif
+#ifndef PRT_TRANSFER_TARGETS
+#define PRT_TRANSFER_TARGETS 8
 #endif
 uniform sampler2D u_position;  // xyz, covered
 uniform sampler2D u_normal;    // xyz, segment
@@ -20,11 +25,13 @@ layout(location = 0) out vec4 o_t0;
 layout(location = 1) out vec4 o_t1;
 layout(location = 2) out vec4 o_t2;
 layout(location = 3) out vec4 o_t3;
-#if PRT_TRANSFER_BLOCKS > 4
+#if PRT_TRANSFER_BLOCKS > 4 && PRT_TRANSFER_TARGETS > 4
 layout(location = 4) out vec4 o_t4;
 layout(location = 5) out vec4 o_t5;
 layout(location = 6) out vec4 o_t6;
 layout(location = 7) out vec4 o_t7;
+#endif
+#if PRT_TRANSFER_BLOCKS > 4
 uniform int u_part;
 #endif
 #ifdef PRT_SEGMENTS
@@ -52,7 +59,17 @@ void main() {
         int segment = int(ns.w + 0.5);
 ${dispatch}
     }
-#if PRT_TRANSFER_BLOCKS > 4
+#if PRT_TRANSFER_BLOCKS > 4 && PRT_TRANSFER_TARGETS == 4
+    if (u_part == 0) {
+        o_t0 = t[0]; o_t1 = t[1]; o_t2 = t[2]; o_t3 = t[3];
+    } else if (u_part == 1) {
+        o_t0 = t[4]; o_t1 = t[5]; o_t2 = t[6]; o_t3 = t[7];
+    } else if (u_part == 2) {
+        o_t0 = t[8]; o_t1 = t[9]; o_t2 = t[10]; o_t3 = t[11];
+    } else {
+        o_t0 = t[12]; o_t1 = t[13]; o_t2 = t[14]; o_t3 = t[15];
+    }
+#elif PRT_TRANSFER_BLOCKS > 4
     if (u_part == 0) {  // constant indices: a dynamic one makes Mesa spill t[] (minutes of compile)
         o_t0 = t[0]; o_t1 = t[1]; o_t2 = t[2]; o_t3 = t[3]; o_t4 = t[4]; o_t5 = t[5]; o_t6 = t[6]; o_t7 = t[7];
     } else {

@@ -1,11 +1,16 @@
 """Shared pytest fixtures and hooks."""
 
+import fcntl
 import importlib.util
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
 STUDIES = Path(__file__).resolve().parents[1] / "studies"
+CORNELL = Path(__file__).resolve().parent / "data" / "CornellBox-Original.obj"
 
 
 @pytest.fixture(scope="session")
@@ -35,6 +40,27 @@ def gl_ctx():
         pytest.fail(reason, pytrace=False)
     yield ctx
     ctx.release()
+
+
+@pytest.fixture(scope="session")
+def cornell_rgb(tmp_path_factory):
+    """The Cornell box, 2 bounces, tiny networks trained briefly (every segment a network): one
+    build per test session, shared by the xdist workers (tests/test_bounces.py, tests/test_web.py);
+    the tests only read it."""
+    base = tmp_path_factory.getbasetemp()
+    shared = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base  # xdist: the workers' common folder
+    out = shared / "cornell_rgb" / "scene"
+    with open(shared / "cornell_rgb.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # the first worker builds, the others wait for it
+        if not (out / "scene.json").is_file():
+            proc = subprocess.run(
+                [sys.executable, "-m", "prt.train.train_cli", str(CORNELL), "-o", str(out), "--samples", "2500", "--validation", "600",
+                 "--rays", "32", "--segments", "1", "--hidden", "16", "--layers", "2", "--steps", "200", "--bounces", "2",
+                 "--bounce-rays", "32", "--no-analytic", "--no-progress", "--threads", "1"],
+                capture_output=True, text=True,
+            )  # fmt: skip
+            assert proc.returncode == 0, proc.stderr
+    return out / "scene.json"
 
 
 @pytest.hookimpl(wrapper=True)

@@ -8,8 +8,6 @@ render tests; the rest need no build.
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -151,18 +149,7 @@ def test_diffuse_light_matrix_is_the_shading():
 # --------------------------------------------------------------------------- a built Cornell box
 
 
-@pytest.fixture(scope="module")
-def cornell_rgb(tmp_path_factory):
-    """The Cornell box, 2 bounces, tiny networks trained briefly (every segment a network)."""
-    out = tmp_path_factory.mktemp("cornell_rgb") / "scene"
-    proc = subprocess.run(
-        [sys.executable, "-m", "prt.train.train_cli", str(CORNELL), "-o", str(out), "--samples", "2500", "--validation", "600",
-         "--rays", "32", "--segments", "1", "--hidden", "16", "--layers", "2", "--steps", "200", "--bounces", "2",
-         "--bounce-rays", "32", "--no-analytic", "--no-progress", "--threads", "1"],
-        capture_output=True, text=True,
-    )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr
-    return out / "scene.json"
+# cornell_rgb: the build of tests/conftest.py (2 bounces, tiny networks)
 
 
 def test_manifest_records_the_bounces_and_round_trips(cornell_rgb):
