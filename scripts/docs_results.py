@@ -277,11 +277,21 @@ def readme_rows(root: Path) -> list[tuple[str, str, str, str]]:
             value = cell(paper)
             if value:
                 add("paper.json", f"{mesh}: right-sized build vs per-vertex PRT, same bounces (diffuse PSNR, bytes)", value)
-    for name, figure, key in (("presets.json", None, None), ("web.json", None, None), ("gpu.json", None, None)):
-        data = _load(root, name)
-        if data and isinstance(data.get("readme"), list):  # files may name their own headline rows
-            for row in data["readme"]:
-                add(name, row["figure"], row["value"])
+    def web_pixels(d):
+        demo = d.get("same_pixels", {}).get("demo, manifest camera")
+        return None if demo is None else f"{demo['psnr_db']:.1f} dB from the Python GLSL backend (demo, {demo['size']}x{demo['size']})"
+
+    def web_payload(d):
+        pay, first = d.get("payload", {}), {r["size"]: r for r in d.get("load", [])}
+        if not pay:
+            return None
+        text = f"{pay['geometry_weights_code_bytes'] / 1e6:.2f} MB (geometry, weights, code)"
+        if 512 in first:
+            text += f"; first frame {first[512]['first_frame_ms'] / 1e3:.1f} s at 512x512 in software WebGL"
+        return text
+
+    add("web.json", "`prt-web` page of the demo: same pixels", web_pixels)
+    add("web.json", "`prt-web` page of the demo: payload, first frame", web_payload)
     return rows
 
 
