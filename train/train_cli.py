@@ -119,7 +119,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--code-scale", choices=("common", "component"), default="common",
                    help="with --deform: one scale for every PCA component of the shape code, so codes keep the shapes' distances, or each "
                         "component to [-1, 1] (builds before issue 38) [common]")
-    p.add_argument("--code-freqs", type=int, default=None, help="with --deform: sin/cos frequencies of each code component in the first layer [2]")
+    p.add_argument("--code-freqs", type=int, default=None, help="with --deform: sin/cos frequencies of each code component in the first layer [0: the code alone]")
     p.add_argument("--holdout-every", type=int, default=4, help="with --deform: every N-th frame is held out as an unseen pose between training poses")
     p.add_argument("--extrapolate", type=int, default=1, help="with --deform: the N most extreme poses (farthest from the mean pose) are held out, outside the training range")
     p.add_argument("--extrapolate-from", choices=("extreme", "first", "last"), default="extreme",

@@ -73,9 +73,9 @@ class DeformSpec:
     pos_freqs: int = 6
     normal_freqs: int = 2
     code_dim: int = 0  # 0: the fewest PCA components that keep 99.9 % of the offsets' variance (at most 8)
-    code_freqs: int = 2
+    code_freqs: int = 0  # sin/cos frequencies of the code in the first layer; 0: theta alone (smooth in the code, no aliasing past the range)
     code_scale: str = "common"  # "common": one scale for every PCA component (the offsets' geometry); "component": each to [-1, 1]
-    residual: str = "auto"  # networks learn T - U(n) (the posed normal's unshadowed transfer): "on", "off", "auto" (by visibility)
+    residual: str = "off"  # "on": networks learn T - U(n), U the posed normal's unshadowed transfer; "auto": where a segment's visibility >= 0.8
     steps: int = 3000
     batch: int = 8192  # samples per Adam step
     holdout_every: int = 4
