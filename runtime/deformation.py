@@ -7,9 +7,12 @@ whose vertices move.  Its networks learn transfer as a function of the *rest-spa
     T = sigma(rest position, deformed normal, theta)
 
 The shape code is the PCA of the vertex offsets ``frame - rest`` over the training frames (the
-same for every source: mesh sequences, skinned or morphing glTF clips, procedural deformers), each
-component divided by its largest magnitude on the training frames, so the training poses span
-``[-1, 1]`` and a pose outside their range reads as ``|theta| > 1``.
+same for every source: mesh sequences, skinned or morphing glTF clips, procedural deformers).
+Scenes built since issue 38 divide every component by one number, the first component's largest
+magnitude on the training frames (``deformation.code.scale == "common"``), so the first spans
+``[-1, 1]``, the others their share of the motion, and distances between codes are distances
+between shapes; older scenes divided each component by its own (``"component"``, or no
+``scale``).  The runtime does not depend on which: ``basis`` carries the scale.
 
 The code enters the network only through its first layer: the encoded code
 ``g(theta) = [theta, sin(theta * w_k), cos(theta * w_k)]`` (``w_k = 2^k pi / 2``, ``k < code_freqs``)

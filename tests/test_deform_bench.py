@@ -32,7 +32,8 @@ def tiny(tmp_path_factory) -> Path:
     faces = np.concatenate([bar.faces, plate.faces + len(bar.vertices)])
     source = procedural("bend", np.linspace(0, 60, 7), mesh=(vertices, faces), path="tinybar")
     out = tmp_path_factory.mktemp("deform") / "scene"
-    spec = DeformSpec(samples=400, validation=100, rays=16, steps=30, hidden=8, layers=1, segments=1, holdout_every=3, extrapolate=1, code_freqs=1)
+    spec = DeformSpec(samples=400, validation=100, rays=16, steps=30, hidden=8, layers=1, segments=1, holdout_every=3, extrapolate=1, code_freqs=1,
+                      residual="on")  # a residual network with a code: both backends add the unshadowed term back
     run_deform_build(source, out, spec, threads=1, progress=False, log=lambda *_: None)
     return out
 
@@ -170,10 +171,14 @@ def test_report_fields(bench_run, tiny):
     assert 1 <= entry["lmm"]["components"] <= len(roles["train"]) - 1
     summary = entry["summary"]
     for light in LIGHTS:
-        assert set(summary["targets"][light]) == {"unseen_gap_db", "unseen_ssim", "extrapolated_ours_minus_lmm_db"}
+        assert set(summary["targets"][light]) == {"unseen_gap_db", "unseen_ssim", "extrapolated_ours_minus_lmm_db", "train_ours_minus_nearest_db"}
+        lead = summary["means"][light]["ours"]["train"]["psnr"] - summary["means"][light]["nearest_vertex"]["train"]["psnr"]
+        assert summary["targets"][light]["train_ours_minus_nearest_db"]["value"] == pytest.approx(lead, abs=2e-3)
         ours = [f["metrics"][light]["ours"]["psnr"] for f in entry["frames"] if f["role"] == "unseen"]
         assert summary["means"][light]["ours"]["unseen"]["psnr"] == pytest.approx(np.mean(ours), abs=1e-3)
     assert "| onnx |" in text and "| glsl |" in text and "extrapolated" in text
+    assert report["provenance"]["commit"] is None or isinstance(report["provenance"]["commit"], str)
+    assert {"date", "command", "machine"} <= set(report["provenance"])
     png = trimesh.util.wrap_as_stream((images / "deform_tinybar.png").read_bytes())
     import imageio.v3 as iio
 

@@ -76,11 +76,23 @@ def test_shape_code_spans_the_training_frames():
     assert roles["extrapolated"] == [10, 11] and roles["unseen"] == [2, 6] and 0 in roles["train"]
     extreme = split_frames(12, 4, 2, extremeness=np.abs(np.arange(12) - 5.0))
     assert extreme["extrapolated"] == [0, 11] and extreme["unseen"] == [3, 7] and sorted(sum(extreme.values(), [])) == list(range(12))
-    code = shape_code(rest, frames, roles["train"])
-    assert code["dim"] == 2 and code["explained"] > 0.999999
-    assert np.abs(code["theta"][roles["train"]]).max() == pytest.approx(1.0, abs=1e-6)
-    rebuilt = rest + code["mean"] + np.einsum("kd,dvc->kvc", code["theta"], code["basis"])
-    np.testing.assert_allclose(rebuilt, frames, atol=1e-5)  # every frame, also the held-out ones: the modes span them
+    for scale in ("common", "component"):
+        code = shape_code(rest, frames, roles["train"], scale=scale)
+        assert code["dim"] == 2 and code["explained"] > 0.999999 and code["scale"] == scale
+        spans = np.abs(code["theta"][roles["train"]]).max(axis=0)
+        assert spans[0] == pytest.approx(1.0, abs=1e-6)  # the first component spans [-1, 1] either way
+        rebuilt = rest + code["mean"] + np.einsum("kd,dvc->kvc", code["theta"], code["basis"])
+        np.testing.assert_allclose(rebuilt, frames, atol=1e-5)  # every frame, also the held-out ones: the modes span them
+        if scale == "component":
+            np.testing.assert_allclose(spans, 1.0, atol=1e-6)
+        else:  # one scale: distances between codes are distances between shapes (the offsets), over every pair of frames
+            s0 = float(np.linalg.norm(code["basis"][0]))
+            np.testing.assert_allclose(np.linalg.norm(code["basis"].reshape(2, -1), axis=1), s0, rtol=1e-5)
+            offsets = (frames - rest).reshape(12, -1)
+            shapes = np.linalg.norm(offsets[:, None] - offsets[None], axis=-1)
+            codes = s0 * np.linalg.norm(code["theta"][:, None].astype(np.float64) - code["theta"][None], axis=-1)
+            np.testing.assert_allclose(codes, shapes, atol=1e-4 * shapes.max())
+            assert spans[1] < 1.0  # the second mode moves the mesh less: a smaller range, not stretched to [-1, 1]
     with pytest.raises(SpecError, match="give more frames"):
         split_frames(3, 2, 2)
     from prt.train.deform.deform_build import DeformSpec
@@ -89,6 +101,12 @@ def test_shape_code_spans_the_training_frames():
         DeformSpec(extrapolate_from="middle").check()
     with pytest.raises(SpecError, match="code_dim"):
         DeformSpec(code_dim=99).check()
+    with pytest.raises(SpecError, match="code_scale"):
+        DeformSpec(code_scale="unit").check()
+    with pytest.raises(SpecError, match="residual"):
+        DeformSpec(residual="maybe").check()
+    with pytest.raises(SpecError, match="code scale"):
+        shape_code(rest, frames, roles["train"], scale="unit")
 
 
 def _box_arm():

@@ -116,6 +116,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "'gltf[:animation=walk,frames=24,start=S,end=E]', 'bend:angle=0..90,frames=16[,axis=x]', 'twist:angle=0..180', "
                         "'fold:angle=0..175[,radius=0.08]'; --samples then counts per training frame")
     p.add_argument("--code-dim", type=int, default=0, help="with --deform: shape-code dimensions [0: the fewest PCA components keeping 99.9%% of the offsets' variance, at most 8]")
+    p.add_argument("--code-scale", choices=("common", "component"), default="common",
+                   help="with --deform: one scale for every PCA component of the shape code, so codes keep the shapes' distances, or each "
+                        "component to [-1, 1] (builds before issue 38) [common]")
+    p.add_argument("--code-freqs", type=int, default=None, help="with --deform: sin/cos frequencies of each code component in the first layer [0: the code alone]")
     p.add_argument("--holdout-every", type=int, default=4, help="with --deform: every N-th frame is held out as an unseen pose between training poses")
     p.add_argument("--extrapolate", type=int, default=1, help="with --deform: the N most extreme poses (farthest from the mean pose) are held out, outside the training range")
     p.add_argument("--extrapolate-from", choices=("extreme", "first", "last"), default="extreme",
@@ -251,8 +255,9 @@ def _deform_main(args) -> int:
 
     fields = {"samples": args.samples, "validation": args.validation, "rays": args.rays, "segments": args.segments, "steps": args.steps,
               "seed": args.seed, "hidden": args.hidden, "layers": args.layers, "pos_freqs": args.pos_freqs}  # fmt: skip
+    fields |= {"code_freqs": args.code_freqs, "residual": args.residual, "batch": args.batch}
     spec = DeformSpec(**{k: v for k, v in fields.items() if v is not None}, code_dim=args.code_dim, holdout_every=args.holdout_every,
-                      extrapolate=args.extrapolate, extrapolate_from=args.extrapolate_from)  # fmt: skip
+                      extrapolate=args.extrapolate, extrapolate_from=args.extrapolate_from, code_scale=args.code_scale)  # fmt: skip
     check_output_folder(args.out, "scene", force=args.force)
     source = parse_deform(args.deform, args.input)
     report = run_deform_build(source, args.out, spec, name=args.name, threads=args.threads, progress=not args.no_progress, force=args.force)

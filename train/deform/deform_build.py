@@ -48,7 +48,7 @@ from ..inputs.geometry import Geometry
 from .deform_sources import orientation
 from ..networks.network import Architecture, evaluate_numpy
 from ..outdir import check_output_folder, mark_output_folder
-from ..networks.rightsize import SCENE_LIGHT, shaded_psnr
+from ..networks.rightsize import SCENE_LIGHT, residual_choice, shaded_psnr
 from ..inputs.sampling import sample_surface
 from ..networks.segments import SPLIT_RULE, segment_samples
 from ..transport.transfer import compute_transfer
@@ -73,8 +73,11 @@ class DeformSpec:
     pos_freqs: int = 6
     normal_freqs: int = 2
     code_dim: int = 0  # 0: the fewest PCA components that keep 99.9 % of the offsets' variance (at most 8)
-    code_freqs: int = 2
+    code_freqs: int = 0  # sin/cos frequencies of the code in the first layer; 0: theta alone (smooth in the code, no aliasing past the range)
+    code_scale: str = "common"  # "common": one scale for every PCA component (the offsets' geometry); "component": each to [-1, 1]
+    residual: str = "off"  # "on": networks learn T - U(n), U the posed normal's unshadowed transfer; "auto": where a segment's visibility >= 0.8
     steps: int = 3000
+    batch: int = 8192  # samples per Adam step
     holdout_every: int = 4
     extrapolate: int = 1  # poses held out past the training range: the most extreme ones (farthest from the mean pose)
     extrapolate_from: str = "extreme"  # or "first" / "last": the first or last frames of the source's order
@@ -84,7 +87,7 @@ class DeformSpec:
     camera: dict = field(default_factory=dict)
 
     def check(self) -> None:
-        for name in ("samples", "validation", "rays", "segments", "hidden", "layers", "steps", "holdout_every", "chunk_size"):
+        for name in ("samples", "validation", "rays", "segments", "hidden", "layers", "steps", "batch", "holdout_every", "chunk_size"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise SpecError(f"deform {name}: expected a positive integer, got {value!r}")
@@ -93,6 +96,12 @@ class DeformSpec:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
                 raise SpecError(f"deform {name}: expected an integer in {low}..{high}, got {value!r}")
+        if self.code_scale not in ("common", "component"):
+            raise SpecError(f"deform code_scale: expected common or component, got {self.code_scale!r}")
+        if self.residual not in ("auto", "on", "off"):
+            raise SpecError(f"deform residual: expected auto, on or off, got {self.residual!r}")
+        if self.residual == "on" and self.bands > 4:
+            raise SpecError(f"deform residual on: the unshadowed transfer is a quadratic of the normal up to 4 bands, not {self.bands}")
         if self.extrapolate_from not in ("extreme", "first", "last"):
             raise SpecError(f"deform extrapolate_from: expected extreme, first or last, got {self.extrapolate_from!r}")
 
@@ -116,13 +125,22 @@ def split_frames(count: int, holdout_every: int, extrapolate: int, extremeness: 
     return {"train": train, "unseen": unseen, "extrapolated": last}
 
 
-def shape_code(rest: np.ndarray, frames: np.ndarray, train: list[int], dim: int = 0, keep: float = 0.999, max_auto: int = 8) -> dict:
+def shape_code(rest: np.ndarray, frames: np.ndarray, train: list[int], dim: int = 0, keep: float = 0.999, max_auto: int = 8,
+               scale: str = "common") -> dict:  # fmt: skip
     """The shape code of :mod:`prt.runtime.deformation`: PCA of the offsets ``frame - rest`` over the
-    training frames, each component scaled by its largest magnitude there (training codes in [-1, 1]).
+    training frames.
+
+    ``scale``: ``"common"`` divides every component by one number, the largest magnitude of the
+    first component on the training frames, so the code keeps the offsets' geometry (a component
+    with 1 % of the variance spans a tenth of the first one's range, and distances between codes
+    are distances between shapes); ``"component"`` (builds before issue 38) divides each by its
+    own largest magnitude, so every component spans [-1, 1] however little it moves the mesh.
 
     Returns ``theta`` (K, d) for every frame, ``mean`` (V, 3), ``basis`` (d, V, 3) with the scale folded
-    in (``offset ~ mean + theta @ basis``), ``explained`` (variance share kept) and ``dim``.
+    in (``offset ~ mean + theta @ basis``), ``explained`` (variance share kept), ``dim`` and ``scale``.
     """
+    if scale not in ("common", "component"):
+        raise SpecError(f"deform code scale: expected common or component, got {scale!r}")
     offsets = (np.asarray(frames, np.float64) - np.asarray(rest, np.float64)[None]).reshape(len(frames), -1)
     mean = offsets[train].mean(axis=0)
     centred = offsets[train] - mean
@@ -137,12 +155,13 @@ def shape_code(rest: np.ndarray, frames: np.ndarray, train: list[int], dim: int 
     dim = min(dim, len(vt))
     comps = vt[:dim]
     coeffs = (offsets - mean) @ comps.T  # (K, d)
-    scale = np.maximum(np.abs(coeffs[train]).max(axis=0), 1e-9)
-    theta = coeffs / scale
-    basis = (comps * scale[:, None]).reshape(dim, -1, 3)
+    spans = np.maximum(np.abs(coeffs[train]).max(axis=0), 1e-9)
+    factor = spans if scale == "component" else np.full(dim, spans[0])
+    theta = coeffs / factor
+    basis = (comps * factor[:, None]).reshape(dim, -1, 3)
     explained = float(var[:dim].sum() / total) if total > 0 else 1.0
     return {"theta": theta.astype(np.float32), "mean": mean.reshape(-1, 3).astype(np.float32), "basis": basis.astype(np.float32),
-            "explained": explained, "dim": dim}  # fmt: skip
+            "explained": explained, "dim": dim, "scale": scale}  # fmt: skip
 
 
 def _hash(*parts) -> str:
@@ -226,7 +245,7 @@ def run_deform_build(source, out_dir, spec: DeformSpec | None = None, *, name: s
     extremeness = {"extreme": np.linalg.norm(offsets - offsets.mean(axis=0), axis=1), "last": np.arange(len(frames), dtype=float),
                    "first": -np.arange(len(frames), dtype=float)}[spec.extrapolate_from]  # fmt: skip
     roles = split_frames(len(frames), spec.holdout_every, spec.extrapolate, extremeness)
-    code = shape_code(rest, frames, roles["train"], spec.code_dim)
+    code = shape_code(rest, frames, roles["train"], spec.code_dim, scale=spec.code_scale)
     theta = code["theta"]
     name = name or Path(str(source.description.get("path", "deformable"))).stem or "deformable"
     log(f"deform: {source.kind} source, {len(rest):,} vertices, {len(faces):,} triangles, {len(frames)} frames "
@@ -249,10 +268,12 @@ def run_deform_build(source, out_dir, spec: DeformSpec | None = None, *, name: s
     lights = _env_lights(spec.bands)
     arch = Architecture(hidden=spec.hidden, layers=spec.layers, pos_freqs=spec.pos_freqs, normal_freqs=spec.normal_freqs, bands=spec.bands,
                         code_dim=code["dim"], code_freqs=spec.code_freqs)  # fmt: skip
-    settings = FitSettings(steps=spec.steps, seed=spec.seed)
+    settings = FitSettings(steps=spec.steps, seed=spec.seed, batch=spec.batch)
     t0 = time.perf_counter()
     trained, records = [], []
     data_key = _hash(DEFORM_FORMAT, [frame_keys[f] for f in sorted(data)], spec.segments, arch.as_dict(), settings.cache_key())
+    if spec.code_scale != "component" or spec.residual != "off":  # builds before issue 38 keep their cached fits
+        data_key = _hash(data_key, spec.code_scale, spec.residual, _digest(theta))
     if seg.moved_cuts:  # the off-plane rule changed the segments (train/networks/segments.py): fits cached before do not fit them
         data_key = _hash(data_key, SPLIT_RULE)
     for s in range(seg.count):
@@ -260,6 +281,8 @@ def run_deform_build(source, out_dir, spec: DeformSpec | None = None, *, name: s
         vmask = valid_home == s  # a segment without held-out samples validates on some of its own training samples
         v_idx = np.flatnonzero(vmask) if vmask.any() else members[: max(1, len(members) // 20)]
         vsrc = valid if vmask.any() else train
+        residual, visibility = residual_choice(spec.residual, train["transfer"][members], train["normals"][members], spec.bands)
+        seg_arch = dataclasses.replace(arch, residual=residual)
         key = _hash(data_key, s)
         record_path, weights_path = out / "train" / f"seg{s:03d}.json", out / "train" / f"seg{s:03d}.npz"
         record = _cached(record_path, weights_path, key)
@@ -273,19 +296,19 @@ def run_deform_build(source, out_dir, spec: DeformSpec | None = None, *, name: s
                     bar.set_postfix(val_mae=f"{val_mae:.5f}")
 
             result = fit_segment(train["rest"][members], train["normals"][members], train["transfer"][members],
-                                 vsrc["rest"][v_idx], vsrc["normals"][v_idx], vsrc["transfer"][v_idx], arch, seg.bounds[s], settings,
+                                 vsrc["rest"][v_idx], vsrc["normals"][v_idx], vsrc["transfer"][v_idx], seg_arch, seg.bounds[s], settings,
                                  lights=lights, codes=train["theta"][members], val_codes=vsrc["theta"][v_idx],
                                  progress=advance)  # fmt: skip
             if bar is not None:
                 bar.close()
             arrays = result.model.arrays()
             record = {"key": key, "id": s, "samples": int(len(members)), "val_mae": result.val_mae, "shaded": result.shaded,
-                      "arch": {**arch.as_dict(), "bands": spec.bands}, "arch_label": arch.label(), "seconds": result.seconds,
-                      "steps": result.steps}  # fmt: skip
+                      "arch": {**seg_arch.as_dict(), "bands": spec.bands}, "arch_label": seg_arch.label(), "seconds": result.seconds,
+                      "steps": result.steps, "residual": {"used": residual, "visibility": round(visibility, 4), "mode": spec.residual}}  # fmt: skip
             (out / "train").mkdir(parents=True, exist_ok=True)
             atomic_save_npz(weights_path, **arrays)
             atomic_write_json(record_path, record)
-            log(f"segment {s}: {arch.label()} on {len(members):,} samples, val MAE {result.val_mae:.5f} ({result.seconds:.0f} s)")
+            log(f"segment {s}: {seg_arch.label()} on {len(members):,} samples, val MAE {result.val_mae:.5f} ({result.seconds:.0f} s)")
         else:
             log(f"segment {s}: cached")
         with np.load(weights_path) as f:
@@ -293,14 +316,14 @@ def run_deform_build(source, out_dir, spec: DeformSpec | None = None, *, name: s
         records.append(record)
         trained.append(TrainedSegment(id=s, bounds=seg.bounds[s], samples=record["samples"], coeff_mae=record["val_mae"],
                                       shaded_mae=record["shaded"], arrays=arrays, architecture=record["arch"],
-                                      flops_per_fragment=arch.flops_per_fragment(), weight_bytes=4 * arch.weight_count()))  # fmt: skip
+                                      flops_per_fragment=seg_arch.flops_per_fragment(), weight_bytes=4 * seg_arch.weight_count()))  # fmt: skip
     train_s = time.perf_counter() - t0
 
     frame_report = _frame_errors(data, roles, theta, seg, trained, lights, spec.bands)
     t0 = time.perf_counter()
     deformation = {
         "source": {**source.description, "normalisation": transform},
-        "code": {"kind": "pca", "dim": code["dim"], "freqs": spec.code_freqs, "explained": code["explained"],
+        "code": {"kind": "pca", "dim": code["dim"], "freqs": spec.code_freqs, "explained": code["explained"], "scale": code["scale"],
                  "why": "PCA of the vertex offsets over the training frames: one rule for sequences, skinning, morphs and "
                         "procedural deformers; nearby shapes get nearby codes, so unseen poses interpolate"},
         "frames": {"count": int(len(frames)), **{k: [int(i) for i in v] for k, v in roles.items()},
@@ -321,7 +344,7 @@ def run_deform_build(source, out_dir, spec: DeformSpec | None = None, *, name: s
         "name": name,
         "source": source.description,
         "spec": {k: v for k, v in dataclasses.asdict(spec).items()},
-        "code": {k: code[k] for k in ("dim", "explained")},
+        "code": {k: code[k] for k in ("dim", "explained", "scale")},
         "frames": roles,
         "frame_errors": frame_report,
         "segments": [{k: v for k, v in r.items() if k != "key"} for r in records],
