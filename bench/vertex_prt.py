@@ -35,6 +35,7 @@ from prt.runtime.gl import bind_framebuffer
 from prt.runtime.normals import vertex_normals
 from prt.shaders import assemble
 from prt.train.transport.interreflection import interreflect, trace_bounce_rays
+from prt.train.transport.vertex_estimate import vertex_samples  # the same samples as the build's estimate
 
 __all__ = ["VertexPRT", "vertex_transfer", "vertex_samples", "vertex_indirect", "cached_vertex_indirect", "vertex_bounce_transfer",
            "ESTIMATOR_VERSION"]
@@ -127,29 +128,6 @@ class VertexPRT:
         bind_framebuffer(self.ctx, None)
         for obj in (*self.vaos, *self.vbos, self.program, self.fbo, self.depth, *self.textures):
             obj.release()
-
-
-def vertex_samples(geometry) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The vertex PRT's own samples: the front of every used vertex, then the back of the open faces' vertices.
-
-    Returns
-    -------
-    points, normals : (S, 3) float32
-        Position and (front or reversed) area-weighted vertex normal of each sample.
-    front, back : (V,) int64
-        Row of each vertex's front / back sample in ``points``, -1 where it has none (an unused
-        vertex; a back side only where an open face uses the vertex).
-    """
-    vertices = np.asarray(geometry.mesh.vertices, dtype=np.float32)
-    faces = np.asarray(geometry.mesh.faces, dtype=np.int64)
-    normals = vertex_normals(vertices, faces).astype(np.float32)
-    used = np.flatnonzero(np.linalg.norm(normals, axis=1) > 0.0)
-    open_vertices = np.unique(faces[np.asarray(geometry.two_sided, dtype=bool)])
-    front, back = np.full(len(vertices), -1, np.int64), np.full(len(vertices), -1, np.int64)
-    front[used] = np.arange(len(used))
-    back[open_vertices] = len(used) + np.arange(len(open_vertices))
-    points = np.concatenate([vertices[used], vertices[open_vertices]])
-    return points, np.concatenate([normals[used], -normals[open_vertices]]), front, back
 
 
 def vertex_indirect(geometry, points, normals, direct, face_albedo, bounces: int, *, rays: int, seed: int = 0) -> np.ndarray:
