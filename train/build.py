@@ -478,6 +478,8 @@ def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log
     if spec.vertex_rule():
         display.expect("vertices", len(geometry.mesh.vertices) * pre.rays * RAY)
     display.expect("export", spec.precompute.segments * EXPORT_SEGMENT)
+    per_segment = _expected_fit_work(spec, spec.architectures(), spec.fit_settings(), pre.samples // max(pre.segments, 1))
+    display.plan_fits({s: per_segment for s in range(pre.segments)}, spec.batch)  # revised once the segments are known
     display.begin("precompute")
     pre_summary = run_precompute(geometry, out / "precompute", spec.precompute, threads=threads, progress=progress, log=log, force=force,
                                      executor=executor)

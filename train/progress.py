@@ -96,6 +96,7 @@ class BuildProgress:
         self._shown = False
         self._lock = threading.RLock()
         self._segments: dict[int, float] = {}  # fits: each unfinished segment's planned work
+        self._last = 0.0  # the share last shown
         self.batch = 8192
 
     # ---------------------------------------------------------------- plan and record
@@ -211,7 +212,9 @@ class BuildProgress:
 
     def line(self) -> str:
         """The text of the display (without the terminal's control characters)."""
-        f = min(max(self.fraction(), 0.0), 1.0)
+        # Shown never backwards: a plan revised upwards (the fits' real sample counts) holds the bar
+        # until the work catches up; the time left is the revised estimate's.
+        f = self._last = max(min(max(self.fraction(), 0.0), 1.0), self._last)
         filled = int(round(f * self.width))
         left = self.seconds_left()
         parts = [f"[{'#' * filled}{'.' * (self.width - filled)}] {100 * f:3.0f}%"]
