@@ -35,7 +35,7 @@ def test_the_default_quality_is_standard_and_it_sizes_against_vertex_prt():
     assert spec.quality == DEFAULT_QUALITY == "standard"
     assert spec.vertex_margin == PRESETS["standard"]["vertex_margin"] and spec.match is None
     assert spec.target == DEFAULT_TARGET  # the analytic cap
-    assert spec.precompute.samples == PRESETS["standard"]["samples"] == BuildSpec().precompute.samples
+    assert spec.precompute.samples == PRESETS["standard"]["samples"] and spec.steps == PRESETS["standard"]["steps"]
 
 
 def test_flags_override_the_preset_and_the_rest_of_it_stays(tmp_path):

@@ -7,9 +7,9 @@ aims for over per-vertex PRT (:mod:`prt.train.networks.rightsize`, rule ``"verte
 
 A spec's own fields and ``prt-train``'s flags win over the preset: :func:`resolve` fills only
 the fields a spec leaves out, and the build records the preset, the values it resolved to and
-which of them were set by hand (``build.json``'s ``spec`` and ``preset``).  ``standard`` is the
-default; its values are the paper's setting (1M samples, 512 rays, 2000 steps of batch 8192)
-except where a measurement chose otherwise (``docs/benchmarks/presets.md``).
+which of them differ (``build.json``'s ``spec`` and ``preset``).  ``standard`` is the default
+(measured cost and fidelity of each: ``docs/benchmarks/presets.md``); a spec built with
+:class:`prt.train.build.BuildSpec` directly keeps the dataclass's defaults, the paper's setting.
 """
 
 from __future__ import annotations
@@ -32,14 +32,15 @@ _SMALL_LADDER = [
 ]
 
 PRESETS: dict[str, dict] = {
-    # A first look at a new mesh in minutes: a fifth of the samples, half the rays, short fits.
-    "draft": {"samples": 200_000, "rays": 256, "segments": 8, "steps": 600, "batch": 4096, "bounce_rays": 16,
+    # A first look at a new mesh in minutes: a tenth of the samples, half the rays, short fits, networks up to k64-l3.
+    "draft": {"samples": 100_000, "rays": 256, "segments": 8, "steps": 400, "batch": 4096, "bounce_rays": 16,
               "vertex_margin": 1.0, "ladder": _SMALL_LADDER},
-    # The default: the paper's samples and rays; capacity by the error it reaches against vertex PRT.
-    "standard": {"samples": 1_000_000, "rays": 512, "segments": 8, "steps": 2000, "batch": 8192, "bounce_rays": 32,
+    # The default.  The paper's rays; half its samples and steps: the fits of the old default (1M samples,
+    # 2000 steps, --match 64x4) took 1,633 of a 15k-vertex scan's 1,881 s (issue 35), twice the 15 minutes aimed at.
+    "standard": {"samples": 500_000, "rays": 512, "segments": 8, "steps": 1000, "batch": 8192, "bounce_rays": 32,
                  "vertex_margin": 1.0, "ladder": None},
-    # Twice the samples and rays, twice the leaves and steps, a 2 dB margin.
-    "high": {"samples": 2_000_000, "rays": 1024, "segments": 16, "steps": 4000, "batch": 8192, "bounce_rays": 64,
+    # The paper's samples and steps, twice its rays and leaves, twice the bounce rays, a 2 dB margin.
+    "high": {"samples": 1_000_000, "rays": 1024, "segments": 16, "steps": 2000, "batch": 8192, "bounce_rays": 64,
              "vertex_margin": 2.0, "ladder": None},
 }
 """Quality name -> the flat build-spec fields it sets (:meth:`prt.train.build.BuildSpec.to_dict`)."""
