@@ -22,6 +22,7 @@ from prt.runtime.errors import SpecError
 from prt.runtime.manifest import load_manifest
 from prt.runtime.shading import tonemap
 from prt.train.build import spec_from_dict
+from prt.train.networks.fit import DEFAULT_LADDER
 from prt.train.networks.grid_encoding import GridArchitecture
 from prt.train.networks.network import Architecture, TransferMLP, evaluate_numpy, target_scaling
 from prt.train.networks.rightsize import candidates, search_cheapest, shaded_psnr
@@ -113,8 +114,11 @@ def test_auto_candidates_mix_both_encodings_cheapest_first():
     kinds = {type(a) for a in archs}
     assert kinds == {Architecture, GridArchitecture}
     assert len({a.label() for a in archs}) == len(archs)
-    assert len(archs) == len(spec_from_dict({"geometry": "x.obj", "bounces": 0}).architectures()) + len(
+    assert len(archs) == len(spec_from_dict({"geometry": "x.obj", "bounces": 0, "target": 0.003}).architectures()) + len(
         spec_from_dict({"geometry": "x.obj", "encoding": "grid", "bounces": 0}).architectures())
+    # the default rule ("vertex") may grow past the frequency ladder's largest size
+    extra = spec_from_dict({"geometry": "x.obj", "bounces": 0}).architectures()
+    assert len(extra) == len(DEFAULT_LADDER) + 1 and extra[-1].hidden > max(a.hidden for a in DEFAULT_LADDER)
 
 
 def test_numpy_evaluation_of_a_frequency_network_matches_torch():

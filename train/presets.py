@@ -78,7 +78,7 @@ def differences(spec: dict) -> dict:
 def describe(quality: str) -> str:
     """One line of a preset's values, for ``--help``."""
     p = PRESETS[quality]
-    top = (p["ladder"] or [{"hidden": 128, "layers": 4}])[-1]
+    top = (p["ladder"] or [{"hidden": 192, "layers": 4}])[-1]  # the default ladder and the "vertex" rule's extra size
     return (f"{p['samples'] // 1000:,}k samples x {p['rays']} rays, {p['segments']} leaves, {p['steps']} steps of {p['batch']}, "
             f"{p['bounce_rays']} bounce rays, networks up to k{top['hidden']}-l{top['layers']} sized to beat vertex PRT by "
             f"{p['vertex_margin']:g} dB")
