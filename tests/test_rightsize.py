@@ -116,8 +116,8 @@ def test_auto_candidates_mix_both_encodings_cheapest_first():
     assert len({a.label() for a in archs}) == len(archs)
     assert len(archs) == len(spec_from_dict({"geometry": "x.obj", "bounces": 0, "target": 0.003}).architectures()) + len(
         spec_from_dict({"geometry": "x.obj", "encoding": "grid", "bounces": 0}).architectures())
-    # the default rule ("vertex") may grow past the frequency ladder's largest size
-    extra = spec_from_dict({"geometry": "x.obj", "bounces": 0}).architectures()
+    # the high preset may grow past the frequency ladder's largest size
+    extra = spec_from_dict({"geometry": "x.obj", "bounces": 0, "quality": "high"}).architectures()
     assert len(extra) == len(DEFAULT_LADDER) + 1 and extra[-1].hidden > max(a.hidden for a in DEFAULT_LADDER)
 
 

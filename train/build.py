@@ -152,9 +152,7 @@ class BuildSpec:
             return [_architecture(self.fixed, self.bands, "fixed", self.layout)]
         if self.ladder is not None:
             return [_architecture(a, self.bands, f"ladder[{i}]", self.layout) for i, a in enumerate(self.ladder)]
-        # The "vertex" rule may grow to per-vertex PRT's bytes: past k = 128 too (a segment's byte share cuts the ladder).
-        ladder = DEFAULT_LADDER + (VERTEX_LADDER if self.vertex_rule() else ())
-        return [dataclasses.replace(a, bands=self.bands, layout=self.layout) for a in ladder]
+        return [dataclasses.replace(a, bands=self.bands, layout=self.layout) for a in DEFAULT_LADDER]
 
     def vertex_rule(self) -> bool:
         """True where the spec sizes by the error reached against per-vertex PRT (rule "vertex")."""
@@ -192,12 +190,6 @@ def _architecture(d: dict, bands: int, where: str, layout: str = "direct") -> Ar
         bands=bands,
         layout=layout,
     )
-
-
-# A size past the default ladder's k = 128, l = 4 that the "vertex" rule may grow to (0.5 MB of fp32
-# weights with bounces): a dense mesh's per-vertex PRT leaves room for it.  Not larger: k = 256 would
-# fit at about 0.3 s a step (batch 8192) on two cores, 5 minutes a fit at the standard preset's steps.
-VERTEX_LADDER = (Architecture(hidden=192, layers=4, pos_freqs=6),)
 
 
 # The MLP sizes a grid build right-sizes over by default (the study's, docs/benchmarks/grid_encoding.md).

@@ -31,17 +31,22 @@ _SMALL_LADDER = [
     {"hidden": 64, "layers": 3, "pos_freqs": 6},
 ]
 
+# The high preset's ladder: the default one and a size past k = 128, l = 4 (0.5 MB of fp32 weights with
+# bounces), room a dense mesh's per-vertex PRT leaves; it fits at about 0.2 s a step (batch 8192) on two cores.
+_HIGH_LADDER = [*_SMALL_LADDER, {"hidden": 64, "layers": 4, "pos_freqs": 6}, {"hidden": 128, "layers": 4, "pos_freqs": 6},
+                {"hidden": 192, "layers": 4, "pos_freqs": 6}]
+
 PRESETS: dict[str, dict] = {
     # A first look at a new mesh in minutes: a tenth of the samples, half the rays, short fits, networks up to k64-l3.
     "draft": {"samples": 100_000, "rays": 256, "segments": 8, "steps": 400, "batch": 4096, "bounce_rays": 16,
               "vertex_margin": 1.0, "ladder": _SMALL_LADDER},
-    # The default.  The paper's rays; half its samples and steps: the fits of the old default (1M samples,
-    # 2000 steps, --match 64x4) took 1,633 of a 15k-vertex scan's 1,881 s (issue 35), twice the 15 minutes aimed at.
-    "standard": {"samples": 500_000, "rays": 512, "segments": 8, "steps": 1000, "batch": 8192, "bounce_rays": 32,
+    # The default.  The paper's rays; half its samples and steps, half the batch: the fits of the old default
+    # (1M samples, 2000 steps of 8192, --match 64x4) took 1,633 of a 15k-vertex scan's 1,881 s (issue 35).
+    "standard": {"samples": 500_000, "rays": 512, "segments": 8, "steps": 1000, "batch": 4096, "bounce_rays": 32,
                  "vertex_margin": 1.0, "ladder": None},
     # The paper's samples and steps, twice its rays and leaves, twice the bounce rays, a 2 dB margin.
     "high": {"samples": 1_000_000, "rays": 1024, "segments": 16, "steps": 2000, "batch": 8192, "bounce_rays": 64,
-             "vertex_margin": 2.0, "ladder": None},
+             "vertex_margin": 2.0, "ladder": _HIGH_LADDER},
 }
 """Quality name -> the flat build-spec fields it sets (:meth:`prt.train.build.BuildSpec.to_dict`)."""
 
@@ -78,7 +83,7 @@ def differences(spec: dict) -> dict:
 def describe(quality: str) -> str:
     """One line of a preset's values, for ``--help``."""
     p = PRESETS[quality]
-    top = (p["ladder"] or [{"hidden": 192, "layers": 4}])[-1]  # the default ladder and the "vertex" rule's extra size
+    top = (p["ladder"] or [{"hidden": 128, "layers": 4}])[-1]  # None: the default ladder (prt.train.networks.fit.DEFAULT_LADDER)
     return (f"{p['samples'] // 1000:,}k samples x {p['rays']} rays, {p['segments']} leaves, {p['steps']} steps of {p['batch']}, "
             f"{p['bounce_rays']} bounce rays, networks up to k{top['hidden']}-l{top['layers']} sized to beat vertex PRT by "
             f"{p['vertex_margin']:g} dB")
