@@ -315,16 +315,16 @@ _ENDED = {"error": "margin", "bytes": "bytes", "ladder": "ladder"}
 def print_report(report: dict, out: Path) -> None:
     """The build's summary table: per segment its size, errors, cost; the sizing rule's outcome; memory; time."""
     vertex = "sizing" in report
+    sizes = [(r["arch_label"] if r["kind"] == "network" else "analytic") + ("*" if r["kind"] == "network" and not r.get("met_target", True) else "")
+             for r in report["segments"]]  # fmt: skip
+    width = max([14, *map(len, sizes)])
     print()
-    print(f"{'seg':>3} {'samples':>9} {'kind/size':>14} {'val MAE':>9} {'shaded err %':>24} {'FLOPs/frag':>11} {'bytes':>8}"
+    print(f"{'seg':>3} {'samples':>9} {'kind/size':>{width}} {'val MAE':>9} {'shaded err %':>18} {'FLOPs/frag':>11} {'bytes':>9}"
           + (f" {'vs vertex':>9} {'ended':>6}" if vertex else ""))  # fmt: skip
-    for r in report["segments"]:
-        size = r["arch_label"] if r["kind"] == "network" else "analytic"
-        if r["kind"] == "network" and not r.get("met_target", True):
-            size += "*"
+    for r, size in zip(report["segments"], sizes):
         shaded = " ".join(f"{100 * v:5.2f}" for v in r["shaded"].values())
-        extra = f" {r['vertex']['gain_db']:>+8.2f}d {_ENDED[r['vertex']['ended']]:>6}" if vertex and "vertex" in r else ""
-        print(f"{r['id']:>3} {r['samples']:>9,} {size:>14} {r['val_mae']:>9.5f} {shaded:>24} {r['flops_per_fragment']:>11,} {r['weight_bytes']:>8,}"
+        extra = f" {r['vertex']['gain_db']:>+6.2f} dB {_ENDED[r['vertex']['ended']]:>6}" if vertex and "vertex" in r else ""
+        print(f"{r['id']:>3} {r['samples']:>9,} {size:>{width}} {r['val_mae']:>9.5f} {shaded:>18} {r['flops_per_fragment']:>11,} {r['weight_bytes']:>9,}"
               + extra)  # fmt: skip
     names = ", ".join(report["segments"][0]["shaded"]) if report["segments"] else ""
     print(f"shaded error: relative MAE of dot(T, L) on held-out samples under the bundled env maps ({names})")
@@ -337,7 +337,7 @@ def print_report(report: dict, out: Path) -> None:
                  "bytes": "vertex PRT's bytes reached before the margin", "ladder": "the largest network size reached before the margin"}[z["ended"]]
         print(f"sizing: networks {z['gain_db']:+.2f} dB over the per-vertex PRT estimate on {z['held_out_samples']:,} held-out samples "
               f"(worst light {light}: {z['network_psnr_db'].get(light, 0):.2f} vs {z['vertex_psnr_db'].get(light, 0):.2f} dB), "
-              f"{z['network_bytes']:,} vs {z['vertex_bytes']:,} bytes; ended: {ended}")  # fmt: skip
+              f"{z['network_bytes']:,} vs {z['vertex_bytes']:,} bytes of per-vertex transfer with its back sides; ended: {ended}")  # fmt: skip
     preset = report.get("preset") or {}
     if preset.get("quality"):
         changed = ", ".join(f"{k} {v[1]}" for k, v in preset.get("differs", {}).items())
