@@ -124,7 +124,16 @@ def rows_of(report: dict, timing: dict) -> list[dict]:
 
 
 def markdown(result: dict) -> str:
-    lines = ["| mesh | vertices | quality | build s (CPU s) | others' CPU share | estimate: gain dB (ended) | light | networks dB | vertex dB | gain | "
+    prov = result.get("provenance", {})
+    lines = [f"Made by `{prov.get('command', 'python studies/builds_vs_vertex.py')}` ({prov.get('date', '?')}, {result.get('cpu', '?')}, "
+             f"{result.get('cores', '?')} cores; from `{Path(str(result.get('json', 'presets.json'))).name}`).", "",
+             "Build s: wall-clock seconds of `prt-train` under `nice` with `--threads 1`; CPU s: the build's own CPU time (on an idle "
+             "machine a one-thread build's wall time is about its CPU time); others' CPU share: the share of the cores other "
+             "processes took during the build (`prt.bench.machine`).  Estimate: `build.json`'s held-out sizing summary (dB over the "
+             "per-vertex PRT estimate, worst bundled light; where sizing ended).  Then `prt-bench`'s diffuse PSNR of view images "
+             "(networks, per-vertex PRT with the same bounces at the build's rays per vertex, per-vertex PRT on the mesh decimated to "
+             "the networks' bytes), and the reference's own noise.", "",
+             "| mesh | vertices | quality | build s (CPU s) | others' CPU share | estimate: gain dB (ended) | light | networks dB | vertex dB | gain | ""| mesh | vertices | quality | build s (CPU s) | others' CPU share | estimate: gain dB (ended) | light | networks dB | vertex dB | gain | "
              "bytes / vertex bytes | equal-bytes vertex dB (vertices) | gain at equal bytes | reference noise dB |",
              "|---|---:|---|---:|---:|---|---|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
     for b in result["builds"]:
@@ -154,11 +163,17 @@ def main(argv=None) -> int:
     p.add_argument("--ref-hit-rays", type=int, default=256)
     p.add_argument("--ref-hit-transfer-rays", type=int, default=32)
     p.add_argument("--no-bench", action="store_true", help="time the builds only")
+    p.add_argument("--md-only", action="store_true", help="write --md from --json's records, measure nothing")
     p.add_argument("--extra", nargs="*", default=[], help="more prt-train flags, the same for every build")
     args = p.parse_args(argv)
-    result = {"provenance": provenance(), "cpu": cpu_name(), "cores": os.cpu_count(), "builds": []}
+    result = {"provenance": provenance(), "cpu": cpu_name(), "cores": os.cpu_count(), "json": str(args.json), "builds": []}
     if args.json.is_file():  # resume: keep what was measured
-        result["builds"] = json.loads(args.json.read_text()).get("builds", [])
+        kept = json.loads(args.json.read_text())
+        result["builds"] = kept.get("builds", [])
+        if args.md_only:
+            if args.md:
+                atomic_write_bytes(args.md, markdown({**kept, "json": str(args.json)}).encode())
+            return 0
     done = {(b["timing"]["mesh"], b["timing"]["quality"]) for b in result["builds"] if "rows" in b or args.no_bench}
     for mesh in args.meshes:
         for quality in args.quality:
