@@ -138,7 +138,7 @@ def estimate_vertex_prt(geometry, samples: dict, folder, *, rays: int, bands: in
     points, normals, front_row, back_row = vertex_samples(geometry)
     n = bands * bands
     direct = compute_transfer(geometry, points, normals, rays=rays, bands=bands, seed=seed, chunk_size=chunk_size, threads=threads,
-                              cache_dir=Path(folder), progress=progress, tracer=tracer, executor=executor)  # fmt: skip
+                              cache_dir=Path(folder), progress=progress, tracer=tracer, executor=executor, progress_stage="vertices")  # fmt: skip
     transfer = np.asarray(samples["transfer"], dtype=np.float32)
     values = direct
     if transfer.shape[1] > n:  # "direct+rgb": the indirect part from the nearest training samples
