@@ -53,7 +53,7 @@ __all__ = ["BuildSpec", "SpecLimits", "SPEC_LIMITS", "load_spec", "spec_from_dic
 
 ENV_LIGHTS = tuple(BUNDLED_ENVMAPS)  # the shaded-error lightings, in the bundled order
 TRAIN_FORMAT = 2  # 2: a fixed-size build keeps a segment analytic only where as accurate as its network
-VERTEX_RULE_VERSION = "vertex-v1"  # the "vertex" rule's part of a segment's cache key: raise it when the estimate changes
+VERTEX_RULE_VERSION = "vertex-v2"  # v2: the estimate's indirect part by the bounce estimator on the vertices  # the "vertex" rule's part of a segment's cache key: raise it when the estimate changes
 FIT_FORMAT = 2  # layout of the fit cache (precompute/fits/); 2: trained by steps
 
 # The precompute settings a build spec sets, by their flat names (chunk_size is not a spec field).
@@ -528,8 +528,9 @@ def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log
     vertex = None
     if spec.vertex_rule():
         display.begin("vertices", "vertex transfer")
-        vertex = estimate_vertex_prt(geometry, samples, out / "precompute" / "cache" / "vertices", rays=spec.precompute.rays, bands=spec.bands,
-                                     seed=spec.seed, chunk_size=spec.precompute.chunk_size, executor=executor, threads=threads,
+        vertex = estimate_vertex_prt(geometry, out / "precompute" / "cache" / "vertices", rays=spec.precompute.rays, bands=spec.bands,
+                                     seed=spec.seed, chunk_size=spec.precompute.chunk_size, bounces=spec.bounces,
+                                     face_albedo=face_albedo if spec.bounces else None, executor=executor, threads=threads,
                                      progress=display, log=log)  # fmt: skip
         display.finish("vertices")
     vertex_s = time.perf_counter() - t0

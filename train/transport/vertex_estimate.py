@@ -11,10 +11,13 @@ own data:
   ``prt-bench``'s vertex baseline stores them (:func:`vertex_samples`);
 - their **direct transfer** is ray traced at the build's rays per sample and seed (chunked and
   cached beside the precompute, :func:`prt.train.transport.transfer.compute_transfer`);
-- their **indirect transfer** (builds with bounces) is the mean of the :data:`NEIGHBOURS`
-  training samples nearest in (position, normal) (:data:`~prt.train.transport.interreflection.NORMAL_WEIGHT`
-  as in the bounce lookup): indirect light is smooth, and so the estimate does not trace bounce
-  rays of its own (``prt-bench`` does, on the vertices, with the build's bounce estimator);
+- their **indirect transfer** (builds with bounces) is the build's bounce estimator run on the
+  vertex samples alone, as ``prt-bench``'s baseline with the same bounces computes it: each
+  vertex sample shoots the build's rays per sample as bounce rays, every hit takes the previous
+  bounce of the vertex sample nearest to it, N sparse products (:func:`vertex_indirect`; so the
+  estimate carries no information beyond the vertices, as per-vertex PRT does not).  A first
+  version took the indirect part from the nearest training samples instead: more accurate than
+  per-vertex PRT's own, it set the bar too high (``docs/benchmarks/presets.md``);
 - a held-out sample's vertex PRT value is the **barycentric interpolation** of its triangle's
   three vertex rows (the back rows where the sample is on an open face's back side), which is
   what the rasteriser does (:meth:`VertexEstimate.predict`; a per-sample loop is its twin in the
@@ -33,10 +36,7 @@ import numpy as np
 
 from ...runtime.normals import vertex_normals
 
-__all__ = ["NEIGHBOURS", "vertex_samples", "VertexEstimate", "estimate_vertex_prt", "barycentric"]
-
-# Training samples whose indirect transfer a vertex sample averages (about 8 x 32 bounce rays).
-NEIGHBOURS = 8
+__all__ = ["vertex_samples", "vertex_indirect", "VertexEstimate", "estimate_vertex_prt", "barycentric"]
 
 
 def vertex_samples(geometry) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -60,6 +60,33 @@ def vertex_samples(geometry) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
     back[open_vertices] = len(used) + np.arange(len(open_vertices))
     points = np.concatenate([vertices[used], vertices[open_vertices]])
     return points, np.concatenate([normals[used], -normals[open_vertices]]), front, back
+
+
+def vertex_indirect(geometry, points, normals, direct, face_albedo, bounces: int, *, rays: int, seed: int = 0) -> np.ndarray:
+    """Indirect transfer ``T_1 + ... + T_N`` of the vertex samples by the build's bounce estimator on them alone.
+
+    Parameters
+    ----------
+    geometry : a mesh scene
+    points, normals : (S, 3)
+        The samples (:func:`vertex_samples`); their rays gather each other's previous bounce.
+    direct : (S, n)
+        Their direct transfer.
+    face_albedo : (F, 3)
+    bounces : N >= 0
+    rays : bounce rays per sample
+
+    Returns
+    -------
+    (S, n, 3) float32
+    """
+    from .interreflection import interreflect, trace_bounce_rays
+
+    direct = np.asarray(direct, dtype=np.float64)
+    if int(bounces) <= 0 or len(points) == 0:
+        return np.zeros(direct.shape + (3,), dtype=np.float32)
+    found = trace_bounce_rays(geometry.mesh, points, normals, rays=int(rays), seed=int(seed))
+    return (interreflect(direct, found, face_albedo, int(bounces)) - direct[:, :, None]).astype(np.float32)
 
 
 def barycentric(points: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -115,38 +142,42 @@ class VertexEstimate:
         return out.astype(np.float32)
 
 
-def estimate_vertex_prt(geometry, samples: dict, folder, *, rays: int, bands: int, seed: int, chunk_size: int, executor=None,
-                        threads: int | None = None, progress=False, tracer=None, log=print) -> VertexEstimate:  # fmt: skip
+def estimate_vertex_prt(geometry, folder, *, rays: int, bands: int, seed: int, chunk_size: int, bounces: int = 0, face_albedo=None,
+                        executor=None, threads: int | None = None, progress=False, tracer=None, log=print) -> VertexEstimate:  # fmt: skip
     """Per-vertex transfer of ``geometry`` (a mesh scene) for the build's sizing rule (module docstring).
 
     Parameters
     ----------
     geometry : prt.train.inputs.geometry.Geometry
-    samples : dict
-        The build's training samples: ``points``, ``normals`` (S, 3) and ``transfer`` (S, n) or, after
-        the bounce stage, (S, 4 n) ("direct+rgb": its indirect part is averaged onto the vertices).
     folder : path
-        Chunk cache of the vertices' direct transfer (``compute_transfer``'s ``cache_dir``).
-    rays, bands, seed, chunk_size : of the build's precompute (rays per vertex sample).
+        Chunk cache of the vertices' direct transfer (``compute_transfer``'s ``cache_dir``) and their
+        indirect transfer (one file, keyed by its inputs).
+    rays, bands, seed, chunk_size : of the build's precompute (rays per vertex sample, direct and bounce rays).
+    bounces, face_albedo : N > 0 and (F, 3): the "direct+rgb" layout with N bounces (:func:`vertex_indirect`).
     progress : bool or a :class:`prt.train.progress.BuildProgress`
     """
-    from scipy.spatial import cKDTree
+    import hashlib
 
-    from .interreflection import NORMAL_WEIGHT
+    from ...runtime.files import atomic_save_npz
     from .transfer import compute_transfer
 
     points, normals, front_row, back_row = vertex_samples(geometry)
     n = bands * bands
     direct = compute_transfer(geometry, points, normals, rays=rays, bands=bands, seed=seed, chunk_size=chunk_size, threads=threads,
                               cache_dir=Path(folder), progress=progress, tracer=tracer, executor=executor, progress_stage="vertices")  # fmt: skip
-    transfer = np.asarray(samples["transfer"], dtype=np.float32)
     values = direct
-    if transfer.shape[1] > n:  # "direct+rgb": the indirect part from the nearest training samples
-        key = np.concatenate([samples["points"], NORMAL_WEIGHT * _unit(samples["normals"])], axis=1)
-        k = min(NEIGHBOURS, len(key))
-        _, near = cKDTree(key).query(np.concatenate([points, NORMAL_WEIGHT * _unit(normals)], axis=1), k=k, workers=threads or -1)
-        near = np.asarray(near).reshape(len(points), k)
-        values = np.concatenate([direct, transfer[near, n:].mean(axis=1)], axis=1)
+    if bounces > 0:  # "direct+rgb": [direct, indirect R, G, B], cached (its rays are not chunked)
+        digest = hashlib.sha1(np.ascontiguousarray(direct).tobytes())
+        digest.update(np.ascontiguousarray(face_albedo, np.float64).tobytes())
+        digest.update(f"|{bounces}|{rays}|{seed}|{len(points)}".encode())
+        path = Path(folder) / f"indirect-{digest.hexdigest()[:16]}.npz"
+        try:
+            with np.load(path) as data:
+                indirect = data["indirect"]
+        except (OSError, ValueError, KeyError, EOFError):  # missing or damaged: computed again
+            indirect = vertex_indirect(geometry, points, normals, direct, face_albedo, bounces, rays=rays, seed=seed)
+            atomic_save_npz(path, indirect=indirect)
+        values = np.concatenate([direct, indirect.transpose(0, 2, 1).reshape(len(points), -1)], axis=1)
     width = values.shape[1]
     count = len(geometry.mesh.vertices)
     front = np.zeros((count, width), dtype=np.float32)
@@ -156,12 +187,8 @@ def estimate_vertex_prt(geometry, samples: dict, folder, *, rays: int, bands: in
     has_back = back_row >= 0
     back[has_back] = values[back_row[has_back]]
     weight_bytes = 4 * width * (count + int(has_back.sum()))
-    log(f"vertex PRT estimate: {len(points):,} vertex samples x {rays} rays, {weight_bytes:,} bytes")
+    log(f"vertex PRT estimate: {len(points):,} vertex samples x {rays} rays{f', {bounces} bounce(s)' if bounces else ''}, {weight_bytes:,} bytes")
     return VertexEstimate(front=front, back=back, vertices=np.asarray(geometry.mesh.vertices, dtype=np.float64),
                           faces=np.asarray(geometry.mesh.faces, dtype=np.int64), two_sided=np.asarray(geometry.two_sided, dtype=bool),
                           weight_bytes=weight_bytes, rays=int(rays))  # fmt: skip
 
-
-def _unit(v) -> np.ndarray:
-    v = np.asarray(v, dtype=np.float64)
-    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
