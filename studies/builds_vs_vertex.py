@@ -145,7 +145,8 @@ def markdown(result: dict) -> str:
             lines.append(f"| {Path(t['mesh']).name} | {t['vertices']:,} | {t['quality']} | {t['wall_s']:.0f} ({t['cpu_s']:.0f}) | {t['other_cpu_share']} | "
                          f"{estimate} | {light} | {r.get('psnr_db', '-')} | {r.get('vertex_psnr_db', '-')} | {r.get('gain_db', '-')} | "
                          f"{r.get('weight_bytes', 0) / max(r.get('vertex_bytes', 1), 1):.2f} | {eq[0]} | {eq[1]} | {r.get('ref_noise_db', '-')} |")
-    return "\n".join(lines) + "\n"
+    notes = [f"- {Path(b['timing']['mesh']).name} {b['timing']['quality']}: {b['note']}" for b in result["builds"] if b.get("note")]
+    return "\n".join(lines + ([""] + notes if notes else [])) + "\n"
 
 
 def main(argv=None) -> int:
