@@ -85,6 +85,12 @@ def test_bad_presets_and_margins_are_one_line_errors(data, message):
         spec_from_dict({"geometry": "x.obj", **data})
 
 
+def test_epochs_alone_keep_the_epoch_based_run(tmp_path):
+    spec = _cli_spec("m.obj", "-o", tmp_path / "o", "--epochs", "3")
+    assert spec.epochs == 3 and spec.steps is None  # not the preset's steps: "at least 3 passes" would be a longer run
+    assert _cli_spec("m.obj", "-o", tmp_path / "o", "--epochs", "3", "--steps", "50").steps == 50
+
+
 def test_resolve_leaves_given_fields_alone():
     data = resolve({"geometry": "x", "quality": "draft", "samples": 10, "ladder": None})
     assert data["samples"] == 10 and data["ladder"] == PRESETS["draft"]["ladder"] and data["rays"] == PRESETS["draft"]["rays"]

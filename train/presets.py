@@ -69,6 +69,8 @@ def resolve(data: dict) -> dict:
     if names_rule:  # (a margin of its own keeps the preset's ladder)
         preset.pop("vertex_margin", None)
         preset.pop("ladder", None)
+    if data.get("epochs") is not None and data.get("steps") is None:
+        preset.pop("steps", None)  # epochs alone: the old epoch-based run (prt.train.networks.fit.FitSettings)
     filled = {k: v for k, v in preset.items() if v is not None and data.get(k) is None}
     return {**data, **filled, "quality": quality}
 
