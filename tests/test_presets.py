@@ -92,8 +92,9 @@ def test_epochs_alone_keep_the_epoch_based_run(tmp_path):
 
 
 def test_resolve_leaves_given_fields_alone():
-    data = resolve({"geometry": "x", "quality": "draft", "samples": 10, "ladder": None})
+    data = resolve({"geometry": "x", "quality": "draft", "samples": 10, "steps": None})
     assert data["samples"] == 10 and data["ladder"] == PRESETS["draft"]["ladder"] and data["rays"] == PRESETS["draft"]["rays"]
+    assert data["steps"] is None  # given as null: the library's default, as in an old build.json
 
 
 def test_help_is_grouped_by_stage_with_the_preset_first():

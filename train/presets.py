@@ -57,7 +57,7 @@ RULE_FIELDS = ("fixed", "ladder", "match", "target", "target_db", "vertex_margin
 
 def resolve(data: dict) -> dict:
     """``data`` (flat spec fields as given: a spec file's, the flags') with its preset's values
-    filled in where it gives none (or None), and ``quality`` set.
+    filled in where it leaves a field out, and ``quality`` set.
 
     The quality is ``data["quality"]`` or :data:`DEFAULT_QUALITY`; an unknown one is left for
     the spec check to refuse.  A spec naming a sizing rule (:data:`RULE_FIELDS`, or an encoding
@@ -71,7 +71,8 @@ def resolve(data: dict) -> dict:
         preset.pop("ladder", None)
     if data.get("epochs") is not None and data.get("steps") is None:
         preset.pop("steps", None)  # epochs alone: the old epoch-based run (prt.train.networks.fit.FitSettings)
-    filled = {k: v for k, v in preset.items() if v is not None and data.get(k) is None}
+    # absent fields only: a field given as null keeps its meaning (an old build.json's "steps": null, DEFAULT_STEPS)
+    filled = {k: v for k, v in preset.items() if v is not None and k not in data}
     return {**data, **filled, "quality": quality}
 
 
