@@ -180,9 +180,9 @@ def test_prt_train_draws_one_line_for_the_whole_build_on_a_terminal_and_nothing_
     assert proc.returncode == 0
     text = "".join(chunks)
     lines = [part for part in text.split("\r") if part.startswith("[")]
-    assert any("precompute:" in s for s in lines) and any("bounces:" in s for s in lines)
-    assert any("fits:" in s for s in lines) and any("export:" in s for s in lines)
-    assert any("vertices:" in s for s in lines)  # the vertex estimate's rays under their own stage
+    for stage in ("precompute", "bounces", "vertices", "fits", "export"):  # the vertex estimate's rays under their own stage
+        assert any(f"| {stage}" in s for s in lines), stage
+    assert any("| precompute: transfer" in s for s in lines) and any("| fits: segment 0" in s for s in lines)
     shares = [int(s.split("]")[1].split("%")[0]) for s in lines]
     assert shares[-1] >= 90 and shares == sorted(shares)  # one display from start to end, never restarting
     piped = subprocess.run([*args, "-o", str(tmp_path / "pipe")], capture_output=True, text=True)

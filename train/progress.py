@@ -176,11 +176,12 @@ class BuildProgress:
         with self._lock:
             if self.current != stage:
                 self.begin(stage)
-            self.detail = label
             handle = _Handle(self, stage, label, total, unit_cost)
             if initial:
                 handle.n = initial
                 self.add(stage, initial * unit_cost, cached=True)
+            self.detail = handle._detail()
+            self._draw(force=True)  # a new piece of work shows at once, however short
             return handle
 
     # ---------------------------------------------------------------- the line
