@@ -53,6 +53,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--baseline-rays", type=int, default=None, metavar="N",
                    help="rays per vertex / texel of the vertex and texture baselines' direct transfer and bounces, e.g. the "
                         "build's own --rays, so a quieter reference does not also raise the baselines (default: --ref-rays)")  # fmt: skip
+    p.add_argument("--equal-bytes", action="store_true",
+                   help="also measure the vertex baseline at the build's bytes: per-vertex PRT of the mesh decimated until its "
+                        "transfer takes the networks' fp32 bytes, resampled onto the full mesh (the paper's storage argument)")
     p.add_argument("--warmup", type=int, default=3, help="frames before timing each configuration (default 3)")
     p.add_argument("--packing-views", type=int, default=None, metavar="N",
                    help="views of the naive-vs-packed baseline, spread over the orbit (default: all; the naive path "
@@ -113,7 +116,7 @@ def main(argv=None) -> int:
         cache = args.json.parent / f"{args.json.stem}_cache"
     settings = Settings(
         views=args.views, sizes=tuple(args.size), ref_rays=args.ref_rays, ref_rays_max=args.ref_rays_max, warmup=args.warmup, config_budget=args.config_budget,
-        baseline_rays=args.baseline_rays,
+        baseline_rays=args.baseline_rays, equal_bytes=args.equal_bytes,
         packing_views=args.packing_views,
         precisions=tuple(dict.fromkeys(args.precisions)), backends=tuple(args.backends), cache=cache,
         interpolate=tuple(dict.fromkeys(args.interpolate)),

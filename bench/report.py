@@ -131,7 +131,9 @@ def _pyplot():
 
 
 def _backend_cell(record: dict) -> str:
-    """The backend column: the texture baseline names its texture size."""
+    """The backend column: the texture baseline names its texture size, the equal-bytes vertex baseline its vertices."""
+    if record.get("equal_bytes"):
+        return f"vertex at equal bytes ({record['equal_bytes']['vertices']:,} vertices)"
     if "texture_size" in record:
         return f"texture {record['texture_size']}^2"
     if record.get("interpolate"):  # screen-space interpolation: its tolerance and the share of pixels that ran a network

@@ -84,6 +84,7 @@ class Settings:
     ref_hit_rays: int = HIT_RAYS  # interreflection reference: bounce rays per pixel (bench/bounce_reference.py)
     ref_hit_transfer_rays: int = HIT_TRANSFER_RAYS  # and rays of the direct transfer at each hit
     baseline_rays: int | None = None  # rays per vertex / texel of the vertex and texture baselines (None: ref_rays)
+    equal_bytes: bool = False  # also the vertex baseline on the mesh decimated to the build's bytes (bench/equal_bytes.py)
 
     @property
     def rays_of_baselines(self) -> int:
@@ -348,6 +349,21 @@ class SceneBench:
                  f"{f' ({seconds:.1f} s)' if seconds else ' (cached)'}")  # fmt: skip
         return front, back
 
+    def _equal_bytes(self):
+        """``--equal-bytes``: (front, back, info) of the vertex baseline on the mesh decimated to the build's
+        bytes (:mod:`prt.bench.equal_bytes`), computed once per scene; None without the option."""
+        if not self.settings.equal_bytes:
+            return None
+        if getattr(self, "_equal", None) is None:
+            from prt.bench.equal_bytes import equal_bytes_vertex
+
+            albedo = self.bounce_albedo if self.bounce_albedo is not None else np.zeros((len(self.geometry.mesh.faces), 3))
+            self._equal = equal_bytes_vertex(self.geometry, self.weights["fp32"], width=64 if self.bounces > 0 else 16, bounces=self.bounces,
+                                             face_albedo=albedo, rays=self.settings.rays_of_baselines, seed=self.settings.seed,
+                                             cache=self.transfer_cache, geometry_id=self.geometry_id, log=self.log)  # fmt: skip
+            self.entry["vertex_baseline"]["equal_bytes"] = self._equal[2]
+        return self._equal
+
     def _references(self, renderer, size: int) -> list:
         """The views at ``size``: G-buffers, reference images (cached transfer) and the reference's noise.
 
@@ -480,6 +496,9 @@ class SceneBench:
         variants = [("direct", self.vertex_data, info["weight_bytes"])]
         if self.vertex_bounced is not None:  # beside the direct rows: the same N bounces as the networks
             variants.append((transfer_label(self.bounces), self.vertex_bounced, info["bounces"]["weight_bytes"]))
+        equal = self._equal_bytes()
+        if equal is not None:  # at the build's bytes, with the networks' transfer
+            variants.append(("equal bytes", equal[:2], equal[2]["weight_bytes"]))
         for transfer, data, weight_bytes in variants:
             vertex = VertexPRT(self.ctx, self.geometry, *data, size, size)
             try:
@@ -490,10 +509,11 @@ class SceneBench:
                         covered = view.gbuffer.covered
                         agreement.append(np.logical_and(drawn, covered).sum() / max(covered.sum(), 1))
                     info.setdefault("coverage_agreement", {})[resolution] = round(float(np.min(agreement)), 5)
+                decimated = {k: equal[2][k] for k in ("vertices", "faces", "target_bytes")} if transfer == "equal bytes" else None
                 for name, material in self.materials.items():
                     summary = _measure_vertex(vertex, gbuffer_pass, views, name, material, lighting, self.settings)
-                    summary.update(achieved_gflops=0.0, transfer_max_abs_diff=None)
-                    self._add(common, "vertex", "fp32", name, summary, weight_bytes, transfer)
+                    summary.update(achieved_gflops=0.0, transfer_max_abs_diff=None, **({"equal_bytes": decimated} if decimated else {}))
+                    self._add(common, "vertex", "fp32", name, summary, weight_bytes, transfer_label(self.bounces) if decimated else transfer)
             finally:
                 vertex.release()
 
@@ -513,6 +533,8 @@ def _record(common, backend, precision, material, summary, weight_bytes, noise_p
     carries = "" if backend not in ("vertex", "texture") or record["transfer"] == "direct" else f" {record['transfer']}"
     interpolate = f" interpolate {record['interpolate']:g}" if record.get("interpolate") else ""
     record["label"] = f"{backend} {precision}{interpolate} {material}" if backend == "onnx" else f"{backend}{carries} {material}"
+    if record.get("equal_bytes"):  # the vertex baseline on the mesh decimated to the build's bytes
+        record["label"] = f"vertex equal-bytes{carries} {material}"
     if "texture_size" in record:
         record["label"] = f"{backend} {record['texture_size']}{carries} {material}"
     record.setdefault("transfer_max_abs_diff", None)

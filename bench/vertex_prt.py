@@ -34,7 +34,7 @@ from prt.runtime.files import atomic_save_npz
 from prt.runtime.gl import bind_framebuffer
 from prt.runtime.normals import vertex_normals
 from prt.shaders import assemble
-from prt.train.transport.interreflection import interreflect, trace_bounce_rays
+from prt.train.transport.vertex_estimate import vertex_indirect, vertex_samples  # the build's estimate computes them alike
 
 __all__ = ["VertexPRT", "vertex_transfer", "vertex_samples", "vertex_indirect", "cached_vertex_indirect", "vertex_bounce_transfer",
            "ESTIMATOR_VERSION"]
@@ -127,54 +127,6 @@ class VertexPRT:
         bind_framebuffer(self.ctx, None)
         for obj in (*self.vaos, *self.vbos, self.program, self.fbo, self.depth, *self.textures):
             obj.release()
-
-
-def vertex_samples(geometry) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The vertex PRT's own samples: the front of every used vertex, then the back of the open faces' vertices.
-
-    Returns
-    -------
-    points, normals : (S, 3) float32
-        Position and (front or reversed) area-weighted vertex normal of each sample.
-    front, back : (V,) int64
-        Row of each vertex's front / back sample in ``points``, -1 where it has none (an unused
-        vertex; a back side only where an open face uses the vertex).
-    """
-    vertices = np.asarray(geometry.mesh.vertices, dtype=np.float32)
-    faces = np.asarray(geometry.mesh.faces, dtype=np.int64)
-    normals = vertex_normals(vertices, faces).astype(np.float32)
-    used = np.flatnonzero(np.linalg.norm(normals, axis=1) > 0.0)
-    open_vertices = np.unique(faces[np.asarray(geometry.two_sided, dtype=bool)])
-    front, back = np.full(len(vertices), -1, np.int64), np.full(len(vertices), -1, np.int64)
-    front[used] = np.arange(len(used))
-    back[open_vertices] = len(used) + np.arange(len(open_vertices))
-    points = np.concatenate([vertices[used], vertices[open_vertices]])
-    return points, np.concatenate([normals[used], -normals[open_vertices]]), front, back
-
-
-def vertex_indirect(geometry, points, normals, direct, face_albedo, bounces: int, *, rays: int, seed: int = 0) -> np.ndarray:
-    """Indirect transfer ``T_1 + ... + T_N`` of the vertex samples by the build's bounce estimator (module docstring).
-
-    Parameters
-    ----------
-    geometry : a mesh scene
-    points, normals : (S, 3)
-        The samples (:func:`vertex_samples`); their rays gather each other's previous bounce.
-    direct : (S, n)
-        Their direct transfer.
-    face_albedo : (F, 3)
-    bounces : N >= 0
-    rays : bounce rays per sample
-
-    Returns
-    -------
-    (S, n, 3) float32
-    """
-    direct = np.asarray(direct, dtype=np.float64)
-    if int(bounces) <= 0 or len(points) == 0:
-        return np.zeros(direct.shape + (3,), dtype=np.float32)
-    found = trace_bounce_rays(geometry.mesh, points, normals, rays=int(rays), seed=int(seed))
-    return (interreflect(direct, found, face_albedo, int(bounces)) - direct[:, :, None]).astype(np.float32)
 
 
 def cached_vertex_indirect(cache: Path, geometry, points, normals, direct, face_albedo, bounces: int, *, rays: int, seed: int,

@@ -16,6 +16,7 @@ from prt.runtime.camera import DEFAULT_CAMERA
 from prt.runtime.manifest import load_manifest
 from prt.runtime.errors import SpecError
 from prt.train.build import PRECOMPUTE_FIELDS, BuildSpec, spec_from_dict
+from prt.train.presets import DEFAULT_QUALITY, PRESETS
 from prt.train.networks.fit import DEFAULT_STEPS, FitSettings
 from prt.train.transport.precompute import PrecomputeSettings
 from prt.train.train_cli import main as prt_train_main
@@ -157,7 +158,8 @@ def test_old_specs_with_epochs_load_and_steps_reach_the_fit_settings():
     spec = spec_from_dict({**old, "epochs": 100})
     assert (spec.steps, spec.epochs, spec.time_budget) == (None, 100, None)
     assert spec.fit_settings().plan(80_000)[1:3] == (1000, 10)  # 100 epochs of 10 batches, validated per epoch
-    assert spec_from_dict(old).fit_settings().plan(80_000)[1] == DEFAULT_STEPS
+    assert spec_from_dict(old).fit_settings().plan(80_000)[1] == PRESETS[DEFAULT_QUALITY]["steps"]  # no steps field: the preset's
+    assert spec_from_dict({**old, "steps": None}).fit_settings().plan(80_000)[1] == DEFAULT_STEPS  # "steps": null, as build.json writes it
     settings = spec_from_dict({**old, "steps": 77, "time_budget": 9.5}).fit_settings()
     assert (settings.steps, settings.epochs, settings.max_seconds) == (77, None, 9.5)
     for field, value in (("steps", 0), ("time_budget", 0), ("time_budget", "1"), ("epochs", 1.5)):

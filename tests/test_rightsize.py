@@ -22,6 +22,7 @@ from prt.runtime.errors import SpecError
 from prt.runtime.manifest import load_manifest
 from prt.runtime.shading import tonemap
 from prt.train.build import spec_from_dict
+from prt.train.networks.fit import DEFAULT_LADDER
 from prt.train.networks.grid_encoding import GridArchitecture
 from prt.train.networks.network import Architecture, TransferMLP, evaluate_numpy, target_scaling
 from prt.train.networks.rightsize import candidates, search_cheapest, shaded_psnr
@@ -113,8 +114,11 @@ def test_auto_candidates_mix_both_encodings_cheapest_first():
     kinds = {type(a) for a in archs}
     assert kinds == {Architecture, GridArchitecture}
     assert len({a.label() for a in archs}) == len(archs)
-    assert len(archs) == len(spec_from_dict({"geometry": "x.obj", "bounces": 0}).architectures()) + len(
+    assert len(archs) == len(spec_from_dict({"geometry": "x.obj", "bounces": 0, "target": 0.003}).architectures()) + len(
         spec_from_dict({"geometry": "x.obj", "encoding": "grid", "bounces": 0}).architectures())
+    # the high preset may grow past the frequency ladder's largest size
+    extra = spec_from_dict({"geometry": "x.obj", "bounces": 0, "quality": "high"}).architectures()
+    assert len(extra) == len(DEFAULT_LADDER) + 1 and extra[-1].hidden > max(a.hidden for a in DEFAULT_LADDER)
 
 
 def test_numpy_evaluation_of_a_frequency_network_matches_torch():
@@ -255,23 +259,29 @@ def test_residual_choice_follows_the_mean_visibility():
 
 
 def test_a_spec_naming_no_rule_gets_the_default_rule_and_flags_replace_it(tmp_path):
-    from prt.train.build import DEFAULT_MATCH, DEFAULT_TARGET
+    from prt.train.build import DEFAULT_TARGET
+    from prt.train.presets import PRESETS
     from prt.train.train_cli import _spec_from_args, build_parser
 
-    assert spec_from_dict({"geometry": "x.obj"}).match == DEFAULT_MATCH
+    margin = PRESETS["standard"]["vertex_margin"]
+    assert spec_from_dict({"geometry": "x.obj"}).vertex_margin == margin  # the default: sized against per-vertex PRT
     for named in ({"target": 0.003}, {"target_db": 40}, {"fixed": {"hidden": 16, "layers": 2}}, {"encoding": "grid"},
                   {"ladder": [{"hidden": 16, "layers": 2}]}, {"match": {"hidden": 32, "layers": 3}}):  # fmt: skip
         spec = spec_from_dict({"geometry": "x.obj", **named})
-        assert spec.match == named.get("match"), named
+        assert spec.match == named.get("match") and spec.vertex_margin is None, named
         assert spec.target == named.get("target", DEFAULT_TARGET)
     spec_file = tmp_path / "s.json"
     spec_file.write_text(json.dumps({"geometry": "x.obj"}))
-    for flags, match, target in (([], DEFAULT_MATCH, DEFAULT_TARGET), (["--target", "0.004"], None, 0.004),
-                                 (["--hidden", "16", "--layers", "2"], None, DEFAULT_TARGET), (["--target-db", "38"], None, DEFAULT_TARGET)):  # fmt: skip
+    for flags, margin_, target in (([], margin, DEFAULT_TARGET), (["--target", "0.004"], None, 0.004),
+                                   (["--hidden", "16", "--layers", "2"], None, DEFAULT_TARGET), (["--target-db", "38"], None, DEFAULT_TARGET)):  # fmt: skip
         spec = _spec_from_args(build_parser().parse_args([str(spec_file), "-o", str(tmp_path / "o"), *flags]))
-        assert (spec.match, spec.target) == (match, target), flags
+        assert (spec.vertex_margin, spec.target, spec.match) == (margin_, target, None), flags
     spec_file.write_text(json.dumps({"geometry": "x.obj", "match": {"hidden": 32, "layers": 2}}))  # a spec's own rule stays
-    assert _spec_from_args(build_parser().parse_args([str(spec_file), "-o", str(tmp_path / "o")])).match == {"hidden": 32, "layers": 2}
+    spec = _spec_from_args(build_parser().parse_args([str(spec_file), "-o", str(tmp_path / "o")]))
+    assert spec.match == {"hidden": 32, "layers": 2} and spec.vertex_margin is None
+    # ... until a flag names another
+    spec = _spec_from_args(build_parser().parse_args([str(spec_file), "-o", str(tmp_path / "o"), "--target-db", "38"]))
+    assert spec.match is None and spec.target_db == 38
 
 
 def test_a_fixed_size_keeps_a_segment_analytic_only_where_it_is_as_accurate_as_the_network(tmp_path):

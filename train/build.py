@@ -23,7 +23,6 @@ from typing import Literal
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from ..export.scene import TrainedSegment, export_scene
 from ..runtime.camera import DEFAULT_CAMERA, Camera
@@ -40,15 +39,21 @@ from .executor import LocalExecutor
 from .networks.grid_encoding import DEFAULT_GRID, GridArchitecture, parse_grid
 from .networks.network import Architecture
 from .outdir import check_output_folder, mark_output_folder
+from .presets import QUALITIES
+from .presets import differences as preset_differences
+from .progress import BOUNCE_RAY, EXPORT_SEGMENT, RAY, BuildProgress, step_cost
+from .transport.vertex_estimate import estimate_vertex_prt
+from .presets import resolve as resolve_preset
 from .transport.interreflection import BOUNCE_RAYS, bounce_stage
 from .transport.bounce_depth import auto_bounces
-from .networks.rightsize import RESIDUAL_MODES, SCENE_LIGHT, SegmentJob, candidates, segment_task
+from .networks.rightsize import RESIDUAL_MODES, SCENE_LIGHT, SegmentJob, candidates, scene_sizing, segment_task
 from .transport.precompute import SPEC_LIMITS, DamagedPrecompute, PrecomputeSettings, SpecLimits, check_settings, load_precompute, run_precompute
 
 __all__ = ["BuildSpec", "SpecLimits", "SPEC_LIMITS", "load_spec", "spec_from_dict", "run_build", "ENV_LIGHTS"]
 
 ENV_LIGHTS = tuple(BUNDLED_ENVMAPS)  # the shaded-error lightings, in the bundled order
 TRAIN_FORMAT = 2  # 2: a fixed-size build keeps a segment analytic only where as accurate as its network
+VERTEX_RULE_VERSION = "vertex-v2"  # v2: the estimate's indirect part by the bounce estimator on the vertices  # the "vertex" rule's part of a segment's cache key: raise it when the estimate changes
 FIT_FORMAT = 2  # layout of the fit cache (precompute/fits/); 2: trained by steps
 
 # The precompute settings a build spec sets, by their flat names (chunk_size is not a spec field).
@@ -65,6 +70,8 @@ class BuildSpec:
 
     geometry: str = ""
     name: str = ""
+    # the preset the spec was resolved with (prt.train.presets: its values fill the fields a spec leaves out)
+    quality: str | None = None
     precompute: PrecomputeSettings = field(default_factory=PrecomputeSettings)
     # training (prt.train.networks.fit.FitSettings.plan): ``steps`` Adam steps per network whatever its sample
     # count; ``epochs`` alone (old specs, ``--epochs``): the old epoch-based run; both: steps, with
@@ -81,11 +88,15 @@ class BuildSpec:
     # normal (prt.train.networks.network): "auto" per segment by its mean visibility (prt.train.networks.rightsize), "on", "off"
     residual: str = "auto"
     # validation coefficient MAE a right-sized network must reach (None: DEFAULT_TARGET; a spec
-    # that names no sizing rule gets DEFAULT_MATCH, see spec_from_dict)
+    # that names no sizing rule gets its preset's vertex_margin, prt.train.presets)
     target: float | None = None
     # right-size to a shaded target instead (prt.train.networks.rightsize): the cheapest size whose held-out
     # shaded, tone-mapped PSNR (dB, under the scene lighting, rightsize.SCENE_LIGHT) is at least this
     target_db: float | None = None
+    # right-size by the error reached against per-vertex PRT (prt.train.networks.rightsize, rule "vertex"): per
+    # segment the cheapest size whose held-out shaded PSNR is this many dB above the vertex PRT estimate's,
+    # within the segment's share of vertex PRT's bytes; the default rule of mesh builds
+    vertex_margin: float | None = None
     ladder: list[dict] | None = None  # [{hidden, layers, pos_freqs, normal_freqs}], small to large
     fixed: dict | None = None  # force one size for every network segment
     match: dict | None = None  # right-size to this size's accuracy ({hidden, layers, ...}) instead of ``target``
@@ -142,6 +153,10 @@ class BuildSpec:
         if self.ladder is not None:
             return [_architecture(a, self.bands, f"ladder[{i}]", self.layout) for i, a in enumerate(self.ladder)]
         return [dataclasses.replace(a, bands=self.bands, layout=self.layout) for a in DEFAULT_LADDER]
+
+    def vertex_rule(self) -> bool:
+        """True where the spec sizes by the error reached against per-vertex PRT (rule "vertex")."""
+        return self.vertex_margin is not None
 
     def reference_architecture(self) -> Architecture | None:
         """The size whose accuracy right-sizing matches (``match``), or None (absolute ``target``)."""
@@ -205,11 +220,11 @@ def _grid_architectures(spec: BuildSpec) -> list[GridArchitecture]:
     return out
 
 
-# The default sizing rule, chosen from the measured Pareto front (README, "Default network size";
-# docs/benchmarks/many_networks.md): per segment the cheapest ladder size as accurate as k = 64,
-# l = 4 (within match_tolerance), used when a spec names no rule (fixed, ladder, match, target,
-# target_db, a non-default encoding).  DEFAULT_TARGET: the MAE target of --target / ladder
-# builds, and the cap below which a segment stays analytic under match.
+# The sizing rule of scenes the default rule ("vertex", prt.train.presets) cannot size, having no
+# vertices (SDF and mixed scenes): per segment the cheapest ladder size as accurate as k = 64, l = 4
+# (within match_tolerance), the measured Pareto front's choice (docs/benchmarks/many_networks.md).
+# DEFAULT_TARGET: the MAE target of --target / ladder builds, and the cap below which a segment
+# stays analytic under match.
 DEFAULT_MATCH = {"hidden": 64, "layers": 4}
 DEFAULT_TARGET = 0.0025
 
@@ -262,6 +277,9 @@ def spec_from_dict(data: dict) -> BuildSpec:
     """
     if not isinstance(data, dict):
         raise SpecError(f"expected an object of fields, got {type(data).__name__}")
+    if data.get("quality") is not None and data["quality"] not in QUALITIES:
+        raise SpecError(f"quality: expected one of {', '.join(QUALITIES)}, got {data['quality']!r}")
+    data = resolve_preset(data)
     known = set(_TYPES)
     for key, value in data.items():
         if key not in known:
@@ -299,9 +317,6 @@ def spec_from_dict(data: dict) -> BuildSpec:
     if spec.bounces != "auto" and (isinstance(spec.bounces, str) or not 0 <= spec.bounces <= SPEC_LIMITS.bounces):
         raise SpecError(f"bounces: expected 0 .. {SPEC_LIMITS.bounces} (0: direct light only) or 'auto', got {spec.bounces!r}")
     if spec.target is None:
-        named = any(v is not None for v in (spec.fixed, spec.ladder, spec.match, spec.target_db)) or spec.encoding != "freq"
-        if not named:
-            spec.match = dict(DEFAULT_MATCH)
         spec.target = flat["target"] = DEFAULT_TARGET
     for key, positive in (("lr", True), ("target", False), ("time_budget", True)):
         value = flat[key]
@@ -325,6 +340,14 @@ def spec_from_dict(data: dict) -> BuildSpec:
             if getattr(spec, key) is not None:
                 raise SpecError(f"{key}: not with encoding 'auto' (it right-sizes over the frequency ladder and the grid ladder; "
                                 f"choose encoding 'freq' or 'grid' to set sizes)")  # fmt: skip
+    if spec.vertex_margin is not None:
+        if not (isinstance(spec.vertex_margin, (int, float)) and math.isfinite(spec.vertex_margin) and -20 <= spec.vertex_margin <= 20):
+            raise SpecError(f"vertex_margin: expected dB above the vertex PRT estimate, -20 .. 20, got {spec.vertex_margin!r}")
+        for key in ("fixed", "match", "target_db"):
+            if getattr(spec, key) is not None:
+                raise SpecError(f"vertex_margin: cannot be combined with {key} (one right-sizing rule per build)")
+        if spec.encoding != "freq":
+            raise SpecError(f"vertex_margin: sizes frequency networks only, not encoding {spec.encoding!r}")
     if spec.target_db is not None:
         if isinstance(spec.target_db, bool) or not isinstance(spec.target_db, (int, float)) or not (0 < spec.target_db <= 100):
             raise SpecError(f"target_db: expected a PSNR in dB, 0 < dB <= 100, got {spec.target_db!r}")
@@ -395,9 +418,12 @@ def _hash(*parts) -> str:
     return hashlib.sha1(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress: bool = True, log=print, force: bool = False,
+def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress=True, log=print, force: bool = False,
               executor=None) -> dict:  # fmt: skip
     """Run (or resume) a build; returns the report written to ``build.json``.
+
+    ``progress``: True draws the build's one progress line on a terminal (:class:`prt.train.progress.BuildProgress`;
+    nothing when stderr is not one), False none, or a display of the caller's.
 
     ``executor`` runs the transfer chunks and the segment fits (:mod:`prt.train.executor`;
     default: ``threads`` threads here).  A cluster gives the same bytes and the same caches.
@@ -405,8 +431,20 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
     ``out_dir`` must be new, empty or a scene build of ours unless ``force``
     (:func:`prt.train.outdir.check_output_folder`); it is created once the geometry has loaded.
     """
+    display = progress if isinstance(progress, BuildProgress) else BuildProgress(enabled=bool(progress))
+    if log is print:
+        log = display.log  # log lines above the progress line
+    try:
+        return _run_build(spec, out_dir, threads=threads, display=display, log=log, force=force, executor=executor)
+    finally:
+        if display is not progress:
+            display.close()
+
+
+def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log, force: bool, executor) -> dict:
     t_start = time.perf_counter()
     out = Path(out_dir)
+    progress = display
     if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
         raise SpecError(f"threads: expected a positive integer, got {threads!r}")
     check_output_folder(out, "scene", force=force)
@@ -423,12 +461,26 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
     if spec.bounces == "auto" and geometry.kind != "mesh":  # the default: direct transfer where bounces are not built
         log(f"bounces: auto -> 0 (interreflection is built for triangle meshes; this is {'an SDF' if geometry.kind == 'sdf' else 'a mixed'} scene)")
         spec = dataclasses.replace(spec, bounces=0)
+    if spec.vertex_rule() and geometry.kind != "mesh":  # no vertices to compare with: the measured front's rule
+        log(f"sizing: the vertex PRT rule needs a triangle mesh; this is {'an SDF' if geometry.kind == 'sdf' else 'a mixed'} scene: "
+            f"--match {DEFAULT_MATCH['hidden']}x{DEFAULT_MATCH['layers']} instead")  # fmt: skip
+        spec = dataclasses.replace(spec, vertex_margin=None, match=dict(DEFAULT_MATCH))
     if spec.bounces and geometry.kind != "mesh":
         raise SpecError(f"bounces: interreflection needs a triangle mesh; {spec.geometry!r} is {'an SDF' if geometry.kind == 'sdf' else 'a mixed'} scene (use --bounces 0)")
     mark_output_folder(out, "scene")
 
     # -- stage 1: precompute
     t0 = time.perf_counter()
+    pre = spec.precompute
+    display.expect("precompute", (pre.samples + pre.validation_count()) * pre.rays * RAY)
+    if spec.bounces != 0 and geometry.kind == "mesh":
+        display.expect("bounces", (pre.samples + pre.validation_count()) * spec.bounce_rays * BOUNCE_RAY)
+    if spec.vertex_rule():
+        display.expect("vertices", len(geometry.mesh.vertices) * pre.rays * RAY)
+    display.expect("export", spec.precompute.segments * EXPORT_SEGMENT)
+    per_segment = _expected_fit_work(spec, spec.architectures(), spec.fit_settings(), pre.samples // max(pre.segments, 1))
+    display.plan_fits({s: per_segment for s in range(pre.segments)}, spec.batch)  # revised once the segments are known
+    display.begin("precompute")
     pre_summary = run_precompute(geometry, out / "precompute", spec.precompute, threads=threads, progress=progress, log=log, force=force,
                                      executor=executor)
     try:
@@ -440,6 +492,7 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
                                      executor=executor)
         data = load_precompute(out / "precompute")
     precompute_s = time.perf_counter() - t0
+    display.finish("precompute")
     samples, valid, members = data["samples"], data["validation"], data["members"]
     # -- stage 1b: bounces (interreflection), before fitting; the fits' cache keys follow its settings
     t0 = time.perf_counter()
@@ -466,8 +519,21 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
         interreflection = {"bounces": spec.bounces, "bounce_rays": spec.bounce_rays, "layout": spec.layout, "albedos": albedos,
                            **({"auto": auto} if auto else {})}  # fmt: skip
     bounce_s = time.perf_counter() - t0
+    display.finish("bounces")
     seg_json = data["segments"]
     lights = _env_lights(spec.bands)
+
+    # -- stage 1c: per-vertex PRT estimated on the held-out samples (the "vertex" sizing rule's bar)
+    t0 = time.perf_counter()
+    vertex = None
+    if spec.vertex_rule():
+        display.begin("vertices", "vertex transfer")
+        vertex = estimate_vertex_prt(geometry, out / "precompute" / "cache" / "vertices", rays=spec.precompute.rays, bands=spec.bands,
+                                     seed=spec.seed, chunk_size=spec.precompute.chunk_size, bounces=spec.bounces,
+                                     face_albedo=face_albedo if spec.bounces else None, executor=executor, threads=threads,
+                                     progress=display, log=log)  # fmt: skip
+        display.finish("vertices")
+    vertex_s = time.perf_counter() - t0
 
     # -- stage 2: train; segments are independent tasks (threads here or a cluster), each cached
     t0 = time.perf_counter()
@@ -479,7 +545,8 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
         key = _hash(data_key, s, fit_settings.cache_key(), [a.as_dict() for a in archs], spec.target, spec.analytic, TRAIN_FORMAT,
                     *([spec.residual] if spec.residual != "off" else []),
                     *([spec.match, spec.match_tolerance] if spec.match is not None else []),
-                    *([spec.target_db, spec.material] if spec.target_db is not None else []))  # fmt: skip
+                    *([spec.target_db, spec.material] if spec.target_db is not None else []),
+                    *([spec.vertex_margin, spec.material, VERTEX_RULE_VERSION] if spec.vertex_rule() else []))  # fmt: skip
         record_path = out / "train" / f"seg{s:03d}.json"
         weights_path = out / "train" / f"seg{s:03d}.npz"
         record = _read_record(record_path)
@@ -490,12 +557,15 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
                 continue
         todo.append((seg, key))
     fits_folder = out / "precompute" / "fits"
-    job = SegmentJob(spec, samples, valid, members, archs, fit_settings, lights, progress and executor.local, log if executor.local else None)
+    job = SegmentJob(spec, samples, valid, members, archs, fit_settings, lights, display if executor.local else False,
+                     log if executor.local else None, vertex)  # fmt: skip
     items = []
     for seg, key in todo:  # a cluster gets the fits cached before with its task; its new fits come back
         fits = _FitCache(fits_folder, data_key, seg["id"], fit_settings)
         items.append((seg, key, fits if executor.local else fits.memo([*archs, *filter(None, [spec.reference_architecture()])])))
-    bar = tqdm(total=len(todo), desc="train", unit="segment") if progress and todo and not executor.local else None
+    expected = {seg["id"]: _expected_fit_work(spec, archs, fit_settings, len(members[seg["id"]])) for seg, _ in todo}
+    display.plan_fits(expected, fit_settings.batch)
+    display.begin("fits", f"{len(todo)} segment(s) to fit" if todo else "cached")
     try:  # torch's thread count changes a fit's bytes: a task uses this process's, wherever it runs
         with closing(executor.map(segment_task, job, items, task_threads=torch.get_num_threads(), exclusive=True)) as finished:
             for (seg, _, _), (record, new_fits, lines) in finished:
@@ -509,16 +579,18 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
                     atomic_save_npz(out / "train" / f"seg{s:03d}.npz", **record.pop("arrays"))
                 atomic_write_json(out / "train" / f"seg{s:03d}.json", record)
                 records[s] = record
-                if bar is not None:
-                    bar.update(1)
+                if not executor.local:  # its steps ran elsewhere: the segment's planned work, done now
+                    display.add("fits", expected[s])
+                display.segment_done(s)
     finally:
-        if bar is not None:
-            bar.close()
+        display.finish("fits")
     segments = [records[seg["id"]] for seg in seg_json["segments"]]
     train_s = time.perf_counter() - t0
 
     # -- stage 3: export
     t0 = time.perf_counter()
+    display.expect("export", len(segments) * EXPORT_SEGMENT)
+    display.begin("export", "ONNX, GLSL, scene.json")
     manifest = export_scene(
         out,
         name=name,
@@ -539,6 +611,8 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
         interreflection=interreflection,
     )
     memory = manifest.memory
+    display.add("export", len(segments) * EXPORT_SEGMENT)
+    display.finish("export")
     export_s = time.perf_counter() - t0
 
     report = {
@@ -552,9 +626,12 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
             "vertices": int(len(geometry.mesh.vertices)),
         },
         **({"interreflection": interreflection or {"bounces": 0, "auto": auto}} if auto else {}),
+        "preset": {"quality": spec.quality, "differs": preset_differences(spec.to_dict())},
+        **({"sizing": scene_sizing(segments, vertex.weight_bytes, spec.vertex_margin)} if vertex is not None else {}),
         "timings": {
             "precompute_s": precompute_s,
             **({"bounce_s": bounce_s} if spec.bounces or auto else {}),
+            **({"vertex_s": vertex_s} if vertex is not None else {}),
             "train_s": train_s,
             "export_s": export_s,
             "total_s": time.perf_counter() - t_start,
@@ -563,6 +640,18 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress:
     }
     atomic_write_json(out / "build.json", report)
     return report
+
+
+def _expected_fit_work(spec: BuildSpec, archs, fit_settings, samples: int) -> float:
+    """The progress display's estimate of one segment's fits (weighted work, :mod:`prt.train.progress`):
+    the fits its sizing rule usually takes (a bisection: about log2 of the sizes + 1, a match: its
+    reference and one or two smaller sizes, plus the residual probe's) at the middle size's cost."""
+    if not archs:
+        return 0.0
+    fits = 1.0 if spec.fixed is not None else (math.floor(math.log2(len(archs))) + 1.5 if spec.match is None else 3.0)
+    batch, steps, _, _ = fit_settings.plan(max(int(samples), 1))
+    middle = spec.reference_architecture() or archs[(len(archs) - 1) // 2]
+    return fits * steps * step_cost(middle.flops_per_fragment(), batch)
 
 
 def _object_albedos(geometry, materials, default: dict) -> dict[str, list[float]]:

@@ -1,8 +1,8 @@
 """prt-train: build a deployable scene: precompute -> train -> export (ONNX, GLSL, scene.json).
 
-usage: prt-train INPUT -o OUTDIR [--samples N] [--rays R] [--segments S] [--steps N] [--time-budget S] [--seed K] [--bounces N|auto]
-                 [--hidden K --layers L] [--encoding freq|grid|auto [--grid L6-F2-T12-N4-32]] [--target MAE | --target-db DB | --match 64x4]
-                 [--cluster auto|ADDRESS] [--force]
+usage: prt-train INPUT -o OUTDIR [--quality draft|standard|high] [--samples N] [--rays R] [--segments S] [--steps N] [--seed K]
+                 [--bounces N|auto] [--hidden K --layers L | --vertex-margin DB | --target MAE | --target-db DB | --match 64x4]
+                 [--encoding freq|grid|auto [--grid L6-F2-T12-N4-32]] [--cluster auto|ADDRESS] [--force]
                  [--neural-sdf [--sdf-size KxL] [--sdf-samples N] [--sdf-steps N]]
 
 INPUT is a mesh file, a built-in SDF scene name (``prt-precompute --list-sdf``) or a build spec
@@ -21,7 +21,8 @@ from pathlib import Path
 
 from ..runtime.errors import InputError, PRTError, SpecError
 from .build import DEFAULT_TARGET, BuildSpec, load_spec, run_build, spec_from_dict
-from .networks.fit import DEFAULT_STEPS
+from .presets import DEFAULT_QUALITY, PRESETS, QUALITIES, describe
+from .progress import BuildProgress
 from .cluster import open_executor
 from .executor import add_cluster_argument
 from .outdir import check_output_folder
@@ -40,104 +41,134 @@ def _bounce_count(value: str):
         raise argparse.ArgumentTypeError(f"expected a number of bounces or 'auto', got {value!r}") from None
 
 
+class _Formatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Defaults shown where they say something: not for flags, nor for options whose help gives theirs ([...])."""
+
+    def _get_help_string(self, action):
+        if action.default in (None, False) or "[" in (action.help or ""):
+            return action.help
+        return super()._get_help_string(action)
+
+
 def build_parser() -> argparse.ArgumentParser:
     d = BuildSpec()
     p = argparse.ArgumentParser(
         prog="prt-train",
         description="Build a PRT scene: ray-traced ground truth, one right-sized network per segment, "
-        "ONNX + generated GLSL + scene.json.  Defaults follow the paper (1M samples, 512 rays, batch 8192, "
-        "L1 + Adam); pass --hidden 64 --layers 4 for the paper's fixed network size.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        "ONNX + generated GLSL + scene.json.  A preset (--quality) sets how long it takes; the flags of each stage "
+        "below override it.",
+        epilog="Every stage is cached in OUTDIR: rerun the same command after an interruption to resume.  "
+        "Guide: docs/guides/build.md.",
+        formatter_class=_Formatter,
     )
     p.add_argument("input", help="mesh file, built-in SDF scene name, or build spec (.json)")
     p.add_argument("-o", "--out", type=Path, required=True, help="output folder (created; stages cached and resumable)")
-    p.add_argument("--force", action="store_true", help="write into OUTDIR even if it is a non-empty folder that is not a prt build")
-    p.add_argument("--name", default=None, help="scene name in the manifest (default: the input's stem)")
-    p.add_argument("--samples", type=int, default=None, help=f"training surface samples [{d.precompute.samples:,}]")
-    p.add_argument("--validation", type=int, default=None, help="held-out samples [5%% of --samples, at least 1000]")
-    p.add_argument("--rays", type=int, default=None, help=f"rays per sample for the ground truth [{d.precompute.rays}]")
-    p.add_argument("--segments", type=int, default=None, help=f"leaf budget of the spatial split before merging [{d.precompute.segments}]")
-    p.add_argument("--split", choices=SPLIT_BY, default=None,
-                   help="which leaf the spatial split cuts next: the one with the most samples (equal areas), or the one whose "
-                        "transfer is least explained by a rank-8 PCA (more networks where shadows make it complex) [samples]")
-    p.add_argument("--adaptive", type=float, default=None, metavar="SHARE",
-                   help="share of --samples drawn by a second pass where the first pass's transfer varies fastest (contact shadows, creases) [0: all area-uniform]")
-    p.add_argument("--steps", type=int, default=None, help=f"Adam steps per network whatever its sample count (early stopping on validation) [{DEFAULT_STEPS}]")
-    p.add_argument("--epochs", type=int, default=None, help="alone: the old epoch-based run, E passes over each network's samples (a small segment then gets few steps); "
-                   "with --steps: at least E passes [off]")
-    p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
-                   help="wall-clock seconds per network fit: training (and its learning-rate decay) ends by then; not reproducible bit for bit [off]")
-    p.add_argument("--batch", type=int, default=None, help=f"batch size [{d.batch}]")
-    p.add_argument("--lr", type=float, default=None, help=f"peak learning rate (warm-up, then cosine) [{d.lr}]")
-    p.add_argument("--seed", type=int, default=None, help=f"seed of sampling, ray frames and training [{d.seed}]")
-    p.add_argument("--hidden", type=int, default=None, help="force k neurons per layer for every network (with --layers)")
-    p.add_argument("--layers", type=int, default=None, help="force l hidden layers for every network (with --hidden)")
-    p.add_argument("--pos-freqs", type=int, default=None, help="with --hidden/--layers: position encoding frequencies [6]")
-    p.add_argument("--encoding", choices=("freq", "grid", "auto"), default=None,
-                   help="the networks' encoding of position: the paper's frequency-encoded MLP, a multiresolution feature grid "
-                        "(dense coarse levels, hashed fine ones) feeding a small MLP that --hidden/--layers size, or auto: per segment "
-                        "the cheapest of both ladders (by FLOPs per fragment) that meets the target [freq]")
-    p.add_argument("--grid", default=None, metavar="L6-F2-T12-N4-32",
-                   help="with --encoding grid: L levels of F features, at most 2^T table rows per level, N_min-N_max cells per axis "
-                        "[L6-F2-T12-N4-32; without --hidden/--layers the MLP is right-sized over 16x1, 32x2, 64x2, 64x3]")
-    p.add_argument("--target", type=float, default=None, help=f"right-size to a validation MAE (SH coefficients) instead of the default rule (--match 64x4) [{DEFAULT_TARGET} with --encoding grid|auto]")
-    p.add_argument("--target-db", type=float, default=None, metavar="DB",
-                   help="right-size to a shaded target instead of --target: per segment the cheapest size whose held-out diffuse "
-                        "shading, tone-mapped as prt-bench's images, reaches DB dB PSNR under every bundled env map (e.g. 40)")
-    p.add_argument("--match", default=None, metavar="KxL", help="right-size to the accuracy of this size: train it, then keep the cheapest smaller size on the ladder within --match-tolerance of its validation MAE [64x4, the paper's k = 64: the default when no --hidden/--target/--target-db is given]")
-    p.add_argument("--match-tolerance", type=float, default=None, help=f"with --match: share by which the validation MAE may exceed the reference's [{d.match_tolerance}]")
-    p.add_argument("--loss", choices=("l1", "relative"), default=None,
-                   help="fitting loss: L1 on the transfer coefficients, or each sample's L1 over its brightness (DC of its transfer, "
-                        "floor 0.05): dim regions (a room's interior) fit to the same relative error as bright ones [l1]")
-    p.add_argument("--residual", choices=("auto", "on", "off"), default=None,
-                   help="frequency networks learn the direct transfer's residual from the unshadowed transfer of the normal (the graph adds "
-                        "it back): auto per segment where its samples see >= 80 %% of their cosine lobe on average, on, off [auto]")
-    p.add_argument("--bf16", action="store_true", help="train the MLP layers under bf16 autocast (about 2x faster where the CPU has native bf16, slightly less accurate)")
-    p.add_argument("--bounces", type=_bounce_count, default=None, metavar="N",
-                   help=f"diffuse interreflection: N bounces of light between surfaces, albedos from the mesh's own materials (0: direct light only; "
-                        f"auto: the smallest N whose truncation PSNR on the validation samples is >= 50 dB under the bundled env maps) [{d.bounces}]")
-    p.add_argument("--bounce-rays", type=int, default=None, metavar="M", help=f"with --bounces: rays per sample of the bounce stage [{d.bounce_rays}]")
-    p.add_argument("--no-analytic", action="store_true", help="give every segment a network, even unshadowed ones")
-    p.add_argument("--glsl-layout", choices=("auto", "const", "texture"), default=None, help="auto: one GLSL function per network architecture, every segment's weights in one scene texture (compiles in seconds on llvmpipe); "
-                        "const / texture: the older per-segment functions, weights as baked mat4 constants (fastest per fragment, slow to compile) or in a texture [auto]")
-    p.add_argument("--threads", type=int, default=os.cpu_count(), help="CPU threads for ray tracing and training")
-    add_cluster_argument(p)
-    p.add_argument("--neural-sdf", action="store_true",
+
+    g = p.add_argument_group("preset", "one flag for the whole build; any flag below overrides its value")
+    g.add_argument("--quality", choices=QUALITIES, default=None,
+                   help="; ".join(f"{q}: {describe(q)}" for q in QUALITIES) + f" [{DEFAULT_QUALITY}]")
+
+    g = p.add_argument_group("input", "what is built and where")
+    g.add_argument("--name", default=None, help="scene name in the manifest (default: the input's stem)")
+    g.add_argument("--force", action="store_true", help="write into OUTDIR even if it is a non-empty folder that is not a prt build")
+    g.add_argument("--neural-sdf", action="store_true",
                    help="fit a small MLP to the mesh's signed distance first and build the scene from it (a neural SDF scene)")
-    p.add_argument("--sdf-size", default="64x4", metavar="KxL", help="with --neural-sdf: width x hidden layers of the SDF network (the paper: 32x4, 64x4)")
-    p.add_argument("--sdf-samples", type=int, default=200_000, help="with --neural-sdf: points with a signed distance to fit")
-    p.add_argument("--sdf-steps", type=int, default=3000, help="with --neural-sdf: Adam steps of the SDF fit")
-    p.add_argument("--transfer-texture", type=int, default=None, metavar="SIZE",
-                   help="also bake a SIZE x SIZE transfer texture (texture-space PRT, the runtime's texture backend) into the scene")
-    p.add_argument("--texture-layout", choices=("shared", "per_object"), default="shared",
-                   help="with --transfer-texture: one atlas for the scene, or one per object (texture sets)")
-    p.add_argument("--deform", default=None, metavar="SPEC",
+    g.add_argument("--sdf-size", default="64x4", metavar="KxL", help="with --neural-sdf: width x hidden layers of the SDF network (the paper: 32x4, 64x4)")
+    g.add_argument("--sdf-samples", type=int, default=200_000, help="with --neural-sdf: points with a signed distance to fit")
+    g.add_argument("--sdf-steps", type=int, default=3000, help="with --neural-sdf: Adam steps of the SDF fit")
+    g.add_argument("--deform", default=None, metavar="SPEC",
                    help="a deformable object (INPUT: a folder of frames, a .glb/.gltf, a mesh, or 'sheet' for fold): 'sequence', "
                         "'gltf[:animation=walk,frames=24,start=S,end=E]', 'bend:angle=0..90,frames=16[,axis=x]', 'twist:angle=0..180', "
                         "'fold:angle=0..175[,radius=0.08]'; --samples then counts per training frame")
-    p.add_argument("--code-dim", type=int, default=0, help="with --deform: shape-code dimensions [0: the fewest PCA components keeping 99.9%% of the offsets' variance, at most 8]")
-    p.add_argument("--code-scale", choices=("common", "component"), default="common",
+    g.add_argument("--code-dim", type=int, default=0, help="with --deform: shape-code dimensions [0: the fewest PCA components keeping 99.9%% of the offsets' variance, at most 8]")
+    g.add_argument("--code-scale", choices=("common", "component"), default="common",
                    help="with --deform: one scale for every PCA component of the shape code, so codes keep the shapes' distances, or each "
                         "component to [-1, 1] (builds before issue 38) [common]")
-    p.add_argument("--code-freqs", type=int, default=None, help="with --deform: sin/cos frequencies of each code component in the first layer [0: the code alone]")
-    p.add_argument("--holdout-every", type=int, default=4, help="with --deform: every N-th frame is held out as an unseen pose between training poses")
-    p.add_argument("--extrapolate", type=int, default=1, help="with --deform: the N most extreme poses (farthest from the mean pose) are held out, outside the training range")
-    p.add_argument("--extrapolate-from", choices=("extreme", "first", "last"), default="extreme",
+    g.add_argument("--code-freqs", type=int, default=None, help="with --deform: sin/cos frequencies of each code component in the first layer [0: the code alone]")
+    g.add_argument("--holdout-every", type=int, default=4, help="with --deform: every N-th frame is held out as an unseen pose between training poses")
+    g.add_argument("--extrapolate", type=int, default=1, help="with --deform: the N most extreme poses (farthest from the mean pose) are held out, outside the training range")
+    g.add_argument("--extrapolate-from", choices=("extreme", "first", "last"), default="extreme",
                    help="with --deform: which poses --extrapolate holds out: the most extreme (farthest from the mean pose), or the source's first or last frames")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+    g = p.add_argument_group("precompute", "ground truth: samples, rays, segments, bounces")
+    g.add_argument("--samples", type=int, default=None, help=f"training surface samples [preset; standard {PRESETS['standard']['samples']:,}]")
+    g.add_argument("--validation", type=int, default=None, help="held-out samples [5%% of --samples, at least 1000]")
+    g.add_argument("--rays", type=int, default=None, help=f"rays per sample for the ground truth [preset; standard {PRESETS['standard']['rays']}]")
+    g.add_argument("--segments", type=int, default=None, help=f"leaf budget of the spatial split before merging [preset; standard {PRESETS['standard']['segments']}]")
+    g.add_argument("--split", choices=SPLIT_BY, default=None,
+                   help="which leaf the spatial split cuts next: the one with the most samples (equal areas), or the one whose "
+                        "transfer is least explained by a rank-8 PCA (more networks where shadows make it complex) [samples]")
+    g.add_argument("--adaptive", type=float, default=None, metavar="SHARE",
+                   help="share of --samples drawn by a second pass where the first pass's transfer varies fastest (contact shadows, creases) [0: all area-uniform]")
+    g.add_argument("--seed", type=int, default=None, help=f"seed of sampling, ray frames and training [{d.seed}]")
+    g.add_argument("--bounces", type=_bounce_count, default=None, metavar="N",
+                   help=f"diffuse interreflection: N bounces of light between surfaces, albedos from the mesh's own materials (0: direct light only; "
+                        f"auto: the smallest N whose truncation PSNR on the validation samples is >= 50 dB under the bundled env maps) [{d.bounces}]")
+    g.add_argument("--bounce-rays", type=int, default=None, metavar="M", help=f"with --bounces: rays per sample of the bounce stage [preset; standard {PRESETS['standard']['bounce_rays']}]")
+    g.add_argument("--threads", type=int, default=os.cpu_count(), help="CPU threads for ray tracing and training")
+    add_cluster_argument(g)
+
+    g = p.add_argument_group("networks", "fitting and right-sizing: by default each segment gets the cheapest size whose held-out "
+                             "error is the preset's margin below per-vertex PRT's, within its share of per-vertex PRT's bytes")
+    g.add_argument("--steps", type=int, default=None, help=f"Adam steps per network whatever its sample count (early stopping on validation) [preset; standard {PRESETS['standard']['steps']}]")
+    g.add_argument("--epochs", type=int, default=None, help="alone: the old epoch-based run, E passes over each network's samples (a small segment then gets few steps); "
+                   "with --steps: at least E passes [off]")
+    g.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
+                   help="wall-clock seconds per network fit: training (and its learning-rate decay) ends by then; not reproducible bit for bit [off]")
+    g.add_argument("--batch", type=int, default=None, help=f"batch size [preset; standard {PRESETS['standard']['batch']}]")
+    g.add_argument("--lr", type=float, default=None, help=f"peak learning rate (warm-up, then cosine) [{d.lr}]")
+    g.add_argument("--vertex-margin", type=float, default=None, metavar="DB",
+                   help="the default rule's margin: dB of held-out shaded PSNR above the per-vertex PRT estimate each segment's network "
+                        f"must reach [preset; standard {PRESETS['standard']['vertex_margin']:g}]")
+    g.add_argument("--hidden", type=int, default=None, help="force k neurons per layer for every network (with --layers)")
+    g.add_argument("--layers", type=int, default=None, help="force l hidden layers for every network (with --hidden)")
+    g.add_argument("--pos-freqs", type=int, default=None, help="with --hidden/--layers: position encoding frequencies [6]")
+    g.add_argument("--match", default=None, metavar="KxL", help="right-size to the accuracy of this size instead: train it, then keep the cheapest smaller size on the ladder "
+                   "within --match-tolerance of its validation MAE (SDF and mixed scenes: 64x4, their default)")
+    g.add_argument("--match-tolerance", type=float, default=None, help=f"with --match: share by which the validation MAE may exceed the reference's [{d.match_tolerance}]")
+    g.add_argument("--target", type=float, default=None, help=f"right-size to a validation MAE (SH coefficients) instead [{DEFAULT_TARGET} with --encoding grid|auto]")
+    g.add_argument("--target-db", type=float, default=None, metavar="DB",
+                   help="right-size to a shaded target instead: per segment the cheapest size whose held-out diffuse "
+                        "shading, tone-mapped as prt-bench's images, reaches DB dB PSNR under every bundled env map (e.g. 40)")
+    g.add_argument("--encoding", choices=("freq", "grid", "auto"), default=None,
+                   help="the networks' encoding of position: the paper's frequency-encoded MLP, a multiresolution feature grid "
+                        "(dense coarse levels, hashed fine ones) feeding a small MLP that --hidden/--layers size, or auto: per segment "
+                        "the cheapest of both ladders (by FLOPs per fragment) that meets the target [freq]")
+    g.add_argument("--grid", default=None, metavar="L6-F2-T12-N4-32",
+                   help="with --encoding grid: L levels of F features, at most 2^T table rows per level, N_min-N_max cells per axis "
+                        "[L6-F2-T12-N4-32; without --hidden/--layers the MLP is right-sized over 16x1, 32x2, 64x2, 64x3]")
+    g.add_argument("--loss", choices=("l1", "relative"), default=None,
+                   help="fitting loss: L1 on the transfer coefficients, or each sample's L1 over its brightness (DC of its transfer, "
+                        "floor 0.05): dim regions (a room's interior) fit to the same relative error as bright ones [l1]")
+    g.add_argument("--residual", choices=("auto", "on", "off"), default=None,
+                   help="frequency networks learn the direct transfer's residual from the unshadowed transfer of the normal (the graph adds "
+                        "it back): auto per segment where its samples see >= 80 %% of their cosine lobe on average, on, off [auto]")
+    g.add_argument("--no-analytic", action="store_true", help="give every segment a network, even unshadowed ones")
+    g.add_argument("--bf16", action="store_true", help="train the MLP layers under bf16 autocast (about 2x faster where the CPU has native bf16, slightly less accurate)")
+
+    g = p.add_argument_group("export", "the scene folder")
+    g.add_argument("--glsl-layout", choices=("auto", "const", "texture"), default=None, help="auto: one GLSL function per network architecture, every segment's weights in one scene texture (compiles in seconds on llvmpipe); "
+                        "const / texture: the older per-segment functions, weights as baked mat4 constants (fastest per fragment, slow to compile) or in a texture [auto]")
+    g.add_argument("--transfer-texture", type=int, default=None, metavar="SIZE",
+                   help="also bake a SIZE x SIZE transfer texture (texture-space PRT, the runtime's texture backend) into the scene")
+    g.add_argument("--texture-layout", choices=("shared", "per_object"), default="shared",
+                   help="with --transfer-texture: one atlas for the scene, or one per object (texture sets)")
+    g.add_argument("--no-progress", action="store_true", help="no progress line (it is drawn only when stderr is a terminal)")
     return p
 
 
 def _spec_from_args(args):
+    """The build spec of the command line: the spec file's own fields (or the input alone), the
+    flags over them, then the preset's values where neither gives one (:func:`prt.train.presets.resolve`)."""
     source = str(args.input)
-    named = {}  # the sizing fields as the spec file wrote them: its default rule is resolved again with the flags
     if source.lower().endswith(".json"):
-        spec = load_spec(source)
+        spec = load_spec(source)  # checks the file and resolves its paths
         raw = json.loads(Path(source).read_bytes())  # valid: load_spec read it
-        named = {"match": raw.get("match"), "target": raw.get("target")}
+        data = {k: v for k, v in spec.to_dict().items() if k in raw or k in ("geometry", "objects")}
     else:
-        spec = BuildSpec(geometry=source)
+        data = {"geometry": source}
     overrides = {
+        "quality": args.quality,
         "name": args.name,
         "samples": args.samples,
         "validation": args.validation,
@@ -153,6 +184,7 @@ def _spec_from_args(args):
         "seed": args.seed,
         "target": args.target,
         "target_db": args.target_db,
+        "vertex_margin": args.vertex_margin,
         "match_tolerance": args.match_tolerance,
         "glsl_layout": args.glsl_layout,
         "bounces": args.bounces,
@@ -162,7 +194,6 @@ def _spec_from_args(args):
         "loss": args.loss,
         "residual": args.residual,
     }
-    data = spec.to_dict() | named
     data.update({k: v for k, v in overrides.items() if v is not None})
     if args.no_analytic:
         data["analytic"] = False
@@ -170,6 +201,11 @@ def _spec_from_args(args):
         data["bf16"] = True
     if (args.hidden is None) != (args.layers is None):
         raise SpecError("--hidden and --layers go together")
+    flag_rule = any(v is not None for v in (args.hidden, args.match, args.target, args.target_db, args.vertex_margin))
+    if flag_rule or args.encoding not in (None, "freq"):  # a rule named on the command line replaces the spec file's
+        for key in ("fixed", "match", "target", "target_db", "vertex_margin", "ladder"):
+            if overrides.get(key) is None:
+                data.pop(key, None)
     if args.hidden is not None:
         fixed = {"hidden": args.hidden, "layers": args.layers}
         if args.pos_freqs is not None:
@@ -215,7 +251,7 @@ def _bake_texture(args, spec) -> None:
         raise InputError(f"--transfer-texture: expected a size >= 8, got {args.transfer_texture}")
     try:
         add_transfer_texture(args.out, args.transfer_texture, layout=args.texture_layout, rays=spec.precompute.rays,
-                             seed=spec.precompute.seed, progress=not args.no_progress)  # fmt: skip
+                             seed=spec.precompute.seed, progress=not args.no_progress and sys.stderr.isatty())  # fmt: skip
     except ValueError as exc:  # an SDF scene
         raise InputError(f"--transfer-texture: {exc}") from None
 
@@ -231,8 +267,13 @@ def main(argv: list[str] | None = None) -> int:
         check_output_folder(args.out, "scene", force=args.force)
         if args.neural_sdf:
             spec = _neural_sdf_spec(args, spec)
-        with open_executor(args.cluster, args.threads) as executor:
-            report = run_build(spec, args.out, threads=args.threads, progress=not args.no_progress, force=args.force, executor=executor)
+        display = BuildProgress(enabled=not args.no_progress)  # drawn only on a terminal
+        try:
+            with open_executor(args.cluster, args.threads) as executor:
+                report = run_build(spec, args.out, threads=args.threads, progress=display, log=display.log, force=args.force,
+                                   executor=executor)  # fmt: skip
+        finally:
+            display.close()
         if args.transfer_texture is not None:
             _bake_texture(args, spec)
     except PRTError as exc:
@@ -273,19 +314,39 @@ def _deform_main(args) -> int:
     return 0
 
 
+_ENDED = {"error": "margin", "bytes": "bytes", "ladder": "ladder"}
+
+
 def print_report(report: dict, out: Path) -> None:
+    """The build's summary table: per segment its size, errors, cost; the sizing rule's outcome; memory; time."""
+    vertex = "sizing" in report
+    sizes = [(r["arch_label"] if r["kind"] == "network" else "analytic") + ("*" if r["kind"] == "network" and not r.get("met_target", True) else "")
+             for r in report["segments"]]  # fmt: skip
+    width = max([14, *map(len, sizes)])
     print()
-    print(f"{'seg':>3} {'samples':>9} {'kind/size':>14} {'val MAE':>9} {'shaded err %':>24} {'FLOPs/frag':>11} {'bytes':>8}")
-    for r in report["segments"]:
-        size = r["arch_label"] if r["kind"] == "network" else "analytic"
-        if r["kind"] == "network" and not r.get("met_target", True):
-            size += "*"
+    print(f"{'seg':>3} {'samples':>9} {'kind/size':>{width}} {'val MAE':>9} {'shaded err %':>18} {'FLOPs/frag':>11} {'bytes':>9}"
+          + (f" {'vs vertex':>9} {'ended':>6}" if vertex else ""))  # fmt: skip
+    for r, size in zip(report["segments"], sizes):
         shaded = " ".join(f"{100 * v:5.2f}" for v in r["shaded"].values())
-        print(f"{r['id']:>3} {r['samples']:>9,} {size:>14} {r['val_mae']:>9.5f} {shaded:>24} {r['flops_per_fragment']:>11,} {r['weight_bytes']:>8,}")
+        extra = f" {r['vertex']['gain_db']:>+6.2f} dB {_ENDED[r['vertex']['ended']]:>6}" if vertex and "vertex" in r else ""
+        print(f"{r['id']:>3} {r['samples']:>9,} {size:>{width}} {r['val_mae']:>9.5f} {shaded:>18} {r['flops_per_fragment']:>11,} {r['weight_bytes']:>9,}"
+              + extra)  # fmt: skip
     names = ", ".join(report["segments"][0]["shaded"]) if report["segments"] else ""
     print(f"shaded error: relative MAE of dot(T, L) on held-out samples under the bundled env maps ({names})")
     if any(r["kind"] == "network" and not r.get("met_target", True) for r in report["segments"]):
         print("* no size on the ladder met the target; the best one tried is used")
+    if vertex:
+        z = report["sizing"]
+        light = min(z["network_psnr_db"], key=lambda k: z["network_psnr_db"][k] - z["vertex_psnr_db"][k], default=None)
+        ended = {"error": f"the margin (+{z['margin_db']:g} dB over vertex PRT) reached",
+                 "bytes": "vertex PRT's bytes reached before the margin", "ladder": "the largest network size reached before the margin"}[z["ended"]]
+        print(f"sizing: networks {z['gain_db']:+.2f} dB over the per-vertex PRT estimate on {z['held_out_samples']:,} held-out samples "
+              f"(worst light {light}: {z['network_psnr_db'].get(light, 0):.2f} vs {z['vertex_psnr_db'].get(light, 0):.2f} dB), "
+              f"{z['network_bytes']:,} vs {z['vertex_bytes']:,} bytes of per-vertex transfer with its back sides; ended: {ended}")  # fmt: skip
+    preset = report.get("preset") or {}
+    if preset.get("quality"):
+        changed = ", ".join(f"{k} {v[1]}" for k, v in preset.get("differs", {}).items())
+        print(f"preset: {preset['quality']}" + (f" (set by hand: {changed})" if changed else ""))
     m = report["memory"]
     print(
         f"weights: {m['weight_bytes']:,} bytes for the scene vs {m['vertex_storage_bytes']:,} bytes of per-vertex "
@@ -293,7 +354,9 @@ def print_report(report: dict, out: Path) -> None:
     )
     t = report["timings"]
     bounce = f", bounces {t['bounce_s']:.1f} s" if "bounce_s" in t else ""
-    print(f"time: precompute {t['precompute_s']:.1f} s{bounce}, train {t['train_s']:.1f} s, export {t['export_s']:.1f} s")
+    bounce += f", vertex estimate {t['vertex_s']:.1f} s" if "vertex_s" in t else ""
+    print(f"time: precompute {t['precompute_s']:.1f} s{bounce}, train {t['train_s']:.1f} s, export {t['export_s']:.1f} s "
+          f"(total {t['total_s']:.1f} s)")  # fmt: skip
     print(f"wrote {out}/scene.json")
 
 

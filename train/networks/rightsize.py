@@ -8,6 +8,14 @@ was chosen and why (``sizing``: the rule, its target, the measured value, the si
   ``target`` (:func:`prt.train.networks.fit.right_size`; the default before ``target_db``).
 - ``"match"``: the cheapest size as accurate as a reference size (``--match 64x4``,
   :func:`prt.train.networks.fit.right_size_matching`).
+- ``"vertex"`` (the default of mesh builds, :mod:`prt.train.presets`): the cheapest size whose held-out
+  shaded PSNR is ``vertex_margin`` dB above per-vertex PRT's on the same samples under every
+  bundled env map (per-vertex PRT estimated by :mod:`prt.train.transport.vertex_estimate`), among the
+  sizes within the segment's share of per-vertex PRT's bytes (its share of the training samples);
+  the record says where it ended: ``"error"`` (margin reached), ``"bytes"`` (the byte share cut
+  the ladder and the largest size allowed missed) or ``"ladder"`` (the largest size missed).
+  Each segment at the margin puts the scene's pooled held-out PSNR at the margin too (the pooled
+  MSE is the sample-weighted mean of the segments').
 - ``"target_db"``: the cheapest candidate, by FLOPs per fragment, whose **shaded PSNR** on the
   segment's held-out samples meets ``target_db`` (:func:`search_cheapest`).  The shaded PSNR is
   what ``prt-bench`` measures over pixels, here over samples: the diffuse radiance ``a (T . L)``
@@ -46,10 +54,11 @@ from .grid_encoding import evaluate_numpy as grid_evaluate
 from .network import Architecture
 from .network import evaluate_numpy as freq_evaluate
 
-__all__ = ["RULES", "RESIDUAL_MODES", "RESIDUAL_VISIBILITY", "residual_choice", "PSNR_CAP", "shaded_psnr", "predict_numpy", "candidates", "search_cheapest", "weight_bytes", "train_segment", "SegmentJob",
+__all__ = ["RULES", "ENDINGS", "pooled_psnr", "scene_sizing", "RESIDUAL_MODES", "RESIDUAL_VISIBILITY", "residual_choice", "PSNR_CAP", "shaded_psnr", "predict_numpy", "candidates", "search_cheapest", "weight_bytes", "train_segment", "SegmentJob",
            "segment_task", "validation_split", "SCENE_LIGHT"]  # fmt: skip
 
-RULES = ("fixed", "target_mae", "match", "target_db")
+RULES = ("fixed", "target_mae", "match", "target_db", "vertex")
+ENDINGS = ("error", "bytes", "ladder")  # where the "vertex" rule ended (module docstring)
 PSNR_CAP = 100.0  # the same cap as prt-bench's metrics
 DEFAULT_ALBEDO = (0.7, 0.7, 0.7)  # the spec's default material
 # The lighting a build's manifest gets (prt.train.build) and the shaded target is measured under.
@@ -193,8 +202,9 @@ class SegmentJob:
     archs: list
     fit_settings: FitSettings
     lights: dict
-    progress: bool
+    progress: object  # bool, or a prt.train.progress.BuildProgress (local fits only)
     log: object = None
+    vertex: object = None  # the "vertex" rule's prt.train.transport.vertex_estimate.VertexEstimate
 
 
 def segment_task(job: SegmentJob, item) -> tuple[dict, list, list[str]]:
@@ -203,7 +213,7 @@ def segment_task(job: SegmentJob, item) -> tuple[dict, list, list[str]]:
     lines = []
     s = seg["id"]
     record = train_segment(job.spec, s, job.samples, job.valid, job.members[s], job.archs, job.fit_settings, job.lights, job.progress,
-                           job.log or lines.append, fits)  # fmt: skip
+                           job.log or lines.append, fits, vertex=job.vertex)  # fmt: skip
     record["key"] = key
     return record, getattr(fits, "new", []), lines
 
@@ -223,6 +233,8 @@ def spec_rule(spec) -> str:
     """The right-sizing rule a spec asks for (:data:`RULES`)."""
     if spec.fixed is not None:
         return "fixed"
+    if getattr(spec, "vertex_margin", None) is not None:
+        return "vertex"
     if spec.match is not None:
         return "match"
     return "target_db" if spec.target_db is not None else "target_mae"
@@ -233,18 +245,23 @@ def _albedo(spec) -> list[float]:
     return [float(a) for a in albedo]
 
 
-def train_segment(spec, s, samples, valid, member_idx, archs, fit_settings, lights, progress, log, fits=None) -> dict:
-    """Fit segment ``s`` by the spec's rule; its training record (weights in ``arrays``, the choice in ``sizing``)."""
+def train_segment(spec, s, samples, valid, member_idx, archs, fit_settings, lights, progress, log, fits=None, vertex=None) -> dict:
+    """Fit segment ``s`` by the spec's rule; its training record (weights in ``arrays``, the choice in ``sizing``).
+
+    ``vertex``: the per-vertex PRT estimate the "vertex" rule sizes against
+    (:class:`prt.train.transport.vertex_estimate.VertexEstimate`); ``progress``: show each fit's
+    steps (a :class:`prt.train.progress.BuildProgress` counts them into the build's display)."""
     own_idx = member_idx[samples["segment"][member_idx] == s]
     vsel, held = validation_split(s, valid, own_idx, spec.seed)
     if held is not None:
         train_idx = np.setdiff1d(member_idx, held)
-        vp, vn, vt = samples["points"][held], samples["normals"][held], samples["transfer"][held]
+        held_out = {k: samples[k][held] for k in ("points", "normals", "transfer", "face_index") if k in samples}
         note = f"validation set had {int((valid['segment'] == s).sum())} samples here; held out {len(held)} of its own"
     else:
         train_idx = member_idx
-        vp, vn, vt = valid["points"][vsel], valid["normals"][vsel], valid["transfer"][vsel]
+        held_out = {k: valid[k][vsel] for k in ("points", "normals", "transfer", "face_index") if k in valid}
         note = ""
+    vp, vn, vt = held_out["points"], held_out["normals"], held_out["transfer"]
     p, n, t = samples["points"][train_idx], samples["normals"][train_idx], samples["transfer"][train_idx]
     bounds = np.array([p.min(axis=0), p.max(axis=0)])
     bounds = bounds + np.array([[-1.0], [1.0]]) * 0.01 * np.maximum(bounds[1] - bounds[0], 1e-3)
@@ -264,6 +281,11 @@ def train_segment(spec, s, samples, valid, member_idx, archs, fit_settings, ligh
         return {k: round(v, 3) for k, v in shaded_psnr(pred, vt, lights, n_coeffs, albedo).items()}
 
     reference = spec.reference_architecture()
+    if rule == "vertex":
+        if vertex is None:
+            raise ValueError("the 'vertex' sizing rule needs the per-vertex PRT estimate (a mesh scene)")
+        v_psnr = psnr_of(vertex.predict(vp, vn, held_out["face_index"]))
+        budget = vertex.weight_bytes * len(own_idx) / max(len(samples["points"]), 1)
     analytic = None
     if spec.analytic:
         pred = unshadowed_transfer(vn, spec.bands)
@@ -278,6 +300,11 @@ def train_segment(spec, s, samples, valid, member_idx, archs, fit_settings, ligh
             log(f"segment {s}: analytic (unshadowed; shaded PSNR {a_worst:.2f} dB >= {spec.target_db} dB)")
             return {**analytic, "sizing": _sizing(rule, spec, "analytic", a_psnr, True, [],
                                                   f"unshadowed transfer already meets {spec.target_db} dB ({a_worst:.2f} dB)")}  # fmt: skip
+        if rule == "vertex" and _gain(a_psnr, v_psnr) >= spec.vertex_margin:
+            log(f"segment {s}: analytic (unshadowed; {_gain(a_psnr, v_psnr):+.2f} dB over vertex PRT >= {spec.vertex_margin:+g} dB)")
+            return {**analytic, "vertex": _vertex_record(v_psnr, budget, "error", _gain(a_psnr, v_psnr)),
+                    "sizing": _sizing(rule, spec, "analytic", a_psnr, True, [], f"unshadowed transfer already {_gain(a_psnr, v_psnr):+.2f} dB "
+                                      f"over vertex PRT", extra=_vertex_extra(v_psnr, budget, "error"))}  # fmt: skip
         if rule == "target_mae" and mae <= spec.target:
             log(f"segment {s}: analytic (unshadowed; validation MAE {mae:.5f} <= {spec.target})")
             return {**analytic, "sizing": _sizing(rule, spec, "analytic", a_psnr, True, [],
@@ -305,7 +332,9 @@ def train_segment(spec, s, samples, valid, member_idx, archs, fit_settings, ligh
 
     def _fit(arch):
         bar = None
-        if progress:
+        if hasattr(progress, "fit_bar"):  # the build's one display (prt.train.progress)
+            bar = progress.fit_bar(s, arch)
+        elif progress:
             bar = tqdm(desc=f"  seg {s} {arch.label()}", unit="step", leave=False, mininterval=0.5)
 
         def on_epoch(step, total_steps, train_l1, val_mae):
@@ -327,7 +356,12 @@ def train_segment(spec, s, samples, valid, member_idx, archs, fit_settings, ligh
         return psnr[SCENE_LIGHT] if SCENE_LIGHT in psnr else min(psnr.values(), default=PSNR_CAP)
 
     base["residual"] = {"mode": mode, "mean_visibility": round(visibility, 4)}
+    if rule == "vertex":  # the sizes within the segment's share of vertex PRT's bytes (the smallest at least)
+        allowed = [a for a in archs if weight_bytes(a) <= budget] or archs[:1]
+        cut = len(allowed) < len(archs)
     probe = reference if reference is not None else next((a for a in archs if isinstance(a, Architecture)), None)
+    if rule == "vertex":  # the bisection's first size: fitted both ways, the kind kept continues without refitting it
+        probe = allowed[(len(allowed) - 1) // 2]
     if mode == "auto" and use and probe is not None:  # both kinds at the probe size: the lower validation MAE decides
         plain, residual = fit(probe), fit(_as_residual(probe, True))
         use = residual.val_mae < plain.val_mae
@@ -340,8 +374,31 @@ def train_segment(spec, s, samples, valid, member_idx, archs, fit_settings, ligh
     if use:
         archs = [_as_residual(a, True) for a in archs]
         reference = None if reference is None else _as_residual(reference, True)
+        if rule == "vertex":
+            allowed = [_as_residual(a, True) for a in allowed]
 
-    if rule == "target_db":
+    vertex_record = None
+    if rule == "vertex":
+        result, tried, met = search_cheapest(fit, allowed, lambda r: _gain(scores[r.arch.label()], v_psnr), spec.vertex_margin,
+                                             log=_gain_log(log))  # fmt: skip
+        for record in tried:  # search_cheapest's quality was the gain
+            record["gain_db"], record["psnr_db"] = record["psnr_db"], round(worst(record["arch"]), 3)
+        bar = spec.vertex_margin
+        chosen = result.arch
+        gain = _gain(scores[chosen.label()], v_psnr)
+        ended = "error" if met else ("bytes" if cut else "ladder")
+        why = {"error": f"cheapest of {len(allowed)} sizes within {budget:,.0f} bytes (the segment's share of vertex PRT's) "
+                        f"{gain:+.2f} dB over vertex PRT (margin {spec.vertex_margin:+g} dB)",
+               "bytes": f"vertex PRT's bytes reached: the largest size within {budget:,.0f} bytes is {gain:+.2f} dB over vertex PRT "
+                        f"(margin {spec.vertex_margin:+g} dB)",
+               "ladder": f"the largest size is {gain:+.2f} dB over vertex PRT (margin {spec.vertex_margin:+g} dB)"}[ended]
+        vertex_record = _vertex_record(v_psnr, budget, ended, gain)
+        if not met and analytic is not None and _gain(a_psnr, v_psnr) >= gain:
+            log(f"segment {s}: analytic (unshadowed transfer is as accurate as the best network tried)")
+            return {**analytic, "tried": tried, "vertex": _vertex_record(v_psnr, budget, ended, _gain(a_psnr, v_psnr)),
+                    "sizing": _sizing(rule, spec, "analytic", a_psnr, False, tried, "no network reached the margin and the unshadowed "
+                                      "transfer is as accurate", extra=_vertex_extra(v_psnr, budget, ended))}  # fmt: skip
+    elif rule == "target_db":
         result, tried, met = search_cheapest(fit, archs, lambda r: worst(r.arch.label()), spec.target_db, log=log)
         bar = spec.target_db
         chosen = result.arch
@@ -376,7 +433,7 @@ def train_segment(spec, s, samples, valid, member_idx, archs, fit_settings, ligh
         else:
             why = (f"first size, cheapest first, meeting validation MAE {spec.target}: {result.val_mae:.5f}" if met else
                    f"no size met validation MAE {spec.target}; the most accurate tried ({result.val_mae:.5f})")  # fmt: skip
-    if rule != "target_db":
+    if rule not in ("target_db", "vertex"):
         for record in tried:
             record["psnr_db"] = round(worst(record["arch"]), 3) if record["arch"] in scores else None
     arch = result.arch
@@ -397,14 +454,65 @@ def train_segment(spec, s, samples, valid, member_idx, archs, fit_settings, ligh
         "weight_bytes": weight_bytes(arch),
         "arrays": result.model.arrays(),
         "history": result.history,
-        "sizing": _sizing(rule, spec, arch.label(), scores[arch.label()], met, tried, why, encoding=_encoding(arch)),
+        **({"vertex": vertex_record} if vertex_record is not None else {}),
+        "sizing": _sizing(rule, spec, arch.label(), scores[arch.label()], met, tried, why, encoding=_encoding(arch),
+                          extra=_vertex_extra(v_psnr, budget, vertex_record["ended"]) if vertex_record else None),
     }
 
 
-def _sizing(rule, spec, chosen, psnr, met, tried, reason, encoding=None) -> dict:
-    """The manifest's ``sizing`` of a segment: what was chosen, by which rule, and why."""
-    target = {"target_db": spec.target_db, "target_mae": spec.target, "match": spec.match, "fixed": spec.fixed}[rule]
+def _gain(psnr: dict, vertex_psnr: dict) -> float:
+    """dB over per-vertex PRT: the smallest difference over the env maps both were measured under."""
+    return min((psnr[k] - vertex_psnr[k] for k in vertex_psnr if k in psnr), default=0.0)
+
+
+def _gain_log(log):
+    """:func:`search_cheapest`'s lines, its quality being dB over vertex PRT."""
+    return lambda line: log(line.replace(" dB, val MAE", " dB over vertex PRT, val MAE", 1))
+
+
+def _vertex_record(v_psnr: dict, budget: float, ended: str, gain: float) -> dict:
+    """The training record's ``vertex``: the estimate's held-out PSNR, the byte share, where sizing ended, the gain."""
+    return {"psnr_db": v_psnr, "byte_budget": int(budget), "ended": ended, "gain_db": round(float(gain), 3)}
+
+
+def _vertex_extra(v_psnr: dict, budget: float, ended: str) -> dict:
+    return {"vertex_psnr_db": v_psnr, "byte_budget": int(budget), "ended": ended}
+
+
+def _sizing(rule, spec, chosen, psnr, met, tried, reason, encoding=None, extra=None) -> dict:
+    """The manifest's ``sizing`` of a segment: what was chosen, by which rule, and why (``extra``: the
+    "vertex" rule's estimate, byte share and where it ended)."""
+    target = {"target_db": spec.target_db, "target_mae": spec.target, "match": spec.match, "fixed": spec.fixed,
+              "vertex": getattr(spec, "vertex_margin", None)}[rule]  # fmt: skip
     out = {"rule": rule, "target": target, "chosen": chosen, **({"encoding": encoding} if encoding else {}),
-           "psnr_db": psnr, "met": bool(met), "reason": reason,
-           "tried": [{k: r[k] for k in ("arch", "encoding", "flops", "bytes", "val_mae", "psnr_db") if k in r} for r in tried]}  # fmt: skip
+           "psnr_db": psnr, "met": bool(met), "reason": reason, **(extra or {}),
+           "tried": [{k: r[k] for k in ("arch", "encoding", "flops", "bytes", "val_mae", "psnr_db", "gain_db") if k in r} for r in tried]}  # fmt: skip
     return out
+
+
+def pooled_psnr(psnr_by_segment: list[tuple[int, float]]) -> float:
+    """The PSNR of all held-out samples together from each segment's ``(samples, PSNR)``: the pooled
+    MSE is the sample-weighted mean of the segments' (capped at :data:`PSNR_CAP`)."""
+    count = sum(n for n, _ in psnr_by_segment)
+    if count <= 0:
+        return PSNR_CAP
+    mse = sum(n * 10.0 ** (-p / 10.0) for n, p in psnr_by_segment) / count
+    return PSNR_CAP if mse <= 10.0 ** (-PSNR_CAP / 10.0) else min(PSNR_CAP, float(-10.0 * np.log10(mse)))
+
+
+def scene_sizing(records: list[dict], vertex_bytes: int, margin: float) -> dict:
+    """The "vertex" rule's scene summary (``build.json``'s ``sizing``): pooled held-out PSNR of the
+    networks and of the vertex PRT estimate per env map, their bytes, and where sizing ended: "error"
+    when every segment reached the margin, else "bytes" when a segment stopped at its share of
+    vertex PRT's bytes, else "ladder" (the largest size missed)."""
+    rows = [r for r in records if "vertex" in r]
+    lights = sorted({k for r in rows for k in r["vertex"]["psnr_db"]})
+    network = {k: round(pooled_psnr([(r["validation_samples"], r["sizing"]["psnr_db"][k]) for r in rows]), 3) for k in lights}
+    vertex = {k: round(pooled_psnr([(r["validation_samples"], r["vertex"]["psnr_db"][k]) for r in rows]), 3) for k in lights}
+    endings = [r["vertex"]["ended"] for r in rows]
+    ended = "error" if all(e == "error" for e in endings) else ("bytes" if "bytes" in endings else "ladder")
+    return {"rule": "vertex", "margin_db": margin, "network_psnr_db": network, "vertex_psnr_db": vertex,
+            "gain_db": round(min((network[k] - vertex[k] for k in lights), default=0.0), 3),
+            "network_bytes": int(sum(r["weight_bytes"] for r in records)), "vertex_bytes": int(vertex_bytes),
+            "held_out_samples": int(sum(r["validation_samples"] for r in rows)), "ended": ended,
+            "segments_ended": {e: endings.count(e) for e in ENDINGS if e in endings}}  # fmt: skip

@@ -357,12 +357,11 @@ def trace_stage(mesh, folder, train: dict, valid: dict, *, rays: int = BOUNCE_RA
         out = np.empty((count, 2, rays), dtype=np.int32)
         todo = store.load_into(out, chunk_size)
         job = BounceJob(tracer, train["points"], train["normals"], rays=rays, seed=seed, stream=stream, workers=1)
-        bar = None
-        if progress:
-            from tqdm import tqdm
+        from ..progress import BOUNCE_RAY, progress_bar
 
-            bar = tqdm(total=count * rays, initial=(count - sum(min(chunk_size, count - k * chunk_size) for k in todo)) * rays,
-                       unit="ray", unit_scale=True, desc=f"bounce rays ({name})", mininterval=0.5)  # fmt: skip
+        bar = progress_bar(progress, "bounces", f"bounce rays ({name})", count * rays, unit="ray", unit_cost=BOUNCE_RAY,
+                           initial=(count - sum(min(chunk_size, count - k * chunk_size) for k in todo)) * rays, unit_scale=True,
+                           mininterval=0.5)  # fmt: skip
         items = [(k, points[k * chunk_size : (k + 1) * chunk_size], normals[k * chunk_size : (k + 1) * chunk_size]) for k in todo]
         run_ray_chunks(executor, job, items, out, chunk_size, rays, store=store, bar=bar)
         found[name] = BounceRays(out[:, 0].astype(np.int64), out[:, 1].astype(np.int64))

@@ -299,9 +299,10 @@ def compute_transfer(
     chunk_size: int = DEFAULT_CHUNK,
     threads: int | None = None,
     cache_dir: str | os.PathLike | None = None,
-    progress: bool = False,
+    progress=False,
     tracer=None,
     executor=None,
+    progress_stage: str = "precompute",
 ) -> np.ndarray:
     """Ground-truth transfer at arbitrary surface points.
 
@@ -316,7 +317,8 @@ def compute_transfer(
     chunk_size : samples per work unit (part of the cache key)
     threads : worker threads (default: all cores)
     cache_dir : folder for finished chunks; a rerun with the same arguments resumes there
-    progress : show a progress bar (rays per second, ETA)
+    progress : show a progress bar (rays per second, ETA); a :class:`prt.train.progress.BuildProgress`:
+        count the rays into the build's one display, as ``progress_stage``
     tracer : an existing tracer for ``geometry`` (saves rebuilding the Embree scene)
     executor : where chunks run (:mod:`prt.train.executor`; default: ``threads`` threads here)
 
@@ -346,19 +348,11 @@ def compute_transfer(
         else:
             todo.append(k)
 
-    bar = None
-    if progress:
-        from tqdm import tqdm
+    from ..progress import RAY, progress_bar
 
-        bar = tqdm(
-            total=len(points) * rays,
-            initial=(len(points) - sum(_chunk_len(k, chunk_size, len(points)) for k in todo)) * rays,
-            unit="ray",
-            unit_scale=True,
-            desc="transfer",
-            mininterval=0.5,
-            smoothing=0.1,
-        )
+    bar = progress_bar(progress, progress_stage, "transfer", len(points) * rays, unit="ray", unit_cost=RAY,
+                       initial=(len(points) - sum(_chunk_len(k, chunk_size, len(points)) for k in todo)) * rays,
+                       unit_scale=True, mininterval=0.5, smoothing=0.1)  # fmt: skip
     job = TransferJob(tracer, rays, bands, seed)
     chunks = [(k, points[k * chunk_size : (k + 1) * chunk_size], normals[k * chunk_size : (k + 1) * chunk_size]) for k in todo]
     executor = executor if executor is not None else LocalExecutor(threads)

@@ -1,0 +1,92 @@
+"""Build presets: ``prt-train MESH --quality draft|standard|high``.
+
+A preset bundles the settings that trade build time for fidelity: samples and rays of the
+ground truth, the k-d split's leaf budget, the fit's steps and batch, the bounce rays, and the
+capacity the default sizing rule may grow to (its ladder of network sizes) with the margin it
+aims for over per-vertex PRT (:mod:`prt.train.networks.rightsize`, rule ``"vertex"``).
+
+A spec's own fields and ``prt-train``'s flags win over the preset: :func:`resolve` fills only
+the fields a spec leaves out, and the build records the preset, the values it resolved to and
+which of them differ (``build.json``'s ``spec`` and ``preset``).  ``standard`` is the default
+(measured cost and fidelity of each: ``docs/benchmarks/presets.md``); a spec built with
+:class:`prt.train.build.BuildSpec` directly keeps the dataclass's defaults, the paper's setting.
+"""
+
+from __future__ import annotations
+
+import copy
+
+__all__ = ["QUALITIES", "DEFAULT_QUALITY", "PRESETS", "RULE_FIELDS", "resolve", "differences", "describe"]
+
+QUALITIES = ("draft", "standard", "high")
+DEFAULT_QUALITY = "standard"
+
+# The ladder sizes a preset lets the default rule grow to, smallest first (prt.train.networks.fit.DEFAULT_LADDER's
+# sizes; a draft stops at k = 64, l = 3: its larger fits would take most of its time).
+_SMALL_LADDER = [
+    {"hidden": 16, "layers": 2, "pos_freqs": 4},
+    {"hidden": 32, "layers": 2, "pos_freqs": 5},
+    {"hidden": 32, "layers": 3, "pos_freqs": 6},
+    {"hidden": 48, "layers": 3, "pos_freqs": 6},
+    {"hidden": 64, "layers": 3, "pos_freqs": 6},
+]
+
+# The high preset's ladder: the default one and a size past k = 128, l = 4 (0.5 MB of fp32 weights with
+# bounces), room a dense mesh's per-vertex PRT leaves; it fits at about 0.2 s a step (batch 8192) on two cores.
+_HIGH_LADDER = [*_SMALL_LADDER, {"hidden": 64, "layers": 4, "pos_freqs": 6}, {"hidden": 128, "layers": 4, "pos_freqs": 6},
+                {"hidden": 192, "layers": 4, "pos_freqs": 6}]
+
+PRESETS: dict[str, dict] = {
+    # A first look at a new mesh in minutes: a tenth of the samples, half the rays, short fits, networks up to k64-l3.
+    "draft": {"samples": 100_000, "rays": 256, "segments": 8, "steps": 400, "batch": 4096, "bounce_rays": 16,
+              "vertex_margin": 1.0, "ladder": _SMALL_LADDER},
+    # The default.  The paper's rays; half its samples and steps, half the batch: the fits of the old default
+    # (1M samples, 2000 steps of 8192, --match 64x4) took 1,633 of a 15k-vertex scan's 1,881 s (issue 35).
+    "standard": {"samples": 500_000, "rays": 512, "segments": 8, "steps": 1000, "batch": 4096, "bounce_rays": 32,
+                 "vertex_margin": 1.0, "ladder": None},
+    # The paper's samples and steps, twice its rays and leaves, twice the bounce rays, a 2 dB margin.
+    "high": {"samples": 1_000_000, "rays": 1024, "segments": 16, "steps": 2000, "batch": 8192, "bounce_rays": 64,
+             "vertex_margin": 2.0, "ladder": _HIGH_LADDER},
+}
+"""Quality name -> the flat build-spec fields it sets (:meth:`prt.train.build.BuildSpec.to_dict`)."""
+
+# Fields that name a sizing rule: a spec that names one keeps it, and the preset's own rule
+# (``vertex_margin``, with its ``ladder``) is left out.
+RULE_FIELDS = ("fixed", "ladder", "match", "target", "target_db", "vertex_margin")
+
+
+def resolve(data: dict) -> dict:
+    """``data`` (flat spec fields as given: a spec file's, the flags') with its preset's values
+    filled in where it leaves a field out, and ``quality`` set.
+
+    The quality is ``data["quality"]`` or :data:`DEFAULT_QUALITY`; an unknown one is left for
+    the spec check to refuse.  A spec naming a sizing rule (:data:`RULE_FIELDS`, or an encoding
+    other than "freq") keeps it: the preset's ``vertex_margin`` and ``ladder`` are not applied.
+    """
+    quality = data.get("quality") or DEFAULT_QUALITY
+    preset = copy.deepcopy(PRESETS.get(quality, {}))
+    names_rule = any(data.get(k) is not None for k in RULE_FIELDS if k != "vertex_margin") or data.get("encoding", "freq") != "freq"
+    if names_rule:  # (a margin of its own keeps the preset's ladder)
+        preset.pop("vertex_margin", None)
+        preset.pop("ladder", None)
+    if data.get("epochs") is not None and data.get("steps") is None:
+        preset.pop("steps", None)  # epochs alone: the old epoch-based run (prt.train.networks.fit.FitSettings)
+    # absent fields only: a field given as null keeps its meaning (an old build.json's "steps": null, DEFAULT_STEPS)
+    filled = {k: v for k, v in preset.items() if v is not None and k not in data}
+    return {**data, **filled, "quality": quality}
+
+
+def differences(spec: dict) -> dict:
+    """The fields of a resolved spec (flat, :meth:`prt.train.build.BuildSpec.to_dict`) whose values
+    differ from its preset's: what flags or the spec file set by hand.  ``{field: [preset, value]}``."""
+    preset = PRESETS.get(spec.get("quality") or DEFAULT_QUALITY, {})
+    return {k: [v, spec[k]] for k, v in preset.items() if k in spec and spec[k] != v}
+
+
+def describe(quality: str) -> str:
+    """One line of a preset's values, for ``--help``."""
+    p = PRESETS[quality]
+    top = (p["ladder"] or [{"hidden": 128, "layers": 4}])[-1]  # None: the default ladder (prt.train.networks.fit.DEFAULT_LADDER)
+    return (f"{p['samples'] // 1000:,}k samples x {p['rays']} rays, {p['segments']} leaves, {p['steps']} steps of {p['batch']}, "
+            f"{p['bounce_rays']} bounce rays, networks up to k{top['hidden']}-l{top['layers']} sized to beat vertex PRT by "
+            f"{p['vertex_margin']:g} dB")
