@@ -7,7 +7,8 @@ Writes (from the code and the recorded files, never by hand):
 - ``docs/reference/scene-json.md``   ``scene.json``'s fields, from ``runtime/schemas/scene.schema.json``
 - ``docs/results/*.md``              every recorded benchmark file (``docs/benchmarks/*.json``) with its
                                      date, command and machine (:mod:`docs_results`)
-- the results table of ``README.md`` (between its ``results:start`` / ``results:end`` markers)
+- the results table of ``README.md`` (between its ``results:start`` / ``results:end`` markers) and the
+  Results section of ``mkdocs.yml``'s navigation (between its ``results-nav`` markers)
 
 ``--check`` writes nothing and exits 1, naming each page, when a committed page differs from what
 the code and the recorded files give now (``tests/test_docs.py`` runs it, then the strict
@@ -222,6 +223,8 @@ def pages() -> dict[Path, str]:
     out.update(docs_results.result_pages(ROOT))
     readme = ROOT / "README.md"
     out[readme] = docs_results.readme_with_table(readme.read_text(encoding="utf-8"), ROOT)
+    mkdocs = ROOT / "mkdocs.yml"
+    out[mkdocs] = docs_results.mkdocs_with_nav(mkdocs.read_text(encoding="utf-8"), ROOT)
     return out
 
 
