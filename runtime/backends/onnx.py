@@ -32,21 +32,70 @@ import numpy as np
 
 from .. import sh
 from ..checks import positive_int
-from ..errors import InputError
+from ..errors import ArgumentTypeError, InputError
 from ..interpolation import TransferInterpolator, check_tolerance
 from ..onnxfile import read_model
 from ..segmentation import segment_sort, segment_sort_reference
 from .base import CpuTransfer, TransferBackend
 
-__all__ = ["OnnxBackend", "OnnxTransfer", "default_providers", "segment_sort", "segment_sort_reference"]
+__all__ = ["OnnxBackend", "OnnxTransfer", "default_providers", "check_providers", "PROVIDERS_ENV", "segment_sort", "segment_sort_reference"]
+
+
+PROVIDERS_ENV = "PRT_ONNX_PROVIDERS"
+"""Environment variable with the ONNX Runtime providers of renderers that name none (comma-separated,
+e.g. ``cuda,cpu``), for embedders."""
+
+PROVIDER_NAMES = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider", "tensorrt": "TensorrtExecutionProvider",
+                  "trt": "TensorrtExecutionProvider", "rocm": "ROCMExecutionProvider", "openvino": "OpenVINOExecutionProvider",
+                  "dml": "DmlExecutionProvider", "coreml": "CoreMLExecutionProvider"}  # fmt: skip
+"""Short names accepted for ONNX Runtime's execution providers (the full names are accepted too)."""
+
+GPU_PROVIDERS = ("TensorrtExecutionProvider", "CUDAExecutionProvider", "ROCMExecutionProvider", "DmlExecutionProvider")
+"""Providers that run the networks on a GPU: a segment's rows go in one call, bound in and out
+(I/O binding), instead of the CPU's cache-sized slices on a pool of threads."""
 
 
 def default_providers() -> list[str]:
-    """CUDA first where onnxruntime has it, then CPU."""
+    """CUDA first where onnxruntime has it, then CPU.  TensorRT is used only when asked for
+    (``--onnx-providers tensorrt,cuda,cpu``): it builds an engine per new input shape, and a
+    segment's row count changes with every view."""
     import onnxruntime as ort
 
     available = ort.get_available_providers()
     return [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in available]
+
+
+def check_providers(providers, origin: str = "providers") -> list[str] | None:
+    """The providers to use: ``providers`` (a list of names, short or full; or one comma-separated
+    string), else the environment variable :data:`PROVIDERS_ENV`, else None (:func:`default_providers`).
+
+    Raises
+    ------
+    ArgumentTypeError
+        Not a list of strings.
+    InputError
+        A provider this onnxruntime lacks (CUDA where there is none, say): one line naming it and
+        the providers there are.
+    """
+    if providers is None:
+        env = os.environ.get(PROVIDERS_ENV, "").strip()
+        if not env:
+            return None
+        providers, origin = env, PROVIDERS_ENV
+    if isinstance(providers, str):
+        providers = [p.strip() for p in providers.split(",") if p.strip()]
+    if not isinstance(providers, (list, tuple)) or not all(isinstance(p, str) for p in providers):
+        raise ArgumentTypeError(f"{origin}: expected a list of provider names, got {providers!r}")
+    import onnxruntime as ort
+
+    available = ort.get_available_providers()
+    names = [PROVIDER_NAMES.get(p.lower(), p) for p in providers]
+    missing = [p for p in names if p not in available]
+    if missing or not names:
+        hint = "; install onnxruntime-gpu on a machine with a CUDA GPU" if any(p in GPU_PROVIDERS for p in missing) else ""
+        raise InputError(f"{origin}: {', '.join(missing) or 'none given'} not available (this onnxruntime {ort.__version__} has "
+                         f"{', '.join(available)}){hint}")  # fmt: skip
+    return list(dict.fromkeys(names))
 
 
 class OnnxTransfer:
