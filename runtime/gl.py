@@ -297,8 +297,8 @@ class FlagCounter:
             bind_framebuffer(self.ctx, previous)
         return int(self.query.samples)
 
-    def release(self) -> None:
-        for obj in (self.query, self.fbo, self.target, self.vao, self.program):
+    def release(self) -> None:  # the query goes with the context (moderngl's Query has no release)
+        for obj in (self.fbo, self.target, self.vao, self.program):
             obj.release()
 
 

@@ -406,6 +406,18 @@ class Renderer:
         """
         self._check_usable()
         self._draw(check=False)
+        return self._read()
+
+    @_in_context
+    def read_frame(self) -> np.ndarray:
+        """The pixels of the frame :meth:`draw` drew last, as :meth:`render` returns them (a GPU frame
+        read back now, stage ``frame_readback``; a CPU frame as it is)."""
+        self._check_usable()
+        if not self.stats["frames"]:
+            raise RendererStateError("Renderer.read_frame: no frame drawn yet; call draw() or render()")
+        return self._read()
+
+    def _read(self) -> np.ndarray:
         if self._transfer_on_cpu:
             return self._cpu_image
         t0 = time.perf_counter()

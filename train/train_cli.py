@@ -21,7 +21,7 @@ from pathlib import Path
 
 from ..runtime.errors import InputError, PRTError, SpecError
 from .build import DEFAULT_TARGET, BuildSpec, load_spec, run_build, spec_from_dict
-from .networks.fit import DEFAULT_STEPS
+from .networks.fit import DEFAULT_STEPS, DEVICES, resolve_device
 from .cluster import open_executor
 from .executor import add_cluster_argument
 from .outdir import check_output_folder
@@ -101,6 +101,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--glsl-layout", choices=("auto", "const", "texture"), default=None, help="auto: one GLSL function per network architecture, every segment's weights in one scene texture (compiles in seconds on llvmpipe); "
                         "const / texture: the older per-segment functions, weights as baked mat4 constants (fastest per fragment, slow to compile) or in a texture [auto]")
     p.add_argument("--threads", type=int, default=os.cpu_count(), help="CPU threads for ray tracing and training")
+    p.add_argument("--device", choices=DEVICES, default="auto",
+                   help="where the networks train: auto (a CUDA GPU when torch sees one, else the CPU), cpu, cuda; keys no cache (grid networks train on the CPU)")
     add_cluster_argument(p)
     p.add_argument("--neural-sdf", action="store_true",
                    help="fit a small MLP to the mesh's signed distance first and build the scene from it (a neural SDF scene)")
@@ -221,6 +223,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.threads is not None and args.threads < 1:
             raise InputError(f"--threads: expected a positive integer, got {args.threads}")
+        device = resolve_device(args.device)  # --device cuda without a GPU: one line, nothing written
         if args.deform is not None:
             return _deform_main(args)
         spec = _spec_from_args(args)
@@ -228,7 +231,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.neural_sdf:
             spec = _neural_sdf_spec(args, spec)
         with open_executor(args.cluster, args.threads) as executor:
-            report = run_build(spec, args.out, threads=args.threads, progress=not args.no_progress, force=args.force, executor=executor)
+            report = run_build(spec, args.out, threads=args.threads, progress=not args.no_progress, force=args.force, executor=executor,
+                               device=device)  # fmt: skip
         if args.transfer_texture is not None:
             _bake_texture(args, spec)
     except PRTError as exc:
