@@ -43,7 +43,7 @@ ROOT = Path(__file__).resolve().parents[1]
 RECORD = ROOT / "docs" / "benchmarks" / "gpu.json"
 BOUNCE_SCENE = ROOT / "studies" / "data" / "spot_bounces" / "scene.json"
 SIZES = ((512, 512), (1024, 1024), (1920, 1080))
-REDUCED_SIZES = ((40, 40), (64, 64), (72, 40))
+REDUCED_SIZES = ((24, 24), (32, 32), (40, 24))
 SOFTWARE = ("llvmpipe", "softpipe", "swrast", "software")
 
 
@@ -461,7 +461,7 @@ def main(argv=None) -> int:
     t_start = time.perf_counter()
     reduced = args.reduced
     sizes = REDUCED_SIZES if reduced else SIZES
-    views = 2 if reduced else args.views
+    views = 1 if reduced else args.views
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     env = environment(ctx)
     log(f"GL renderer {renderer}; torch {torch.__version__} on {device}; onnxruntime providers {env['onnxruntime_providers']}")
@@ -494,7 +494,7 @@ def main(argv=None) -> int:
                     f"relight {row.get('relight_ms', '-')} ms")  # fmt: skip
             frames += rows
     fit_devices = ["cuda", "cpu"] if device.type == "cuda" else ["cpu"]
-    fit = fit_figures(scenes["bounce"], 20 if reduced else args.fit_steps, fit_devices, 3000 if reduced else None)
+    fit = fit_figures(scenes["bounce"], 5 if reduced else args.fit_steps, fit_devices, 800 if reduced else None)
     report = {
         "provenance": _provenance()(gl_renderer=renderer, gpu=(env.get("gpu") or {}).get("name")),
         "renderer": renderer, "reduced": reduced, "environment": env, "limits": limits, "frames": frames, "fit": fit,
