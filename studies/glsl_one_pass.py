@@ -61,10 +61,11 @@ def old_package(commit: str, folder: Path | None, tmp: Path):
     return importlib.import_module("prt_old.runtime.renderer"), importlib.import_module("prt_old.runtime.orbit")
 
 
-def psnr(a: np.ndarray, b: np.ndarray) -> float:
+def psnr(a: np.ndarray, b: np.ndarray) -> float | None:
+    """PSNR of ``b`` against ``a`` over ``a``'s peak, in dB; None where the two are identical."""
     mse = float(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))
     peak = float(max(np.abs(a).max(), 1e-12))
-    return float("inf") if mse == 0 else 10 * np.log10(peak**2 / mse)
+    return None if mse == 0 else round(10 * np.log10(peak**2 / mse), 2)
 
 
 def glsl_frames(path: Path, old, size: int, views: int, ctx) -> dict:
@@ -112,9 +113,9 @@ def glsl_frames(path: Path, old, size: int, views: int, ctx) -> dict:
         "frames_ms": {k: [round(t, 2) for t in v] for k, v in times.items()},
         "speedup_vs_old": round(med["old"] / med["new"], 3),
         "speedup_two_draws_vs_old": round(med["old"] / med["new_two_draws"], 3),
-        "psnr_db": {"new_vs_old": round(psnr(images["old"], images["new"]), 2),
-                    "new_two_draws_vs_old": round(psnr(images["old"], images["new_two_draws"]), 2),
-                    "new_vs_onnx": round(psnr(reference, images["new"]), 2)},
+        # None: the images are identical, bit for bit
+        "psnr_db": {"new_vs_old": psnr(images["old"], images["new"]), "new_two_draws_vs_old": psnr(images["old"], images["new_two_draws"]),
+                    "new_vs_onnx": psnr(reference, images["new"])},
     }  # fmt: skip
 
 
@@ -138,8 +139,9 @@ def demo_frames(old_renderer, old_orbit, frames: int, rounds: int, ctx) -> dict:
     for r, _ in pairs.values():
         r.close()
     med = {k: float(np.median(v)) for k, v in medians.items()}
+    spread = (max(medians["old"]) - min(medians["old"])) / med["old"]
     return {"frame_ms": {k: round(v, 2) for k, v in med.items()}, "rounds_ms": medians,
-            "new_over_old": round(med["new"] / med["old"], 3)}  # fmt: skip
+            "new_over_old": round(med["new"] / med["old"], 3), "old_round_spread": round(spread, 3)}  # fmt: skip
 
 
 def markdown(figures: dict) -> str:
@@ -155,7 +157,7 @@ def markdown(figures: dict) -> str:
         "|---|---|---|---|---|---|---|---|",
     ]
     for key, row in figures["scenes"].items():
-        f, p = row["frame_ms"], row["psnr_db"]
+        f, p = row["frame_ms"], {k: "identical" if v is None else v for k, v in row["psnr_db"].items()}
         lines.append(f"| {key} | {row['transfer_width']} | {f['old']:.1f} | {f['new']:.1f} | {f['new_two_draws']:.1f} | "
                      f"{row['speedup_vs_old']:.2f}x | {p['new_vs_old']} | {p['new_vs_onnx']} |")  # fmt: skip
     t = figures["targets"]
@@ -196,14 +198,16 @@ def main(argv=None) -> int:
         demo = demo_frames(old_renderer, old_orbit, args.demo_frames, args.demo_rounds, ctx) if args.demo_rounds else None
     held = {k: scenes["held_out_64"]["frame_ms"][k] / scenes["held_out_16"]["frame_ms"][k] for k in ("old", "new")}
     targets = {
-        "bounce build: old / new >= 1.8": {"measured": scenes["bounce"]["speedup_vs_old"], "met": scenes["bounce"]["speedup_vs_old"] >= 1.8},
+        "bounce build: old / new >= 1.8": {"measured": scenes["bounce"]["speedup_vs_old"], "met": bool(scenes["bounce"]["speedup_vs_old"] >= 1.8)},
         "bounce build: new vs ONNX >= 60 dB": {"measured": scenes["bounce"]["psnr_db"]["new_vs_onnx"],
-                                                "met": scenes["bounce"]["psnr_db"]["new_vs_onnx"] >= 60},
-        "held-out: 64-wide / 16-wide <= 1.4 (new)": {"measured": round(held["new"], 3), "met": held["new"] <= 1.4},
+                                                "met": bool((scenes["bounce"]["psnr_db"]["new_vs_onnx"] or np.inf) >= 60)},
+        "held-out: 64-wide / 16-wide <= 1.4 (new)": {"measured": round(held["new"], 3), "met": bool(held["new"] <= 1.4)},
         "held-out: 64-wide / 16-wide (old, for reference)": {"measured": round(held["old"], 3), "met": None},
     }  # fmt: skip
     if demo:
-        targets["demo frame: new / old <= 1 (unchanged or faster)"] = {"measured": demo["new_over_old"], "met": demo["new_over_old"] <= 1.03}
+        noise = demo["old_round_spread"]  # old against itself: what a difference must exceed to count
+        targets[f"demo frame: new / old <= 1 within the old rounds' spread ({noise:.3f})"] = {
+            "measured": demo["new_over_old"], "met": bool(demo["new_over_old"] <= 1 + noise)}
     machine = {"renderer": context_info(ctx)["renderer"], "cpu": cpu_label(), "other_cpu_share": other_cpu_share(busy, time.perf_counter() - t0)}
     ctx.release()
     figures = {

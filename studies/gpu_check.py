@@ -26,7 +26,10 @@ in ``studies/data/spot_bounces``) and per size (512x512, 1024x1024, 1920x1080):
 
 ``--reduced`` runs every part at toy sizes (tests, a machine without a GPU: llvmpipe, torch on the
 CPU) to show the script works before a GPU task runs it.  Writing ``docs/benchmarks/gpu.json`` from a
-run that had no GPU (GL on a software rasteriser, or torch without CUDA) is refused (exit 2).
+run that had no GPU (GL on a software rasteriser and torch without CUDA) is refused (exit 2); where GL
+fell back to a software rasteriser but torch sees the GPU, the GLSL rows are skipped and the record
+says so (``skipped``).  No configuration starts after ``--budget`` seconds (400): the record is
+written with what was measured.
 """
 
 from __future__ import annotations
@@ -140,7 +143,7 @@ def renderer_frames(scene, size, ctx, views: int, backend: str, providers=None, 
             torch_engine(r._backends["onnx"].engine, scene, standin)
         cams = views_of(r.camera, views)
         stages: dict[str, list[float]] = {}
-        relight, readback = [], []
+        relight, readback, flops = [], [], []
         lighting = r.lighting
         for i, camera in enumerate([cams[0].orbit(-0.02), cams[0].orbit(-0.01), *cams]):
             r.set_camera_object(camera)
@@ -157,6 +160,7 @@ def renderer_frames(scene, size, ctx, views: int, backend: str, providers=None, 
             relight.append(r.timings["frame"])
             r.read_frame()
             readback.append(r.timings.get("frame_readback", 0.0))
+            flops.append(covered_flops(scene, r.gbuffer.read_packed())[0])  # after the timings: the view's network FLOPs
         engine = backend
         if backend == "onnx":
             engine = f"onnxruntime {next(iter(r._backends['onnx'].engine.sessions.values())).get_providers()[0]}"
@@ -165,7 +169,7 @@ def renderer_frames(scene, size, ctx, views: int, backend: str, providers=None, 
         med = {k: round(float(np.median(v)), 4) for k, v in stages.items()}
         return {"engine": engine, "renderer": r.gl_renderer, "frame_ms": med["frame"], "fps": round(1e3 / med["frame"], 2),
                 "stages_ms": med, "relight_ms": round(float(np.median(relight)), 4),
-                "readback_ms": round(float(np.median(readback)), 4), "views": views}  # fmt: skip
+                "readback_ms": round(float(np.median(readback)), 4), "flops": int(np.median(flops)), "views": views}  # fmt: skip
 
 
 def _rotation_y(angle: float) -> np.ndarray:
@@ -433,6 +437,7 @@ def main(argv=None) -> int:
     p.add_argument("--views", type=int, default=12, help="orbit views per configuration")
     p.add_argument("--fit-steps", type=int, default=1000)
     p.add_argument("--reduced", action="store_true", help="toy sizes: shows the script works (no GPU needed)")
+    p.add_argument("--budget", type=float, default=400.0, help="seconds after which no further configuration starts (the record is written)")
     args = p.parse_args(argv)
     import torch
 
@@ -453,7 +458,7 @@ def main(argv=None) -> int:
         return 2
     renderer = ctx.info.get("GL_RENDERER", "")
     gpu_gl = not any(word in renderer.lower() for word in SOFTWARE)
-    if out.resolve() == RECORD.resolve() and not (gpu_gl and torch.cuda.is_available()):
+    if out.resolve() == RECORD.resolve() and not (gpu_gl or torch.cuda.is_available()):  # a CPU-only run
         ctx.release()
         print(f"gpu_check: error: refusing to write {RECORD.relative_to(ROOT)} from a run without a GPU (GL renderer {renderer!r}, "
               f"torch CUDA {torch.cuda.is_available()}); pass --reduced --json DIR/gpu.json for a trial run", file=sys.stderr)  # fmt: skip
@@ -465,15 +470,26 @@ def main(argv=None) -> int:
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     env = environment(ctx)
     log(f"GL renderer {renderer}; torch {torch.__version__} on {device}; onnxruntime providers {env['onnxruntime_providers']}")
-    limits = flops_limits(device, 256 if reduced else 8192)
+    limits = flops_limits(device, 256 if reduced else 8192 if device.type == "cuda" else 2048)
     log(f"limits: {limits}")
     has_ort_cuda = "CUDAExecutionProvider" in env["onnxruntime_providers"]
-    frames = []
+    fit_devices = ["cuda", "cpu"] if device.type == "cuda" else ["cpu"]
+    fit = fit_figures(scenes["bounce"], 5 if reduced else args.fit_steps, fit_devices, 800 if reduced else None)
+    # GLSL on a software rasteriser at full sizes would take the whole budget: there only the GPU engine runs
+    glsl_ok = gpu_gl or reduced
+    frames, skipped = [], []
     for name, scene in scenes.items():
         for size in sizes:
             label = f"{size[0]}x{size[1]}"
-            glsl = renderer_frames(scene, size, ctx, views, "glsl")
-            rows = [{"scene": name, "size": label, **glsl, "network_ms": glsl["stages_ms"].get("network")}]
+            if time.perf_counter() - t_start > args.budget:  # write what was measured rather than be cut off
+                skipped.append(f"{name} {label}: over the {args.budget:.0f} s budget")
+                continue
+            rows = []
+            if glsl_ok:
+                glsl = renderer_frames(scene, size, ctx, views, "glsl")
+                rows.append({"scene": name, "size": label, **glsl, "network_ms": glsl["stages_ms"].get("network")})
+            else:
+                skipped.append(f"{name} {label} glsl: GL is a software rasteriser ({renderer})")
             if has_ort_cuda or reduced:  # onnxruntime's own engine (on the CPU only in a reduced run)
                 onnx = renderer_frames(scene, size, ctx, views, "onnx", ["CUDAExecutionProvider", "CPUExecutionProvider"] if has_ort_cuda else None)
                 rows.append({"scene": name, "size": label, **onnx, "network_ms": onnx["stages_ms"].get("inference")})
@@ -483,22 +499,18 @@ def main(argv=None) -> int:
                 standin = standin_stage(scene, size, ctx, device, 1 if reduced else 3)
                 best = min(standin["network_ms"].values())
                 rows.append({"scene": name, "size": label, "engine": standin["engine"] + " (stand-in: network stage only)",
-                             "network_ms": best, "standin": standin})  # fmt: skip
-            packed = packed_view(scene, size, ctx, views_of(scene_camera(scene), 1)[0])
-            flops, _ = covered_flops(scene, packed)
+                             "network_ms": best, "flops": standin["flops"], "standin": standin})  # fmt: skip
             for row in rows:
                 if row.get("network_ms"):
-                    row["network_gflops"] = round(flops / (row["network_ms"] * 1e-3) / 1e9, 1)
+                    row["network_gflops"] = round(row["flops"] / (row["network_ms"] * 1e-3) / 1e9, 1)
                     row["limit_share"] = round(row["network_gflops"] / limits["fp32_gflops"], 4)
                 log(f"{name} {label} {row['engine']}: frame {row.get('frame_ms', '-')} ms, network {row.get('network_ms')} ms, "
                     f"relight {row.get('relight_ms', '-')} ms")  # fmt: skip
             frames += rows
-    fit_devices = ["cuda", "cpu"] if device.type == "cuda" else ["cpu"]
-    fit = fit_figures(scenes["bounce"], 5 if reduced else args.fit_steps, fit_devices, 800 if reduced else None)
     report = {
         "provenance": _provenance()(gl_renderer=renderer, gpu=(env.get("gpu") or {}).get("name")),
         "renderer": renderer, "reduced": reduced, "environment": env, "limits": limits, "frames": frames, "fit": fit,
-        "targets": targets(frames, reduced), "seconds": round(time.perf_counter() - t_start, 1),
+        "targets": targets(frames, reduced), "skipped": skipped, "seconds": round(time.perf_counter() - t_start, 1),
     }  # fmt: skip
     ctx.release()
     text = markdown(report)
