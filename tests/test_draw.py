@@ -59,3 +59,12 @@ def test_orbit_summary_names_the_renderer_and_reads_back_apart(gl_ctx, demo, tmp
     assert "frame_readback" in summary.median_ms
     text = str(summary)
     assert f"on {summary.renderer}" in text and "read back" in text and "frame_readback" not in text.split("read back")[0]
+
+
+def test_viewer_title_and_stage_line_name_the_renderer():
+    from prt.runtime.viewer import stage_text, title_text
+
+    title = title_text("spot", "glsl", "diffuse", "studio", fps=30.0, size=(512, 512), renderer="NVIDIA H200/PCIe/SSE2")
+    assert title.endswith("| NVIDIA H200") and "30.0 FPS" in title
+    assert title_text("spot", "onnx", "diffuse", "studio", fps=None, size=None, renderer="llvmpipe (LLVM 15.0.6, 256 bits)").endswith("| llvmpipe")
+    assert "on llvmpipe (LLVM" in stage_text(30.0, (64, 64), {"frame": 33.0, "network": 20.0}, "llvmpipe (LLVM 15.0.6, 256 bits)")
