@@ -195,7 +195,9 @@ def torch_networks(scene, device):
     import torch
 
     from prt.export.onnx_model import LEAKY_SLOPE, NORMAL_EPS, POSITION_CLIP, read_arrays
-    from prt.train.networks.network import normal_quadratic
+
+    def normal_quadratic(n):  # prt.train.networks.network's, without list indexing (a host copy a CUDA graph cannot capture)
+        return torch.cat([n, n * n, n * torch.cat([n[:, 1:], n[:, :1]], dim=1)], dim=1)
 
     nets = {}
     for seg in scene.manifest.segments:
