@@ -40,7 +40,7 @@ def test_cuda_without_a_gpu_is_one_line_and_writes_nothing(tmp_path):
 def _build(out: Path, *flags: str) -> dict[str, bytes]:
     proc = subprocess.run(
         [sys.executable, "-m", "prt.train.train_cli", str(SPOT), "-o", str(out), "--samples", "1000", "--validation", "200", "--rays", "8",
-         "--segments", "2", "--hidden", "16", "--layers", "2", "--steps", "20", "--bounces", "0", "--no-progress", "--threads", "1", *flags],
+         "--segments", "1", "--hidden", "16", "--layers", "2", "--steps", "20", "--bounces", "0", "--no-progress", "--threads", "1", *flags],
         capture_output=True, text=True,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
