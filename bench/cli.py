@@ -6,7 +6,7 @@ usage::
         [--plot out.png] [--views 30] [--size 512 [256 ...]] [--ref-rays 1024] [--baseline-rays N] [--warmup 3]
         [--precisions fp32 fp16 fp16-mlp int8] [--interpolate TOL ...] [--backends onnx glsl vertex texture] [--texture-size N ...] [--cache DIR]
         [--gemm-size 4096] [--blas-threads N] [--config-budget SECONDS] [--packing-views N]
-        [--images DIR] [--fresh] [--cluster auto|ADDRESS]
+        [--images DIR] [--fresh] [--cluster auto|ADDRESS] [--gl-device NAME|INDEX]
 
 What is measured: :mod:`prt.bench.scene_bench`; the report's format: :mod:`prt.bench.report`.
 Every scene is checked before anything is measured; a scene that fails (then or while it is
@@ -27,6 +27,7 @@ from prt.bench.scene_bench import Settings, run
 from prt.export.precision import PRECISIONS
 from prt.runtime.errors import PRTError
 from prt.runtime.files import atomic_write_bytes, atomic_write_json
+from prt.runtime.gl import create_context
 from prt.train.cluster import open_executor
 from prt.train.executor import add_cluster_argument
 
@@ -73,6 +74,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="transfer texture sizes of the texture baseline, texels per side (default 1024)")
     p.add_argument("--cache", type=Path, default=None, help="reference / variant cache (default: next to --json)")
     p.add_argument("--gemm-size", type=int, default=4096, help="matrix size of the machine-limit GEMM (default 4096)")
+    p.add_argument("--gl-device", default=None, metavar="NAME|INDEX",
+                   help="the EGL device that draws: an index or a name matched against GL_RENDERER, e.g. nvidia or llvmpipe "
+                        "(default: $PRT_GL_DEVICE, else auto: the GPU where there is one, else llvmpipe); the report names it")  # fmt: skip
     add_cluster_argument(p)  # the reference's ray tracing
     p.add_argument("--blas-threads", type=int, default=None,
                    help="limit numpy's BLAS threads while rendering (default: leave as found)")  # fmt: skip
@@ -122,9 +126,11 @@ def main(argv=None) -> int:
         interpolate=tuple(dict.fromkeys(args.interpolate)),
         texture_sizes=tuple(dict.fromkeys(args.texture_size)),
         gemm_size=args.gemm_size, blas_threads=args.blas_threads, fresh=args.fresh, images=args.images,
-        ref_hit_rays=args.ref_hit_rays, ref_hit_transfer_rays=args.ref_hit_transfer_rays,
+        ref_hit_rays=args.ref_hit_rays, ref_hit_transfer_rays=args.ref_hit_transfer_rays, gl_device=args.gl_device,
     )  # fmt: skip
     try:
+        if args.gl_device is not None:  # a device that does not exist: one line now, before minutes of work
+            create_context(device=args.gl_device, origin="--gl-device").release()
         with open_executor(args.cluster) as executor:
             report = run(args.scenes, settings, executor=executor)
     except PRTError as exc:  # --cluster without Ray, or no cluster at the address

@@ -392,6 +392,8 @@ def scene_checkpoint(scene_path, settings) -> Path:
             options[key] = getattr(settings, key)
     if getattr(settings, "baseline_rays", None) is not None:  # (likewise)
         options["baseline_rays"] = settings.baseline_rays
+    if getattr(settings, "gl_device", None) is not None:  # (likewise)
+        options["gl_device"] = settings.gl_device
     options["prt"] = _prt_version()  # a new release measures again
     options["records"] = RECORD_FORMAT  # so does a new record format
     digest.update(json.dumps(options, sort_keys=True, default=list).encode())

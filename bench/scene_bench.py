@@ -85,6 +85,7 @@ class Settings:
     ref_hit_transfer_rays: int = HIT_TRANSFER_RAYS  # and rays of the direct transfer at each hit
     baseline_rays: int | None = None  # rays per vertex / texel of the vertex and texture baselines (None: ref_rays)
     equal_bytes: bool = False  # also the vertex baseline on the mesh decimated to the build's bytes (bench/equal_bytes.py)
+    gl_device: str | None = None  # the EGL device that draws (runtime/gl_devices.py; None: $PRT_GL_DEVICE, else auto)
 
     @property
     def rays_of_baselines(self) -> int:
@@ -631,7 +632,7 @@ def run(scene_paths, settings: Settings, log=print, executor=None) -> dict:
     machine_gflops = gemm["best"]
     log(f"machine: float32 GEMM {settings.gemm_size}^3: numpy {gemm['numpy']:.1f}, onnxruntime {gemm['onnxruntime']:.1f} GFLOP/s "
         f"({time.perf_counter() - t0:.1f} s); the limit is the higher")
-    ctx = create_context()
+    ctx = create_context(device=settings.gl_device, origin="--gl-device")
     try:
         machine = {
             "cpu": cpu_name(), "cores": os.cpu_count(), "gl_renderer": ctx.info.get("GL_RENDERER"),

@@ -75,45 +75,62 @@ class EnvmapBackground:
         rotation = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
         key = (id(camera), self._envmap_key, rotation.tobytes(), None if depth is None else id(depth))
         if key != self._drawn_key:
-            half_y = math.tan(math.radians(camera.fov_y) / 2.0)
-            p = self.program
-            # The light's rotation moved what was at w to rotation @ w: look the map up at rotation^T d.
-            p["u_to_map"].write(np.ascontiguousarray(rotation, dtype="f4").tobytes())  # row-major R = GLSL's R^T
-            for name, value in (("u_forward", camera.forward), ("u_right", camera.right), ("u_up", camera.true_up)):
-                p[name].value = tuple(float(v) for v in value)
-            p["u_half"].value = (half_y * self.width / self.height, half_y)
-            p["u_size"].value = (float(self.width), float(self.height))
-            p["u_envmap"].value = 0
+            self._set_view(camera, rotation)
             if depth is None:
                 draw_fullscreen(self.ctx, self.fbo, self.vao, [(self._envmap, 0)])
-                self.fbo.read_into(self._image, components=3, dtype="f4")
             else:
-                fbo = self._fbo_with(depth)
-                previous = self.ctx.fbo
-                try:
-                    self._envmap.use(0)
-                    fbo.use()
-                    self.ctx.disable(moderngl.BLEND | moderngl.CULL_FACE)
-                    self.ctx.enable(moderngl.DEPTH_TEST)
-                    self.ctx.depth_func = "<="
-                    self.vao.render(moderngl.TRIANGLES, vertices=3)
-                finally:
-                    self.ctx.disable(moderngl.DEPTH_TEST)
-                    bind_framebuffer(self.ctx, previous)
-                fbo.read_into(self._image, components=3, dtype="f4")
+                self._draw_behind(self._fbo_with(self.target, depth))
+            self.fbo.read_into(self._image, components=3, dtype="f4")
             self._drawn_key = key
             self._camera = camera  # keeps id(camera) from being reused while the key holds it
         return self._image[::-1]
 
-    def _fbo_with(self, depth: moderngl.Texture):
-        """The colour target with ``depth`` attached, read-only (depth writes off)."""
-        if self._depth is not depth:
+    def draw_into(self, target: moderngl.Texture, camera, rotation, depth: moderngl.Texture) -> None:
+        """Draw the map into ``target`` (a frame shaded on the GPU, the size of this layer) where
+        ``depth`` is 1, as :meth:`image` draws it into its own layer; nothing is read back, the
+        pixels under geometry keep the frame."""
+        rotation = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
+        self._set_view(camera, rotation)
+        self._draw_behind(self._fbo_with(target, depth))
+        self._drawn_key = None  # this layer's own target was not drawn
+
+    def _set_view(self, camera, rotation: np.ndarray) -> None:
+        half_y = math.tan(math.radians(camera.fov_y) / 2.0)
+        p = self.program
+        # The light's rotation moved what was at w to rotation @ w: look the map up at rotation^T d.
+        p["u_to_map"].write(np.ascontiguousarray(rotation, dtype="f4").tobytes())  # row-major R = GLSL's R^T
+        for name, value in (("u_forward", camera.forward), ("u_right", camera.right), ("u_up", camera.true_up)):
+            p[name].value = tuple(float(v) for v in value)
+        p["u_half"].value = (half_y * self.width / self.height, half_y)
+        p["u_size"].value = (float(self.width), float(self.height))
+        p["u_envmap"].value = 0
+
+    def _draw_behind(self, fbo) -> None:
+        """One draw into ``fbo`` (a colour target and a G-buffer's depth): the far-plane triangle
+        passes the ``<=`` depth test where nothing was drawn."""
+        previous = self.ctx.fbo
+        try:
+            self._envmap.use(0)
+            fbo.use()
+            self.ctx.disable(moderngl.BLEND | moderngl.CULL_FACE)
+            self.ctx.enable(moderngl.DEPTH_TEST)
+            self.ctx.depth_func = "<="
+            self.vao.render(moderngl.TRIANGLES, vertices=3)
+        finally:
+            self.ctx.disable(moderngl.DEPTH_TEST)
+            bind_framebuffer(self.ctx, previous)
+
+    def _fbo_with(self, target: moderngl.Texture, depth: moderngl.Texture):
+        """``target`` with ``depth`` attached, read-only (depth writes off); one kept per pair."""
+        key = (id(target), id(depth))
+        if self._depth != key:
             if self._depth_fbo is not None:
                 self._depth_fbo.release()
             self._depth_fbo = None  # a failed creation leaves none behind
-            self._depth_fbo = self.ctx.framebuffer([self.target], depth)
+            self._depth_fbo = self.ctx.framebuffer([target], depth)
             self._depth_fbo.depth_mask = False
-            self._depth = depth
+            self._depth = key
+            self._attached = (target, depth)  # keeps the ids from being reused while the key holds them
         return self._depth_fbo
 
     def release(self) -> None:

@@ -4,12 +4,13 @@ usage: prt-runtime [scene.json] [--backend onnx|glsl] [--size W[xH]] [--headless
                    [--out DIR] [--envmap NAME|PATH] [--material diffuse|glossy] [--exponent E]
                    [--camera-path PATH.json] [--format png|exr|mp4] [--fps F]
                    [--background envmap|black] [--target-fps F] [--interpolate TOL]
-                   [--object-albedo NAME=R,G,B ...]
+                   [--object-albedo NAME=R,G,B ...] [--gl-device NAME|INDEX] [--onnx-providers LIST]
 
 Without a scene it opens the bundled demo scene (Spot).  With a display (and pygame installed:
 ``pip install "prt-runtime[viewer]"``) it opens a window; without one, or with --headless, it
 renders --frames frames along an orbit (or the views of --camera-path) to PNG files (linear EXR
-files, or an MP4 video with --format) and prints the median FPS and stage times.
+files, or an MP4 video with --format) and prints the median FPS and stage times, with the GL
+renderer that drew the frames (--gl-device chooses it).
 A thin layer over the library: :class:`prt.runtime.viewer.ViewerOptions`,
 :func:`prt.runtime.viewer.run_window` and :func:`prt.runtime.orbit.render_orbit`.
 """
@@ -23,6 +24,8 @@ from pathlib import Path
 
 from .interpolation import DEFAULT_TOLERANCE as DEFAULT_INTERPOLATE, check_tolerance
 from .backends import ALL_BACKENDS, BACKENDS
+from .backends.onnx import check_providers
+from .gl import create_context
 from .envmaps import BUNDLED_ENVMAPS
 from .checks import finite_array, positive_int
 from .errors import InputError, PRTError
@@ -53,7 +56,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--object-albedo", action="append", default=[], metavar="NAME=R,G,B",
                    help="albedo of one object of the scene (repeatable; after --material)")
     p.add_argument("--exposure", type=float, default=1.0, help="exposure before tone mapping")
-    p.add_argument("--providers", default=None, help="comma-separated ONNX Runtime providers (default: CUDA if present, then CPU)")
+    p.add_argument("--onnx-providers", "--providers", dest="providers", default=None, metavar="LIST",
+                   help="comma-separated ONNX Runtime providers, e.g. cuda,cpu or tensorrt,cuda,cpu (default: $PRT_ONNX_PROVIDERS, else CUDA if present, then CPU); one this onnxruntime lacks is an error")
+    p.add_argument("--gl-device", default=None, metavar="NAME|INDEX",
+                   help="headless: the EGL device that draws, an index or a name matched against GL_RENDERER, e.g. nvidia or llvmpipe (default: $PRT_GL_DEVICE, else auto: the GPU where there is one, else llvmpipe)")
     p.add_argument("--threads", type=int, default=None, help="CPU threads of the ONNX backend")
     p.add_argument("--interpolate", type=float, default=DEFAULT_INTERPOLATE, metavar="TOL",
                    help=f"onnx backend: run the networks on a coarse pixel grid and interpolate where the transfer of the neighbours agrees within TOL (relative; default {DEFAULT_INTERPOLATE}); 0: every pixel runs its network")
@@ -89,11 +95,14 @@ def options_from_args(args: argparse.Namespace) -> ViewerOptions:
         raise InputError(f"--exponent must be > 0, got {args.exponent}")
     target_fps = float(finite_array(args.target_fps, "--target-fps", (), minimum=0.0))
     object_albedo = tuple(parse_object_albedo(text) for text in args.object_albedo)
+    providers = check_providers(args.providers, "--onnx-providers")  # one line here, before any renderer
+    if args.gl_device is not None:
+        create_context(device=args.gl_device, origin="--gl-device").release()
     return ViewerOptions(
         object_albedo=object_albedo,
         width=width, height=height, backend=args.backend, envmap=args.envmap, material=args.material,
         exponent=args.exponent, exposure=args.exposure,
-        providers=args.providers.split(",") if args.providers else None, threads=args.threads,
+        providers=providers, threads=args.threads, gl_device=args.gl_device,
         interpolate=check_tolerance(args.interpolate, "--interpolate"),
         background=None if args.background is None else args.background == "envmap", target_fps=target_fps or None,
     )  # fmt: skip

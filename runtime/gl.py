@@ -1,7 +1,9 @@
 """Headless OpenGL contexts (EGL), full-screen programs, and the one harness that evaluates
 GLSL over inputs.
 
-Mesa's llvmpipe through EGL is enough: no display and no GPU are needed.
+Mesa's llvmpipe through EGL is enough: no display and no GPU are needed.  Where a GPU is
+there, headless contexts take it (:mod:`prt.runtime.gl_devices` chooses the EGL device: the
+GPU, llvmpipe, or the one named by ``--gl-device`` / ``PRT_GL_DEVICE``).
 """
 
 from __future__ import annotations
@@ -15,14 +17,17 @@ import numpy as np
 
 from ..shaders import assemble
 from .errors import GLContextError, PRTError
+from .gl_devices import describe_devices, resolve_device
 
 __all__ = [
     "create_context",
+    "list_devices",
     "context_info",
     "compile_program",
     "draw_fullscreen",
     "bind_framebuffer",
     "run_fragment_program",
+    "FlagCounter",
     "ShaderCompileError",
 ]
 
@@ -41,25 +46,41 @@ class ShaderCompileError(PRTError):
     """A generated or bundled shader failed to compile; the message names the source file."""
 
 
-def create_context(require: int = 330) -> moderngl.Context:
-    """Create a standalone (headless) OpenGL context through EGL.
+def create_context(require: int = 330, device: str | int | None = None, *, origin: str = "gl_device") -> moderngl.Context:
+    """Create a standalone (headless) OpenGL context through EGL, on the device chosen.
 
     Parameters
     ----------
     require : int
         Minimum OpenGL version as major * 100 + minor * 10 (330 = OpenGL 3.3).
+    device : str or int, optional
+        The EGL device: ``"auto"`` (the GPU where there is one, else llvmpipe), an index or a
+        name matched against GL_RENDERER / GL_VENDOR (:mod:`prt.runtime.gl_devices`).  None: the
+        environment variable ``PRT_GL_DEVICE``, else ``"auto"``.
+    origin : str
+        What ``device`` came from, for messages (``"--gl-device"``).
 
     Returns
     -------
     moderngl.Context
+        :func:`context_info` says which renderer it is.
 
     Raises
     ------
     GLContextError
         One line with the reason and how to get a context.
+    InputError
+        ``device`` (or ``PRT_GL_DEVICE``) names no device: one line listing the devices there are.
     """
+
+    def open_context(index):
+        kwargs = {} if index is None else {"device_index": int(index)}
+        return moderngl.create_standalone_context(backend="egl", require=require, **kwargs)
+
     try:
-        ctx = moderngl.create_standalone_context(backend="egl", require=require)
+        ctx = resolve_device(device, open_context, origin=origin)
+    except PRTError:
+        raise
     except Exception as exc:  # moderngl raises plain Exception subclasses that vary by version
         reason = " ".join(str(exc).split()) or type(exc).__name__
         raise GLContextError(f"no OpenGL context via EGL ({reason}): {_INSTALL_HINT}") from None
@@ -69,6 +90,12 @@ def create_context(require: int = 330) -> moderngl.Context:
         reason = f"got OpenGL version code {found}, need {require}"
         raise GLContextError(f"no OpenGL context via EGL ({reason}): {_INSTALL_HINT}")
     return ctx
+
+
+def list_devices() -> list[dict]:
+    """The EGL devices headless contexts can use, each with its GL renderer
+    (:func:`prt.runtime.gl_devices.describe_devices`; a context is opened on each)."""
+    return describe_devices(lambda index: moderngl.create_standalone_context(backend="egl", **({} if index is None else {"device_index": int(index)})))
 
 
 def context_info(ctx: moderngl.Context) -> dict:
@@ -242,6 +269,37 @@ def run_fragment_program(
         if own_program:
             program.release()
     return out
+
+
+class FlagCounter:
+    """Counts the texels of an RGBA texture (``size``) whose alpha is above 1.5, on the GPU: the
+    shade pass's mark of a broken transfer, checked without reading the frame back.  A pass keeps
+    those texels only (``shaders/flag_count.frag``) and an occlusion query counts them."""
+
+    def __init__(self, ctx: moderngl.Context, size: tuple[int, int]) -> None:
+        self.ctx = ctx
+        self.program = compile_program(ctx, assemble("flag_count.frag"), "flag_count.frag")
+        self.vao = ctx.vertex_array(self.program, [])
+        self.target = ctx.renderbuffer(size, 1, dtype="f1")
+        self.fbo = ctx.framebuffer([self.target])
+        self.query = ctx.query(samples=True)
+
+    def count(self, texture: moderngl.Texture) -> int:
+        previous = self.ctx.fbo
+        try:
+            texture.use(0)
+            self.program["u_frame"].value = 0
+            self.fbo.use()
+            self.ctx.disable(moderngl.DEPTH_TEST | moderngl.BLEND | moderngl.CULL_FACE)
+            with self.query:
+                self.vao.render(moderngl.TRIANGLES, vertices=3)
+        finally:
+            bind_framebuffer(self.ctx, previous)
+        return int(self.query.samples)
+
+    def release(self) -> None:  # the query goes with the context (moderngl's Query has no release)
+        for obj in (self.fbo, self.target, self.vao, self.program):
+            obj.release()
 
 
 def bind_framebuffer(ctx: moderngl.Context, fbo) -> None:

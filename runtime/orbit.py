@@ -56,6 +56,7 @@ class OrbitSummary:
     out: Path
     wrote: str = ""  # what was written, for the report (default: the PNG frames in ``out``)
     write_s: float = 0.0  # seconds spent tone mapping, encoding and writing the frames (not in median_ms)
+    renderer: str = ""  # the GL renderer that drew the frames (GL_RENDERER)
 
     @property
     def fps(self) -> float:
@@ -63,10 +64,13 @@ class OrbitSummary:
 
     def __str__(self) -> str:
         med = self.median_ms
-        parts = ", ".join(f"{k} {v:.1f}" for k, v in med.items() if k != "frame")
+        parts = ", ".join(f"{k} {v:.1f}" for k, v in med.items() if k not in ("frame", "frame_readback"))
+        on = f" on {self.renderer}" if self.renderer else ""
+        # A frame shaded on the GPU is timed to its texture; reading it back for the files is apart.
+        readback = f"; read back {med['frame_readback']:.1f} ms apart" if "frame_readback" in med else ""
         return (
-            f"{self.scene}: {self.frames} frames {self.width}x{self.height}, backend {self.backend}: median {self.fps:.1f} FPS "
-            f"({med['frame']:.1f} ms/frame; {parts} ms); wrote {self.wrote or f'{self.out}/frame_000.png ...'}"
+            f"{self.scene}: {self.frames} frames {self.width}x{self.height}, backend {self.backend}{on}: median {self.fps:.1f} FPS "
+            f"({med['frame']:.1f} ms/frame; {parts} ms{readback}); wrote {self.wrote or f'{self.out}/frame_000.png ...'}"
             f" in {self.write_s:.1f} s"
         )
 
@@ -169,7 +173,7 @@ def render_camera_path(r, path: CameraPath, out, *, exposure: float = 1.0, warmu
     finally:
         r.set_camera_object(start)
     med = {k: float(np.median(v)) for k, v in stages.items()}
-    return OrbitSummary(r.scene.name, len(cameras), r.width, r.height, r.backend, med, out, sink.wrote(), write_s)
+    return OrbitSummary(r.scene.name, len(cameras), r.width, r.height, r.backend, med, out, sink.wrote(), write_s, r.gl_renderer)
 
 
 class _FrameSink:

@@ -13,8 +13,15 @@ A frame runs three stages, each timed (milliseconds in :attr:`Renderer.timings`)
 3. Shading (``shade``), one definition with two twins tested against each other: a transfer
    that a backend returns on the CPU (:class:`prt.runtime.backends.CpuTransfer`) is shaded
    there with :func:`prt.runtime.shading.shade` (numpy), packed row by row; one it leaves on the
-   GPU is shaded by a full-screen pass with ``shading.glsl``.  Then the image is assembled
-   (``readout``: the shaded rows scattered once into the image, or the GPU's image read back).
+   GPU is shaded by a full-screen pass with ``shading.glsl`` (the env-map background drawn
+   into the same texture, ``background``).  A CPU frame is then assembled (``readout``: the
+   shaded rows scattered once into the image).
+
+``frame`` is the frame as its user sees it: drawn and finished where it is shaded (a GPU frame
+in its texture, :meth:`Renderer.draw`).  Reading a GPU frame back to the CPU is done only when
+pixels are asked for (:meth:`Renderer.render`) and timed apart (``frame_readback``); a frame
+drawn and not read is checked for broken transfer by an occlusion query (``check``).
+:attr:`Renderer.gl_renderer` names the device that drew it.
 
 Transfer depends only on the geometry and the camera: when only the light, the material or
 the backend's shading inputs change, :meth:`Renderer.render` re-shades the cached transfer and
@@ -26,7 +33,6 @@ backend), or an image that is, raises :class:`~prt.runtime.errors.FrameError` (o
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import os
 import threading
@@ -40,6 +46,7 @@ import numpy as np
 
 from ..shaders import assemble
 from .backends import ALL_BACKENDS, BACKENDS, CpuTransfer, TransferBackend, create_backend
+from .backends.onnx import check_providers
 from .background import EnvmapBackground
 from .camera import DEFAULT_CAMERA, Camera
 from .envmap import load_envmap_sh
@@ -48,9 +55,10 @@ from .checks import count_nonfinite, positive_int
 from .errors import ArgumentTypeError, FrameError, InputError, RendererStateError
 from .deformation import Deformation
 from .gbuffer import PACKED_SEGMENT, GBufferPass, load_mesh
-from .gl import ShaderCompileError, bind_framebuffer, compile_program, create_context, draw_fullscreen
+from .gl import ShaderCompileError, bind_framebuffer, compile_program, create_context, draw_fullscreen, FlagCounter
 from .manifest import Manifest, load_manifest
 from .interpolation import check_tolerance
+from .resources import RendererResources, make_current
 from .albedo_textures import AlbedoTextures
 from .materials import MaterialTable, load_albedo_textures, object_materials, shade_objects
 from .shading import GLSL_DEFINES, GLSL_FILES, Lighting, Material, diffuse_light_matrix, shade, shader_uniforms, to_srgb8
@@ -114,12 +122,6 @@ def _in_context(method):
     return wrapper
 
 
-def make_current(ctx: moderngl.Context) -> None:
-    """Make ``ctx`` the thread's current GL context and leave it current (moderngl's ``with ctx``
-    would restore the previous one on exit, which may be a context released since)."""
-    ctx.__enter__()
-
-
 class Renderer:
     """Renders a :class:`Scene` headlessly (or into a window's context).
 
@@ -129,9 +131,14 @@ class Renderer:
     width, height : image size in pixels
     backend : a name in :data:`prt.runtime.backends.ALL_BACKENDS` (``"onnx"``, ``"glsl"``; ``"texture"``
         for a scene with a transfer texture)
-    providers : ONNX Runtime execution providers (default: CUDA where present, else CPU)
+    providers : ONNX Runtime execution providers, full or short names (``["cuda", "cpu"]``; default: the
+        environment variable ``PRT_ONNX_PROVIDERS``, else CUDA where present, then CPU); one missing here
+        (CUDA without a GPU build of onnxruntime) is an InputError
     threads : CPU threads for the ONNX backend (default: all cores)
-    ctx : an existing moderngl context (e.g. a window's); default: a headless EGL context
+    ctx : an existing moderngl context (e.g. a window's); default: a headless EGL context on ``gl_device``
+    gl_device : the EGL device of the headless context: ``"auto"`` (the GPU where there is one, else
+        llvmpipe), an index or a name matched against GL_RENDERER (default: the environment variable
+        ``PRT_GL_DEVICE``, else auto; :mod:`prt.runtime.gl_devices`); :attr:`gl_renderer` says which drew
     interpolate : relative transfer tolerance of screen-space interpolation for the ONNX backend (e.g. 0.05;
         :mod:`prt.runtime.interpolation`): the networks run on every fourth pixel of every fourth row
         and where interpolating from neighbours is unsafe, the rest is interpolated.  None (the
@@ -159,7 +166,7 @@ class Renderer:
 
     def __init__(self, scene: Scene, width: int = 512, height: int = 512, backend: str = BACKENDS[0], *,
                  providers=None, threads: int | None = None, ctx: moderngl.Context | None = None,
-                 interpolate: float | None = None):
+                 interpolate: float | None = None, gl_device: str | int | None = None):
         self._owner = threading.get_ident()
         self._closed = True  # until the resources exist
         if not isinstance(scene, Scene):
@@ -168,19 +175,21 @@ class Renderer:
         _check_backend(backend)
         if threads is not None:
             threads = positive_int(threads, "Renderer: threads (CPU threads of the ONNX backend)")
-        providers = _check_providers(providers)
+        providers = check_providers(providers, "Renderer: providers")
         interpolate = check_tolerance(interpolate, "Renderer: interpolate")
         if ctx is not None and not isinstance(ctx, moderngl.Context):
             raise ArgumentTypeError(f"Renderer: ctx must be a moderngl.Context, got {type(ctx).__name__}")
+        if ctx is not None and gl_device is not None:
+            raise InputError("Renderer: give ctx or gl_device, not both (the context's device is its own)")
         m = scene.manifest
         if m.sh_bands != 4:
             raise InputError(f"{m.path}: the renderer's shaders handle 4 SH bands, the scene has {m.sh_bands}")
         self.scene = scene
         self.width, self.height = width, height
         self._own_ctx = ctx is None
-        self.ctx = ctx if ctx is not None else create_context()
+        self.ctx = ctx if ctx is not None else create_context(device=gl_device, origin="Renderer: gl_device")
         # What GC releases if close() is never called; it must not refer to self.
-        self._resources = _Resources(self.ctx, self._own_ctx, self.ctx.fbo)
+        self._resources = RendererResources(self.ctx, self._own_ctx, self.ctx.fbo)
         self._finalizer = weakref.finalize(self, self._resources.release, False)
         self._finalizer.atexit = False  # at exit the GL driver may be gone already
         self._bound_fbo = self.ctx.fbo  # bound again on close: a released framebuffer must not stay bound
@@ -240,6 +249,7 @@ class Renderer:
         self._object_ids_cov: np.ndarray | None = None
         self._uv_cov: np.ndarray | None = None
         self._material_gl: dict = {}  # the per-object shade program, its VAO and table texture
+        self._flags: FlagCounter | None = None  # draw(): counts a GPU frame's broken-transfer marks
         self.backend = backend
         self.timings: dict[str, float] = {}
         # network_fraction: share of the last network frame's covered pixels that ran a network (screen-space interpolation: < 1)
@@ -386,6 +396,9 @@ class Renderer:
         """One frame: (H, W, 3) float32 linear radiance, row 0 at the top, background 0 (or the
         env map, :meth:`set_background`).
 
+        :meth:`draw`, then the pixels: a frame shaded on the GPU is read back (timed apart, stage
+        ``frame_readback``, not in ``frame``).
+
         Raises
         ------
         FrameError
@@ -394,6 +407,64 @@ class Renderer:
             After :meth:`close`, or from a thread other than the creator.
         """
         self._check_usable()
+        self._draw(check=False)
+        return self._read()
+
+    @_in_context
+    def read_frame(self) -> np.ndarray:
+        """The pixels of the frame :meth:`draw` drew last, as :meth:`render` returns them (a GPU frame
+        read back now, stage ``frame_readback``; a CPU frame as it is)."""
+        self._check_usable()
+        if not self.stats["frames"]:
+            raise RendererStateError("Renderer.read_frame: no frame drawn yet; call draw() or render()")
+        return self._read()
+
+    def _read(self) -> np.ndarray:
+        if self._transfer_on_cpu:
+            return self._cpu_image
+        t0 = time.perf_counter()
+        self._out_fbo.read_into(self._image, components=4, dtype="f4")
+        broken = int(np.count_nonzero(self._image[..., 3] > 1.5))  # shade_pass.frag's flag
+        if broken:
+            self._refuse_gpu_frame(broken)
+        image = np.ascontiguousarray(self._image[::-1, :, :3])
+        bad = count_nonfinite(image)  # the background is finite
+        if bad:
+            raise FrameError(self._nonfinite_message(bad))
+        self.timings["frame_readback"] = 1e3 * (time.perf_counter() - t0)
+        return image
+
+    @_in_context
+    def draw(self) -> None:
+        """One frame drawn and finished where it is shaded, its pixels not read back.
+
+        A frame shaded on the GPU (the ``glsl`` and ``texture`` backends) stays in
+        :attr:`frame_texture` (RGBA32F linear radiance, GL's row order: row 0 at the bottom, alpha
+        1 on geometry and on the background, 0 elsewhere), the background composited there; a
+        window draws it without a read-back.  The ONNX backend's frame is shaded on the CPU, into
+        the array :meth:`render` returns.  ``timings["frame"]`` is the frame as its user sees it:
+        G-buffer, transfer, shading (and background), finished (``glFinish``).
+
+        Raises
+        ------
+        FrameError
+            As :meth:`render` (a GPU frame is checked by an occlusion query, not by reading it).
+        """
+        self._check_usable()
+        self._draw(check=True)
+
+    @property
+    def frame_texture(self) -> moderngl.Texture | None:
+        """The last frame's texture when it was shaded on the GPU (see :meth:`draw`), else None."""
+        return None if self._closed or self._transfer_on_cpu else self._out_texture
+
+    @property
+    def gl_renderer(self) -> str:
+        """The GL_RENDERER string of the context that draws the frames (``"llvmpipe (LLVM ...)"``,
+        ``"NVIDIA H200/PCIe/SSE2"``): which device drew a frame."""
+        return str(self.ctx.info.get("GL_RENDERER", ""))
+
+    def _draw(self, check: bool) -> None:
         timings: dict[str, float] = {}
         t_frame = time.perf_counter()
         if not self._transfer_valid:
@@ -409,45 +480,54 @@ class Renderer:
             # (drawn only there, copied; its time is the stage "background").
             image = self._background_base(timings)
             scatter_rows(image, self._covered, radiance)
-            image, shaded = image.reshape(self.height, self.width, 3), radiance
+            bad = count_nonfinite(radiance)  # the background is 0 or the finite map
+            if bad:
+                raise FrameError(self._nonfinite_message(bad))
+            self._cpu_image = image.reshape(self.height, self.width, 3)
+            timings["shade"] = 1e3 * (t1 - t0)
+            timings["readout"] = 1e3 * (time.perf_counter() - t1) - timings.get("background", 0.0)
         else:
             self._shade_gl()
+            if self._background_on():  # on the GPU, where the G-buffer's depth is 1
+                self.ctx.finish()
+                t1 = time.perf_counter()
+                self._background_layer(into=self._out_texture)
+                timings["background"] = 1e3 * (time.perf_counter() - t1)
             self.ctx.finish()
-            t1 = time.perf_counter()
-            self._out_fbo.read_into(self._image, components=4, dtype="f4")
-            broken = int(np.count_nonzero(self._image[..., 3] > 1.5))  # shade_pass.frag's flag
-            if broken:
-                message = self._broken_transfer_message(broken)
-                self._transfer_valid = False
-                raise FrameError(message)
-            image = np.ascontiguousarray(self._image[::-1, :, :3])
-            shaded = image
-        bad = count_nonfinite(shaded)  # the background is 0
-        if bad:
-            raise FrameError(
-                f"{self.scene.path}: the frame has {bad} NaN or Inf values after shading (lighting or material too "
-                "large for float32?); no image returned"
-            )
-        t2 = time.perf_counter()
-        timings["shade"] = 1e3 * (t1 - t0)
-        timings["readout"] = 1e3 * (t2 - t1) - timings.get("background", 0.0)
-        if not self._transfer_on_cpu and self._background_on():  # after the check: the map is finite
-            self._composite_background(image)
-            timings["background"] = 1e3 * (time.perf_counter() - t2)
+            timings["shade"] = 1e3 * (time.perf_counter() - t0) - timings.get("background", 0.0)
+            if check:
+                t1 = time.perf_counter()
+                if self._flags is None:
+                    self._flags = self._resources.keep(FlagCounter(self.ctx, (self.width, self.height)))
+                broken = self._flags.count(self._out_texture)
+                if broken:
+                    self._refuse_gpu_frame(broken)
+                timings["check"] = 1e3 * (time.perf_counter() - t1)
         timings["frame"] = 1e3 * (time.perf_counter() - t_frame)
         self.timings = timings
         self.stats["frames"] += 1
-        return image
+
+    def _refuse_gpu_frame(self, broken: int) -> None:
+        message = self._broken_transfer_message(broken)
+        self._transfer_valid = False
+        raise FrameError(message)
+
+    def _nonfinite_message(self, bad: int) -> str:
+        return (f"{self.scene.path}: the frame has {bad} NaN or Inf values after shading (lighting or material too "
+                "large for float32?); no image returned")  # fmt: skip
 
     def _background_on(self) -> bool:
         return self.background and self._envmap_path is not None
 
-    def _background_layer(self) -> np.ndarray:
+    def _background_layer(self, into: moderngl.Texture | None = None) -> np.ndarray | None:
         """(H, W, 3) the env map seen by the camera where the G-buffer has no geometry, 0 elsewhere
-        (drawn there only: the G-buffer's depth for this camera masks the rest); cached, not a copy."""
+        (drawn there only: the G-buffer's depth for this camera masks the rest); cached, not a copy.
+        ``into``: drawn into that texture instead (a frame shaded on the GPU), nothing read back."""
         if self._background is None:
             self._background = self._resources.keep(EnvmapBackground(self.ctx, self.width, self.height))
         self._background.set_envmap(self._envmap_path, str(self._envmap_path))
+        if into is not None:
+            return self._background.draw_into(into, self.camera, self._envmap_rotation, self.gbuffer.depth_texture)
         return self._background.image(self.camera, self._envmap_rotation, self.gbuffer.depth_texture)
 
     def _background_base(self, timings: dict) -> np.ndarray:
@@ -459,12 +539,6 @@ class Renderer:
         np.copyto(image.reshape(self.height, self.width, 3), self._background_layer())
         timings["background"] = 1e3 * (time.perf_counter() - t0)
         return image
-
-    def _composite_background(self, image: np.ndarray) -> None:
-        """Fill the uncovered pixels of ``image`` (H, W, 3), a frame shaded on the GPU, with the env map
-        seen by the camera (a CPU frame is scattered into the layer instead: _background_base)."""
-        uncovered = self._image[::-1, :, 3:] < 0.5  # shade_pass.frag: alpha 1 on geometry
-        np.copyto(image, self._background_layer(), where=uncovered)
 
     def render_srgb(self, exposure: float = 1.0) -> np.ndarray:
         """One frame tone-mapped for display: (H, W, 3) uint8 sRGB."""
@@ -648,69 +722,11 @@ class Renderer:
         self.close()
 
 
-class _Resources:
-    """What a Renderer holds in GL and ONNX Runtime, released once: by ``close()`` or, for a
-    Renderer never closed, by ``weakref.finalize`` when it is collected (so it refers to no Renderer)."""
-
-    def __init__(self, ctx: moderngl.Context, own_ctx: bool, bound_fbo) -> None:
-        self.ctx, self.own_ctx, self.bound_fbo = ctx, own_ctx, bound_fbo
-        self.owner = threading.get_ident()
-        self.objects: list = []
-        self.backends: dict[str, TransferBackend] = {}
-        self.released = False
-
-    def keep(self, obj):
-        self.objects.append(obj)
-        return obj
-
-    def release(self, rebind: bool) -> None:
-        if self.released:
-            return
-        if threading.get_ident() != self.owner:
-            # Collected in another thread (one of ONNX Runtime's, say), where the context is not
-            # current: GL calls would go nowhere.  The objects die with the context at exit.
-            return
-        self.released = True
-        # close() rebinds the framebuffer bound at creation; collection (at any moment, maybe during
-        # another renderer's frame on a shared context) rebinds only if one of ours is bound.
-        ours = {id(o) for o in self.objects}
-        # Release in our context (another renderer's may be current).  close() leaves it current;
-        # collection, which may come during another renderer's frame, gives the current one back.
-        if rebind:
-            make_current(self.ctx)
-        with contextlib.nullcontext() if rebind else self.ctx:
-            for backend in self.backends.values():
-                backend.release()
-            self.backends.clear()
-            if rebind or (self.ctx.fbo is not None and id(self.ctx.fbo) in ours):
-                bind_framebuffer(self.ctx, self.bound_fbo)
-            for obj in reversed(self.objects):
-                obj.release()
-        self.objects.clear()
-        if self.own_ctx:
-            self.ctx.release()
-
-
 def _check_backend(backend) -> None:
     if not isinstance(backend, str):
         raise ArgumentTypeError(f"backend must be one of {ALL_BACKENDS}, got {type(backend).__name__} {backend!r}")
     if backend not in ALL_BACKENDS:
         raise InputError(f"backend must be one of {ALL_BACKENDS}, got {backend!r}")
-
-
-def _check_providers(providers):
-    """None, or a list of ONNX Runtime execution provider names this installation has."""
-    if providers is None:
-        return None
-    if isinstance(providers, str) or not all(isinstance(p, str) for p in providers):
-        raise ArgumentTypeError(f"providers must be a list of provider names, got {providers!r}")
-    import onnxruntime as ort
-
-    available = ort.get_available_providers()
-    unknown = [p for p in providers if p not in available]
-    if unknown or not providers:
-        raise InputError(f"providers: {unknown or providers} not available (this onnxruntime has {available})")
-    return list(providers)
 
 
 def _check_size(ctx: moderngl.Context, width: int, height: int) -> None:

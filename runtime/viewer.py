@@ -69,12 +69,13 @@ class ViewerOptions:
     target_fps: float | None = 30.0
     object_albedo: tuple = ()  # ((object name, (r, g, b)), ...): per-object albedo overrides
     interpolate: float | None = None  # the ONNX backend's screen-space interpolation tolerance (runtime/interpolation.py); None: every pixel
+    gl_device: str | None = None  # headless: the EGL device (runtime/gl_devices.py); None: $PRT_GL_DEVICE, else auto
 
     def renderer(self, scene, ctx: moderngl.Context | None = None, size: tuple[int, int] | None = None) -> Renderer:
         """A :class:`Renderer` of ``scene`` at this size (or ``size``) and backend, with the options applied."""
         width, height = size or (self.width, self.height)
         r = Renderer(scene, width, height, backend=self.backend, providers=self.providers, threads=self.threads, ctx=ctx,
-                     interpolate=self.interpolate)  # fmt: skip
+                     interpolate=self.interpolate, gl_device=None if ctx is not None else self.gl_device)  # fmt: skip
         try:
             self.apply(r)
         except BaseException:
@@ -177,22 +178,26 @@ class DynamicResolution:
 
 
 def title_text(scene: str, backend: str, material: str, envmap: str, *, fps: float | None, size: tuple[int, int] | None,
-               relight_ms: float | None = None, full: bool = True) -> str:
+               relight_ms: float | None = None, full: bool = True, renderer: str | None = None) -> str:
     """The window title, short enough for a 512-pixel window: the FPS of network frames (with
     their size, and "moving" when smaller than the window), the re-shading time apart, labelled
-    "relight", then the backend, material and env map.  Stage times go to the terminal."""
+    "relight", then the backend, material and env map, and the GL renderer that draws (its name
+    up to the first " (" or "/": "llvmpipe", "NVIDIA GeForce RTX 3090").  Stage times go to the terminal."""
     parts = [scene]
     if fps is not None and size is not None:
         parts.append(f"{fps:.1f} FPS {size[0]}x{size[1]}{'' if full else ' moving'}")
     if relight_ms is not None:
         parts.append(f"relight {relight_ms:.1f} ms")
     parts.append(f"{backend} {material} {envmap}")
+    if renderer:
+        parts.append(renderer.split(" (")[0].split("/")[0])
     return " | ".join(parts)
 
 
-def stage_text(fps: float, size: tuple[int, int], stages: dict) -> str:
-    """The terminal line of a network frame's stage times."""
-    return f"{fps:.1f} FPS at {size[0]}x{size[1]}: " + ", ".join(f"{k} {v:.1f}" for k, v in stages.items() if k != "frame") + " ms"
+def stage_text(fps: float, size: tuple[int, int], stages: dict, renderer: str = "") -> str:
+    """The terminal line of a network frame's stage times (and the GL renderer that drew it)."""
+    on = f" on {renderer}" if renderer else ""
+    return f"{fps:.1f} FPS at {size[0]}x{size[1]}{on}: " + ", ".join(f"{k} {v:.1f}" for k, v in stages.items() if k != "frame") + " ms"
 
 
 def _rotation_y(angle: float) -> np.ndarray:
@@ -288,7 +293,7 @@ def run_window(scene, options: ViewerOptions) -> int:
     shown_scale = 1.0
     last_title = last_stages = 0.0
     print(HELP)
-    running, redraw, image = True, True, None
+    running, redraw, shown = True, True, None  # shown: the renderer of the frame on screen
     try:
         while running:
             camera_moved = shade_changed = False
@@ -344,9 +349,9 @@ def run_window(scene, options: ViewerOptions) -> int:
                         view.playing = bool(view.poses) and not view.playing
                     elif key in (",", "."):
                         camera_moved = view.step_pose(1 if key == "." else -1) or camera_moved
-                    elif key == "s" and image is not None:
+                    elif key == "s" and shown is not None:
                         path = Path(f"prt_screenshot_{time.strftime('%Y%m%d_%H%M%S')}.png")
-                        iio.imwrite(path, to_srgb8(image, exposure))
+                        iio.imwrite(path, to_srgb8(shown.render(), exposure))  # the cached transfer re-shaded: no network
                         print(f"screenshot: {path}")
                     elif key in ("c", "o"):
                         recorded = recorder.path() if key == "c" else None
@@ -370,12 +375,16 @@ def run_window(scene, options: ViewerOptions) -> int:
             view.apply(r)
             runs = r.stats["network_runs"]
             t0 = time.perf_counter()
-            image = r.render()
-            display = displays.get(scale)
-            if display is None:
-                display = displays[scale] = ctx.texture((r.width, r.height), 3, dtype="f4")
-                display.filter = (moderngl.LINEAR, moderngl.LINEAR)
-            display.write(np.ascontiguousarray(image[::-1]))  # GL rows run bottom-up
+            r.draw()
+            shown = r
+            display = r.frame_texture  # a frame shaded on the GPU is drawn from its texture: no read-back
+            if display is None:  # shaded on the CPU: uploaded
+                image = r.read_frame()  # the frame just drawn, no more work
+                display = displays.get(scale)
+                if display is None:
+                    display = displays[scale] = ctx.texture((r.width, r.height), 3, dtype="f4")
+                display.write(np.ascontiguousarray(image[::-1]))  # GL rows run bottom-up
+            display.filter = (moderngl.LINEAR, moderngl.LINEAR)
             display.use(0)
             blit["u_image"].value = 0
             blit["u_exposure"].value = exposure
@@ -397,11 +406,11 @@ def run_window(scene, options: ViewerOptions) -> int:
             if now - last_title > 0.25 or not moving:
                 pygame.display.set_caption(title_text(
                     scene.name, view.backend, view.material.kind, envmap_label(view.cycle[view.envmap_index]),
-                    fps=fps, size=last_size, relight_ms=relight_ms, full=last_size == (width, height),
+                    fps=fps, size=last_size, relight_ms=relight_ms, full=last_size == (width, height), renderer=r.gl_renderer,
                 ))  # fmt: skip
                 last_title = now
             if fps is not None and now - last_stages > 2.0 and not moving:
-                print(stage_text(fps, last_size, stages), flush=True)
+                print(stage_text(fps, last_size, stages, r.gl_renderer), flush=True)
                 last_stages = now
     finally:
         for texture in displays.values():

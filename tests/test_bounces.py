@@ -240,3 +240,26 @@ def test_generated_glsl_of_rgb_networks_matches_onnx(cornell_rgb, gl_ctx):
     assert expected.shape == (300, 64)
     for layout in ("const", "texture"):  # 16 vec4 blocks: read back 8 attachments at a time
         np.testing.assert_allclose(evaluate_glsl(gl_ctx, path, x, layout=layout), expected, atol=2e-6, rtol=1e-5)
+
+
+def test_one_pass_and_two_draws_write_the_same_transfer(cornell_rgb, gl_ctx):
+    """The 64-wide transfer in one draw (OpenGL 4.3: 8 targets + 8 image stores, the networks run once)
+    against the 3.3 path's two draws of 8 targets, and both against ONNX Runtime (>= 60 dB)."""
+    from prt.runtime.backends.glsl import GlslBackend
+    from prt.runtime.renderer import Renderer, Scene
+
+    scene = Scene.load(cornell_rgb)
+    transfers, images = {}, {}
+    for one_pass in (True, False):
+        with Renderer(scene, 72, 64, backend="glsl", ctx=gl_ctx) as r:
+            r._backends["glsl"] = GlslBackend(gl_ctx, scene.manifest, one_pass=one_pass)
+            assert r._backend().one_pass is one_pass  # llvmpipe has OpenGL 4.5: the one-pass program links
+            images[one_pass], transfers[one_pass] = r.render(), r.render_transfer()
+    with Renderer(scene, 72, 64, backend="onnx", ctx=gl_ctx) as r:
+        reference = r.render_transfer()
+    assert transfers[True].shape == (64, 72, 64)
+    np.testing.assert_allclose(transfers[True], transfers[False], rtol=1e-6, atol=1e-7)
+    assert np.array_equal(images[True], images[False]) or np.abs(images[True] - images[False]).max() < 1e-6
+    for t in transfers.values():
+        mse = float(np.mean((t.astype(np.float64) - reference) ** 2))
+        assert 10 * np.log10(np.abs(reference).max() ** 2 / max(mse, 1e-30)) >= 60

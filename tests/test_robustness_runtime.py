@@ -67,6 +67,9 @@ def test_a_network_giving_nan_is_a_frame_error_in_both_backends(gl_ctx, tmp_path
             r.render()
         with pytest.raises(FrameError):
             r.render_transfer()
+        r.set_camera_object(r.camera.orbit(0.1))
+        with pytest.raises(FrameError, match=r"the transfer is NaN or Inf at \d+ pixels"):
+            r.draw()  # a frame left on the GPU is checked too, without reading it back (an occlusion query)
 
 
 def test_inputs_are_checked_in_float32(gl_ctx, quad):

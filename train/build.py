@@ -419,7 +419,7 @@ def _hash(*parts) -> str:
 
 
 def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress=True, log=print, force: bool = False,
-              executor=None) -> dict:  # fmt: skip
+              executor=None, device: str = "cpu") -> dict:  # fmt: skip
     """Run (or resume) a build; returns the report written to ``build.json``.
 
     ``progress``: True draws the build's one progress line on a terminal (:class:`prt.train.progress.BuildProgress`;
@@ -427,6 +427,10 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress=
 
     ``executor`` runs the transfer chunks and the segment fits (:mod:`prt.train.executor`;
     default: ``threads`` threads here).  A cluster gives the same bytes and the same caches.
+
+    ``device`` (``"cpu"`` or ``"cuda"``, :func:`prt.train.networks.fit.resolve_device`) is where the
+    frequency networks train; it keys no cache and enters no file, so a CPU build's bytes do not
+    depend on it and a fit cached on either device serves the other.
 
     ``out_dir`` must be new, empty or a scene build of ours unless ``force``
     (:func:`prt.train.outdir.check_output_folder`); it is created once the geometry has loaded.
@@ -537,7 +541,7 @@ def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log
 
     # -- stage 2: train; segments are independent tasks (threads here or a cluster), each cached
     t0 = time.perf_counter()
-    fit_settings = spec.fit_settings()
+    fit_settings = dataclasses.replace(spec.fit_settings(), device=device)
     archs = spec.architectures()
     records, todo = {}, []
     for seg in seg_json["segments"]:

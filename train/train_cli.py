@@ -23,6 +23,7 @@ from ..runtime.errors import InputError, PRTError, SpecError
 from .build import DEFAULT_TARGET, BuildSpec, load_spec, run_build, spec_from_dict
 from .presets import DEFAULT_QUALITY, PRESETS, QUALITIES, describe
 from .progress import BuildProgress
+from .networks.fit import DEVICES, resolve_device
 from .cluster import open_executor
 from .executor import add_cluster_argument
 from .outdir import check_output_folder
@@ -106,6 +107,8 @@ def build_parser() -> argparse.ArgumentParser:
                         f"auto: the smallest N whose truncation PSNR on the validation samples is >= 50 dB under the bundled env maps) [{d.bounces}]")
     g.add_argument("--bounce-rays", type=int, default=None, metavar="M", help=f"with --bounces: rays per sample of the bounce stage [preset; standard {PRESETS['standard']['bounce_rays']}]")
     g.add_argument("--threads", type=int, default=os.cpu_count(), help="CPU threads for ray tracing and training")
+    g.add_argument("--device", choices=DEVICES, default="auto",
+                   help="where the networks train: auto (a CUDA GPU when torch sees one, else the CPU), cpu, cuda; keys no cache (grid networks train on the CPU)")
     add_cluster_argument(g)
 
     g = p.add_argument_group("networks", "fitting and right-sizing: by default each segment gets the cheapest size whose held-out "
@@ -261,6 +264,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.threads is not None and args.threads < 1:
             raise InputError(f"--threads: expected a positive integer, got {args.threads}")
+        device = resolve_device(args.device)  # --device cuda without a GPU: one line, nothing written
         if args.deform is not None:
             return _deform_main(args)
         spec = _spec_from_args(args)
@@ -271,7 +275,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             with open_executor(args.cluster, args.threads) as executor:
                 report = run_build(spec, args.out, threads=args.threads, progress=display, log=display.log, force=args.force,
-                                   executor=executor)  # fmt: skip
+                                   executor=executor, device=device)  # fmt: skip
         finally:
             display.close()
         if args.transfer_texture is not None:

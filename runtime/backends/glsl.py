@@ -14,9 +14,13 @@ the renderer's four RGBA32F targets and stays on the GPU.
 
 With interreflection (the manifest's ``interreflection``, "direct+rgb" layout) each network gives
 16 vec4 blocks (direct, indirect R, G, B); the renderer's target is then a pair of framebuffers
-of 8 RGBA32F targets each, and the pass draws twice (``u_part`` 0 and 1), each draw evaluating
-the networks and writing its 8 blocks: OpenGL 3.3 guarantees only 8 draw buffers.  So a
-transfer pass costs two network evaluations per fragment there; relighting runs none.
+of 8 RGBA32F targets each.  OpenGL 3.3 guarantees only 8 draw buffers, so there the pass draws
+twice (``u_part`` 0 and 1), each draw evaluating the networks and writing its 8 blocks.  Where the
+context has OpenGL 4.3 (llvmpipe has 4.5, every current GPU driver too) the pass is one draw
+(``PRT_ONE_PASS``): the networks run once per fragment, blocks 0..7 go to the first framebuffer's
+8 targets and blocks 8..15 by ``imageStore`` into the second one's textures, bound to image
+units 0..7 (a driver that refuses the program at link time gets the two draws).  Relighting runs
+no network either way.
 
 Textures: units 0 and 1 are the G-buffer; then ``prt_weights`` when a segment is compact; then
 each per-segment file with a ``glsl_weights`` file (a frequency network generated with the
@@ -48,14 +52,20 @@ class GlslBackend(TransferBackend):
     """All network segments' generated GLSL in one full-screen program, compiled once per scene.
 
     Timings: ``network`` (the transfer pass, finished).  ``compile_s`` is the compile time,
-    ``source_chars`` the program's length, ``functions`` its network functions.
+    ``source_chars`` the program's length, ``functions`` its network functions, ``one_pass``
+    whether a 64-wide transfer is written in one draw (OpenGL 4.3) or two (3.3).
+
+    ``one_pass``: None (default) takes one draw where the context has OpenGL 4.3; False forces the
+    3.3 path's two draws (its tests, and the comparison of the two).
     """
 
     name = "glsl"
 
-    def __init__(self, ctx, manifest, *, providers=None, threads: int | None = None, interpolate: float | None = None):
+    def __init__(self, ctx, manifest, *, providers=None, threads: int | None = None, interpolate: float | None = None,
+                 one_pass: bool | None = None):  # fmt: skip
         super().__init__(ctx, manifest)
         self.blocks = manifest.transfer_width // 4  # vec4 blocks per fragment: 4, or 16 with interreflection
+        self.one_pass = self.blocks > 8 and ctx.version_code >= 430 and one_pass is not False
         networks, cases, self._weights, per_segment = [], [], [], []
         compact = _CompactNetworks(manifest.path, self.blocks)
         analytic_scale = sh.unshadowed_coeff_scale(4).astype(np.float32).reshape(4, 4)
@@ -99,15 +109,21 @@ class GlslBackend(TransferBackend):
         defines = {"PRT_TRANSFER_BLOCKS": self.blocks} if self.blocks != 4 else {}
         if compact:
             defines["PRT_SEGMENTS"] = compact.segments
-        source = assemble(
-            "sh_basis.glsl", "transfer_pass.frag", fills={"networks": Source.join(networks), "dispatch": "\n".join(dispatch)},
-            defines=defines or None,
-        )
+        fills = {"networks": Source.join(networks), "dispatch": "\n".join(dispatch)}
+        name = f"{manifest.path.parent / 'segments'}/*.glsl (transfer pass)"
+        t0 = time.perf_counter()
+        if self.one_pass:
+            source = assemble("sh_basis.glsl", "transfer_pass.frag", fills=fills, defines={**defines, "PRT_ONE_PASS": 1}, version=430)
+            try:
+                self.program = compile_program(ctx, source, name)
+            except ShaderCompileError:  # a driver with fewer image units or outputs than 4.3 allows: two draws
+                self.one_pass = False
+        if not self.one_pass:
+            source = assemble("sh_basis.glsl", "transfer_pass.frag", fills=fills, defines=defines or None)
+            self.program = compile_program(ctx, source, name)
+        self.compile_s = time.perf_counter() - t0
         self.source_chars = len(source)  # the program's size: what llvmpipe's JIT time follows
         self.functions = [*compact.functions, *per_segment]
-        t0 = time.perf_counter()
-        self.program = compile_program(ctx, source, f"{manifest.path.parent / 'segments'}/*.glsl (transfer pass)")
-        self.compile_s = time.perf_counter() - t0
         if "u_analytic_scale" in self.program:  # optimised away when no segment is analytic
             self.program["u_analytic_scale"].write(analytic_scale.tobytes())
         for name, values in compact.uniforms().items():
@@ -143,7 +159,13 @@ class GlslBackend(TransferBackend):
     def run(self, gbuffer, target) -> None:
         t0 = time.perf_counter()
         textures = ((gbuffer.position_texture, 0), (gbuffer.normal_texture, 1), *self._textures)
-        draw_transfer(self.ctx, self.program, self.vao, target, textures)
+        if self.one_pass:  # blocks 8..15 into the second framebuffer's textures, as images
+            for unit, texture in enumerate(target[1].color_attachments):
+                texture.bind_to_image(unit, read=False, write=True)
+            draw_transfer(self.ctx, self.program, self.vao, target[0], textures)
+            self.ctx.memory_barrier(moderngl.TEXTURE_FETCH_BARRIER_BIT | moderngl.SHADER_IMAGE_ACCESS_BARRIER_BIT)
+        else:
+            draw_transfer(self.ctx, self.program, self.vao, target, textures)
         self.ctx.finish()
         self.timings = {"network": 1e3 * (time.perf_counter() - t0)}
         return None

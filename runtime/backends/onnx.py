@@ -32,21 +32,70 @@ import numpy as np
 
 from .. import sh
 from ..checks import positive_int
-from ..errors import InputError
+from ..errors import ArgumentTypeError, InputError
 from ..interpolation import TransferInterpolator, check_tolerance
 from ..onnxfile import read_model
 from ..segmentation import segment_sort, segment_sort_reference
 from .base import CpuTransfer, TransferBackend
 
-__all__ = ["OnnxBackend", "OnnxTransfer", "default_providers", "segment_sort", "segment_sort_reference"]
+__all__ = ["OnnxBackend", "OnnxTransfer", "default_providers", "check_providers", "PROVIDERS_ENV", "segment_sort", "segment_sort_reference"]
+
+
+PROVIDERS_ENV = "PRT_ONNX_PROVIDERS"
+"""Environment variable with the ONNX Runtime providers of renderers that name none (comma-separated,
+e.g. ``cuda,cpu``), for embedders."""
+
+PROVIDER_NAMES = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider", "tensorrt": "TensorrtExecutionProvider",
+                  "trt": "TensorrtExecutionProvider", "rocm": "ROCMExecutionProvider", "openvino": "OpenVINOExecutionProvider",
+                  "dml": "DmlExecutionProvider", "coreml": "CoreMLExecutionProvider"}  # fmt: skip
+"""Short names accepted for ONNX Runtime's execution providers (the full names are accepted too)."""
+
+GPU_PROVIDERS = ("TensorrtExecutionProvider", "CUDAExecutionProvider", "ROCMExecutionProvider", "DmlExecutionProvider")
+"""Providers that run the networks on a GPU: a segment's rows go in one call, bound in and out
+(I/O binding), instead of the CPU's cache-sized slices on a pool of threads."""
 
 
 def default_providers() -> list[str]:
-    """CUDA first where onnxruntime has it, then CPU."""
+    """CUDA first where onnxruntime has it, then CPU.  TensorRT is used only when asked for
+    (``--onnx-providers tensorrt,cuda,cpu``): it builds an engine per new input shape, and a
+    segment's row count changes with every view."""
     import onnxruntime as ort
 
     available = ort.get_available_providers()
     return [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in available]
+
+
+def check_providers(providers, origin: str = "providers") -> list[str] | None:
+    """The providers to use: ``providers`` (a list of names, short or full; or one comma-separated
+    string), else the environment variable :data:`PROVIDERS_ENV`, else None (:func:`default_providers`).
+
+    Raises
+    ------
+    ArgumentTypeError
+        Not a list of strings.
+    InputError
+        A provider this onnxruntime lacks (CUDA where there is none, say): one line naming it and
+        the providers there are.
+    """
+    if providers is None:
+        env = os.environ.get(PROVIDERS_ENV, "").strip()
+        if not env:
+            return None
+        providers, origin = env, PROVIDERS_ENV
+    if isinstance(providers, str):
+        providers = [p.strip() for p in providers.split(",") if p.strip()]
+    if not isinstance(providers, (list, tuple)) or not all(isinstance(p, str) for p in providers):
+        raise ArgumentTypeError(f"{origin}: expected a list of provider names, got {providers!r}")
+    import onnxruntime as ort
+
+    available = ort.get_available_providers()
+    names = [PROVIDER_NAMES.get(p.lower(), p) for p in providers]
+    missing = [p for p in names if p not in available]
+    if missing or not names:
+        hint = "; install onnxruntime-gpu on a machine with a CUDA GPU" if any(p in GPU_PROVIDERS for p in missing) else ""
+        raise InputError(f"{origin}: {', '.join(missing) or 'none given'} not available (this onnxruntime {ort.__version__} has "
+                         f"{', '.join(available)}){hint}")  # fmt: skip
+    return list(dict.fromkeys(names))
 
 
 class OnnxTransfer:
@@ -58,9 +107,13 @@ class OnnxTransfer:
     providers : execution providers in order of preference (default: CUDA if present, CPU)
     threads : concurrent inference calls (default: all cores)
     slice_rows : rows per inference call (small enough that activations stay in cache)
+    bound : run each segment's rows in one call with I/O binding (input bound from, output bound into
+        the transfer array; no slices, no pool).  None (default): where the first provider runs on a
+        GPU (:data:`GPU_PROVIDERS`), whose calls cost a launch and a copy each.  True on the CPU tests
+        the path against the sliced one.
     """
 
-    def __init__(self, manifest, providers=None, threads: int | None = None, slice_rows: int = 4096):
+    def __init__(self, manifest, providers=None, threads: int | None = None, slice_rows: int = 4096, bound: bool | None = None):
         self.bands = manifest.sh_bands
         # Outputs per row: bands^2, or 4 bands^2 with interreflection (direct, indirect R, G, B)
         self.n = getattr(manifest, "transfer_width", self.bands * self.bands)
@@ -83,6 +136,8 @@ class OnnxTransfer:
             self.models[seg.id] = seg.model
             if len(self.sessions[seg.id].get_inputs()) == 2:
                 self._coded.add(seg.id)
+        first = next(iter(self.sessions.values())).get_providers()[0] if self.sessions else "CPUExecutionProvider"
+        self.bound = first in GPU_PROVIDERS if bound is None else bool(bound)
         self._pool = ThreadPoolExecutor(max_workers=self.threads, thread_name_prefix="ort") if self._concurrent_slices() else None
         self.calls = 0  # network invocations so far (tests check relighting makes none)
         self.timings: dict[str, float] = {}
@@ -109,7 +164,24 @@ class OnnxTransfer:
 
     def _concurrent_slices(self) -> bool:
         """Whether slices run on a pool of threads (else one after another, the engine's own threads inside)."""
-        return self.threads > 1
+        return self.threads > 1 and not self.bound
+
+    def _infer_into(self, s: int, rows: np.ndarray, out: np.ndarray) -> None:
+        """Segment ``s``'s network on ``rows`` (R, 6) written into ``out`` (R, n), C-contiguous float32,
+        through I/O binding: on a GPU provider the engine copies the rows in and the transfer out
+        itself, no intermediate arrays."""
+        sess = self.sessions[s]
+        io = sess.io_binding()
+        io.bind_cpu_input(self.input_names[s], rows)
+        if s in self._coded:
+            if self.code is None:
+                raise InputError(f"{self.models[s]}: the network takes a shape code; set one first (Renderer.set_deformation)")
+            io.bind_cpu_input("code", self.code)
+        io.bind_output(sess.get_outputs()[0].name, "cpu", 0, np.float32, list(out.shape), out.ctypes.data)
+        try:
+            sess.run_with_iobinding(io)
+        except Exception as exc:  # the engine's own error types
+            raise InputError(f"{self.models[s]}: inference failed ({' '.join(str(exc).split())[:200]})") from None
 
     def set_code(self, theta) -> None:
         """The shape code (d,) every shape-conditioned network takes from now on."""
@@ -144,7 +216,7 @@ class OnnxTransfer:
         """
         t0 = time.perf_counter()
         transfer = np.empty((len(x), self.n), dtype=np.float32)
-        jobs = []
+        jobs, bound_calls = [], 0
         for s in range(len(offsets) - 1):
             lo, hi = int(offsets[s]), int(offsets[s + 1])
             if hi == lo:
@@ -154,8 +226,13 @@ class OnnxTransfer:
                 continue
             if s not in self.sessions:
                 raise InputError(f"segment {s} appears in the G-buffer but the scene has no such segment")
+            if self.bound:  # one call per segment, into its block of the result
+                self._infer_into(s, x[lo:hi], transfer[lo:hi])
+                bound_calls += 1
+                continue
             # The same slices as the pixel-ordered path: each segment's rows cut from its start.
             jobs += [(s, x[a : min(a + self.slice_rows, hi)], a) for a in range(lo, hi, self.slice_rows)]
+        self.calls += bound_calls > 0  # the bound path counts a frame's calls once, as _run does
         results = self._run([(s, None, rows, 0) for s, rows, _ in jobs])
         for (_, rows, a), y in zip(jobs, results):
             transfer[a : a + len(rows)] = y

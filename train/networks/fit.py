@@ -95,11 +95,15 @@ class FitSettings:
     steps: int | None = None  # Adam steps per network (None: DEFAULT_STEPS unless ``epochs`` is set)
     loss: str = "l1"  # see LOSSES; "relative" also picks the kept network by its weighted validation error
     loss_floor: float = RELATIVE_FLOOR  # c of the "relative" loss
+    # Where frequency networks train: "cpu" or "cuda" (resolve_device; grid networks stay on the CPU).
+    # Not in the cache key: a fit made on either device serves a build on the other.
+    device: str = "cpu"
 
     def cache_key(self) -> dict:
-        """The fields that key cached fits: every field, the loss's only where not the default "l1"
-        (so builds made before the loss option keep their keys and their cached fits)."""
+        """The fields that key cached fits: every field but the device, the loss's only where not the
+        default "l1" (so builds made before the loss option keep their keys and their cached fits)."""
         keyed = asdict(self)
+        del keyed["device"]
         if self.loss == "l1":
             del keyed["loss"], keyed["loss_floor"]
         return keyed
@@ -126,6 +130,23 @@ class FitResult:
     seconds: float
     history: list[dict] = field(default_factory=list)
     steps: int = 0  # Adam steps taken
+
+
+DEVICES = ("auto", "cpu", "cuda")
+"""``prt-train --device``: auto (CUDA where torch sees a GPU, else the CPU), cpu, cuda."""
+
+
+def resolve_device(device: str = "auto", origin: str = "--device") -> str:
+    """``"cpu"`` or ``"cuda"`` for a ``--device`` value; InputError (one line) for ``cuda`` where torch
+    sees no GPU, or a value not in :data:`DEVICES`."""
+    from ...runtime.errors import InputError
+
+    if device not in DEVICES:
+        raise InputError(f"{origin}: expected one of {', '.join(DEVICES)}, got {device!r}")
+    available = torch.cuda.is_available()
+    if device == "cuda" and not available:
+        raise InputError(f"{origin} cuda: torch {torch.__version__} sees no CUDA GPU (a CPU build of torch, or no driver); use --device cpu or auto")
+    return "cuda" if device == "cuda" or (device == "auto" and available) else "cpu"
 
 
 def bf16_supported() -> bool:
@@ -217,8 +238,10 @@ def _as_input(points: np.ndarray, normals: np.ndarray, codes: np.ndarray | None 
 
 
 def _predict(model: torch.nn.Module, x: torch.Tensor, batch: int = 65536) -> np.ndarray:
+    """The model on ``x`` (a CPU tensor) in batches, on the model's device; (N, outputs) float32 numpy."""
+    device = next(model.parameters()).device
     with torch.inference_mode():
-        return torch.cat([model(x[i : i + batch]) for i in range(0, len(x), batch)]).numpy()
+        return torch.cat([model(x[i : i + batch].to(device)).cpu() for i in range(0, len(x), batch)]).numpy()
 
 
 class Validation:
@@ -298,18 +321,19 @@ def fit_segment(
         n_unit = np.asarray(normals, np.float64) / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), NORMAL_EPS)
         target = (np.asarray(transfer, np.float64) - (c0 + normal_quadratic(n_unit) @ w_u)).astype(np.float32)
     scale, offset = target_scaling(target)
-    model = TransferMLP(arch, bounds, scale, offset + c0 if arch.residual else offset)
+    device = torch.device(settings.device)  # the samples move there once; on the CPU every .to() below is a no-op
+    model = TransferMLP(arch, bounds, scale, offset + c0 if arch.residual else offset).to(device)
     if (codes is None) != (arch.code_dim == 0) or (codes is None) != (val_codes is None):
         raise ValueError(f"a network with code_dim {arch.code_dim} needs {'codes' if arch.code_dim else 'no codes'} for training and validation")
-    x = _as_input(points, normals, codes)
-    y = torch.from_numpy(np.ascontiguousarray(target, dtype=np.float32))  # the scaled tanh output's target
+    x = _as_input(points, normals, codes).to(device)
+    y = torch.from_numpy(np.ascontiguousarray(target, dtype=np.float32)).to(device)  # the scaled tanh output's target
     xv = _as_input(val_points, val_normals, val_codes)
     yv = np.asarray(val_transfer, dtype=np.float32)
     # L1 on the transfer itself, computed through the scaled tanh output
-    inv_scale = torch.from_numpy(1.0 / scale)
-    y_scaled = (y - torch.from_numpy(offset)) * inv_scale
+    inv_scale = torch.from_numpy(1.0 / scale).to(device)
+    y_scaled = (y - torch.from_numpy(offset).to(device)) * inv_scale
     weights = loss_weights(transfer, n_coeffs, settings.loss, settings.loss_floor)
-    w = None if weights is None else torch.from_numpy(weights)[:, None]
+    w = None if weights is None else torch.from_numpy(weights)[:, None].to(device)
     val_weights = loss_weights(yv, n_coeffs, settings.loss, settings.loss_floor)
 
     n = len(x)
@@ -324,8 +348,9 @@ def fit_segment(
         return min(share, 1.0)
 
     opt = torch.optim.Adam(model.parameters(), lr=settings.lr)
-    use_bf16 = bf16_supported() if settings.bf16 is None else settings.bf16
-    scale_t = torch.from_numpy(scale)
+    on_gpu = device.type != "cpu"
+    use_bf16 = (torch.cuda.is_bf16_supported() if on_gpu else bf16_supported()) if settings.bf16 is None else settings.bf16
+    scale_t = torch.from_numpy(scale).to(device)
 
     check = Validation(xv, yv, n_coeffs, val_weights, settings, progress)
     step = 0
@@ -334,13 +359,13 @@ def fit_segment(
     while step < total_steps:
         if cursor >= n:  # a new pass over the samples
             perm, cursor = torch.randperm(n, generator=gen), 0
-        idx = perm[cursor : cursor + batch]
+        idx = perm[cursor : cursor + batch].to(device)  # drawn on the CPU: the same order on either device
         cursor += batch
         rate = min(1.0, (step + 1) / warmup) * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * progress_share(step))))
         for group in opt.param_groups:
             group["lr"] = settings.lr * rate
         features = model.encode(x[idx])  # fp32: sin/cos of 2^k pi x needs the precision
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=use_bf16):
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
             pre = model.trunk(features)
         out = torch.tanh(pre.float())
         loss = batch_loss(out, y_scaled[idx], scale_t, None if w is None else w[idx])
@@ -348,17 +373,18 @@ def fit_segment(
         loss.backward()
         opt.step()
         step += 1
-        total += loss.detach().item() * len(idx)
+        # On a GPU .item() would wait for every step: the sum stays there until the validation reads it.
+        total += loss.detach() * len(idx) if on_gpu else loss.detach().item() * len(idx)
         counted += len(idx)
         out_of_time = budget is not None and time.perf_counter() - t0 > budget
         if step % eval_every and step < total_steps and not out_of_time:
             continue
-        stop = check(model, step, total_steps, total / counted)
+        stop = check(model, step, total_steps, float(total) / counted)
         total, counted = 0.0, 0
         if stop or out_of_time:
             break
     model.load_state_dict(check.best[1])
-    model.eval()
+    model = model.cpu().eval()  # the export reads its arrays
     pred = _predict(model, xv)
     return FitResult(
         model=model,
