@@ -439,13 +439,13 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress=
     if log is print:
         log = display.log  # log lines above the progress line
     try:
-        return _run_build(spec, out_dir, threads=threads, display=display, log=log, force=force, executor=executor)
+        return _run_build(spec, out_dir, threads=threads, display=display, log=log, force=force, executor=executor, device=device)
     finally:
         if display is not progress:
             display.close()
 
 
-def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log, force: bool, executor) -> dict:
+def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log, force: bool, executor, device: str = "cpu") -> dict:
     t_start = time.perf_counter()
     out = Path(out_dir)
     progress = display
