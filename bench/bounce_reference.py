@@ -165,19 +165,26 @@ def indirect_transfer(geometry, tracer, points, normals, albedo, bounces: int, *
 
 
 def cached_indirect(cache: Path, tag: str, geometry, tracer, points, normals, albedo, bounces: int, *, higher=None, seed: int = 0,
-                    geometry_id: str = "", hit_rays: int = HIT_RAYS, rays: int = HIT_TRANSFER_RAYS):
-    """:func:`indirect_transfer`, read from ``cache`` when computed before; (indirect, seconds computed)."""
+                    geometry_id: str = "", hit_rays: int = HIT_RAYS, rays: int = HIT_TRANSFER_RAYS, cost: dict | None = None):
+    """:func:`indirect_transfer`, read from ``cache`` when computed before; (indirect, seconds computed).
+
+    ``cost`` (a dict) receives ``seconds``: what computing it took, then or when it was cached
+    (None for a file cached before its time was kept)."""
     points = np.ascontiguousarray(points, dtype=np.float32)
     normals = np.ascontiguousarray(normals, dtype=np.float32)
     key = _digest(points, normals, albedo, bounces, hit_rays, rays, seed, geometry_id, None if higher is None else higher[2], "v2")
     path = Path(cache) / f"{tag}-indirect-b{bounces}-s{seed}-{key}.npz"
     if path.is_file():
         with np.load(path) as data:
+            if cost is not None:
+                cost["seconds"] = float(data["seconds"]) if "seconds" in data else None
             return data["indirect"], 0.0
     t0 = time.perf_counter()
     indirect = indirect_transfer(geometry, tracer, points, normals, albedo, bounces, hit_rays=hit_rays, rays=rays, higher=higher, seed=seed)
     seconds = time.perf_counter() - t0
-    atomic_save_npz(path, indirect=indirect)
+    atomic_save_npz(path, indirect=indirect, seconds=np.float64(seconds))
+    if cost is not None:
+        cost["seconds"] = seconds
     return indirect, seconds
 
 

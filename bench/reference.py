@@ -101,7 +101,8 @@ def load_scene_geometry(manifest):
     return geometry, {"type": "mesh", "source": str(path), "checksum": checksum, "matches_build_source": matches}
 
 
-def cached_transfer(cache: Path, tag: str, geometry, tracer, points, normals, rays: int, seed: int, geometry_id: str, executor=None):
+def cached_transfer(cache: Path, tag: str, geometry, tracer, points, normals, rays: int, seed: int, geometry_id: str, executor=None,
+                    cost: dict | None = None):
     """Ray-traced transfer at ``points``, read from ``cache`` when computed before.
 
     Parameters
@@ -118,6 +119,9 @@ def cached_transfer(cache: Path, tag: str, geometry, tracer, points, normals, ra
         Identity of the geometry (checksum or SDF name), part of the key.
     executor : prt.train.executor.Executor, optional
         Where the chunks run (``prt-bench --cluster``); the result does not depend on it.
+    cost : dict, optional
+        Receives ``seconds``: what computing it took (then, or when it was cached; None for a
+        file cached before its time was kept).
 
     Returns
     -------
@@ -132,11 +136,15 @@ def cached_transfer(cache: Path, tag: str, geometry, tracer, points, normals, ra
     path = cache / f"{tag}-r{rays}-s{seed}-{digest.hexdigest()[:12]}.npz"
     if path.is_file():
         with np.load(path) as data:
+            if cost is not None:
+                cost["seconds"] = float(data["seconds"]) if "seconds" in data else None
             return data["transfer"], 0.0
     t0 = time.perf_counter()
     transfer = compute_transfer(geometry, points, normals, rays=rays, seed=seed, tracer=tracer, executor=executor)
     seconds = time.perf_counter() - t0
-    atomic_save_npz(path, transfer=transfer)
+    atomic_save_npz(path, transfer=transfer, seconds=np.float64(seconds))
+    if cost is not None:
+        cost["seconds"] = seconds
     return transfer, seconds
 
 

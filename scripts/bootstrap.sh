@@ -7,6 +7,11 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 apt_packages=(libegl1 libegl-mesa0 libgl1-mesa-dri qemu-user)  # qemu-user: tests/test_cpu_portability.py
+# libllvm19: Mitsuba's LLVM variant (prt-bench --reference mitsuba, tests/test_mitsuba_reference.py),
+# where this release has it; without it Mitsuba runs its scalar variant, about 10x slower.
+if apt-cache policy libllvm19 2>/dev/null | grep -q "Candidate: [0-9]"; then
+  apt_packages+=(libllvm19)
+fi
 missing=()
 for pkg in "${apt_packages[@]}"; do
   dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
