@@ -100,7 +100,7 @@ def main(argv=None) -> int:
             if bounces:
                 full_img = [image(diffuse_radiance(direct_rgb(direct[s], indirect[s]), lighting, albedo_rows)) for s in (0, 1)]
                 ind_img = [full_img[s] - d_img[s] for s in (0, 1)]
-                ind_mi = {"radiance": full["radiance"] - only["radiance"], "halves": full["halves"] - only["halves"]}
+                ind_mi = {"radiance": full["radiance"] - only["radiance"], "passes": full["passes"] - only["passes"]}
                 total = float(full["radiance"][mask].sum())
                 ind = compare(ind_img[0], ind_mi, mask, ind_img[1])
                 ind["bias_of_total"] = ind["bias"] * float(ind_mi["radiance"][mask].sum()) / total

@@ -221,8 +221,9 @@ def cornell_report(tmp_path_factory):
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     paths = {"json": out / "r.json", "md": out / "r.md"}
-    argv = [str(out / "scene" / "scene.json"), "--size", "32", "--views", "2", "--ref-rays", "32", "--ref-rays-max", "32", "--warmup", "0",
-            "--backends", "onnx", "vertex", "--precisions", "fp32", "--gemm-size", "64", "--json", str(paths["json"]), "--md", str(paths["md"])]  # fmt: skip
+    argv = [str(out / "scene" / "scene.json"), "--size", "32", "--views", "2", "--ref-rays", "32", "--ref-rays-max", "32", "--ref-hit-rays-max", "64",
+            "--warmup", "0", "--backends", "onnx", "vertex", "--precisions", "fp32", "--gemm-size", "64", "--json", str(paths["json"]),
+            "--md", str(paths["md"])]  # fmt: skip
     assert cli.main(argv) == 0
     return json.loads(paths["json"].read_text()), paths["md"].read_text()
 
@@ -257,8 +258,8 @@ def test_baseline_rays_set_the_vertex_baselines_rays_and_leave_the_reference(cor
     reference, and so the networks' PSNR, stays the ``--ref-rays`` one."""
     data, _ = cornell_report
     out = tmp_path / "r.json"
-    argv = [data["scenes"][0]["path"], "--size", "32", "--views", "2", "--ref-rays", "32", "--ref-rays-max", "32", "--warmup", "0",
-            "--backends", "onnx", "vertex", "--precisions", "fp32", "--gemm-size", "64", "--baseline-rays", "8", "--json", str(out)]  # fmt: skip
+    argv = [data["scenes"][0]["path"], "--size", "32", "--views", "2", "--ref-rays", "32", "--ref-rays-max", "32", "--ref-hit-rays-max", "64",
+            "--warmup", "0", "--backends", "onnx", "vertex", "--precisions", "fp32", "--gemm-size", "64", "--baseline-rays", "8", "--json", str(out)]  # fmt: skip
     assert cli.main([*argv, "--md", str(tmp_path / "r.md")]) == 0
     assert "x 16 float32" in (md := (tmp_path / "r.md").read_text()) and "8 rays per vertex" in md
     fewer = json.loads(out.read_text())
