@@ -17,10 +17,19 @@ JSON report (``--json``)
     used, ``checksum``, ``matches_build_source``: the vertex checksum of ``build.json``'s
     source re-loaded against ``geometry.npz``, or None), ``networks``, ``weight_bytes``,
     ``reference`` (``rays`` asked for, ``seed``, ``cache``, ``noise_psnr``: {size: {material: dB}},
-    ``noise_note``, ``rays_by_size``: {size: rays used, raised up to ``--ref-rays-max`` where the
-    noise was not 6 dB above a pilot's PSNR}, ``convergence``: {size: ``rays``, ``noise_psnr``,
-    ``best_psnr``, ``margin_db`` per material, ``required_db``, ``floor``: True when the reference
-    is not 6 dB above the best PSNR measured, so it bounds what is measured}), ``packing``: one entry per size with ``resolution``, ``all_pixels``,
+    ``noise_note``, ``rays_max``, ``hit_rays_max``, ``budget_s`` (the limits of the quiet reference,
+    :mod:`prt.bench.quiet_reference`), ``rays_by_size`` and ``hit_rays_by_size``: {size: direct rays
+    and bounce rays per pixel used (None without bounces), raised where the noise was not 6 dB
+    above the pilot's best PSNR}, ``bounce_noise_psnr``: {size: {material: dB}} the two-seed PSNR of
+    the indirect part alone (scenes with bounces), ``plan``: {size: the last plan: ``rays``,
+    ``hit_rays``, ``met``, ``reason``, ``predicted_noise_psnr``, ``seconds``, ``needs``,
+    ``pilot_psnr``, ``noise_psnr``, ``bounce_noise_psnr``}, ``convergence``: {size: ``rays``,
+    ``hit_rays``, ``noise_psnr``, ``best_psnr``, ``margin_db`` per material, ``required_db``,
+    ``floor``: True when the reference is not 6 dB above the best PSNR measured, so it bounds what
+    is measured; then ``reason``: ``caps``, ``budget`` or ``pilot`` (the views' mean PSNR beat view
+    0's pilot) and ``needs``: what the cheapest plan that clears it would take}), ``mitsuba``
+    (with ``--reference mitsuba``: every configuration against Mitsuba 3, keys in
+    :mod:`prt.bench.mitsuba_bench`), ``packing``: one entry per size with ``resolution``, ``all_pixels``,
     ``covered_pixels`` (median), ``network_segments``, ``naive_rows_per_segment``
     ({segment: rows}, each H*W),
     ``naive_total_rows``, ``naive_inference_ms``, ``packed_inference_ms`` (medians over
@@ -67,8 +76,9 @@ JSON report (``--json``)
     ``pareto``: {``"scene WxH material"``: [labels on the front, by increasing FPS]}: only
     configurations with the same reference image compete.
 
-Markdown (``--md``): the records as a table (with a ``transfer`` column), then packing, reference
-noise and machine lines.
+Markdown (``--md``): the records as a table (with a ``transfer`` column), then the reference's
+noise against the best PSNR (and, where it is the floor, why), the comparison with Mitsuba 3
+(``--reference mitsuba``: a table per size), packing and machine lines.
 Plot (``--plot``): FPS (log) against PSNR, one panel per scene and resolution, one labelled
 point per configuration, the Pareto front of each material ringed and connected.
 """
