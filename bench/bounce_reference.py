@@ -131,7 +131,7 @@ def _hits(tracer, points, normals, rays: int, seed: int, faces=None):
 
 
 def indirect_transfer(geometry, tracer, points, normals, albedo, bounces: int, *, hit_rays: int = HIT_RAYS,
-                      rays: int = HIT_TRANSFER_RAYS, higher=None, seed: int = 0, chunk: int = 2048) -> np.ndarray:
+                      rays: int = HIT_TRANSFER_RAYS, higher=None, seed: int = 0, chunk: int = 2048, entering_rule: bool = True) -> np.ndarray:
     """``mean_j a(q_j) [T_0(q_j) + H(q_j)]`` at ``points``: (P, 16, 3) float32 (zeros when ``bounces == 0``).
 
     Parameters
@@ -143,6 +143,9 @@ def indirect_transfer(geometry, tracer, points, normals, albedo, bounces: int, *
     albedo : (F, 3)
         Per-triangle albedo (:func:`face_albedo`).
     higher : the result of :func:`higher_bounce_samples` (needed when ``bounces >= 2``).
+    entering_rule : bool
+        Rays entering the surface carry nothing (the default); False: the estimator before issue 38
+        (``studies/mitsuba_bias.py`` measures both).
     """
     points = np.ascontiguousarray(points, dtype=np.float32)
     normals = np.ascontiguousarray(normals, dtype=np.float32)
@@ -157,10 +160,10 @@ def indirect_transfer(geometry, tracer, points, normals, albedo, bounces: int, *
     if bounces >= 2:  # the nearest-sample rule of the bounce stage (tangent-plane aware), on the independent samples
         s_points, s_normals, _ = higher
         tree = cKDTree(np.concatenate([s_points, NORMAL_WEIGHT * s_normals], axis=1))
-    own = surface_faces(tracer, points, normals)  # the pixels' faces: rays entering the surface carry nothing
+    own = surface_faces(tracer, points, normals) if entering_rule else None  # the pixels' faces: rays entering the surface carry nothing
     for c, start in enumerate(range(0, len(points), chunk)):
         rows = slice(start, start + chunk)
-        q, nq, faces = _hits(tracer, points[rows], normals[rows], hit_rays, seed + c, own[rows])
+        q, nq, faces = _hits(tracer, points[rows], normals[rows], hit_rays, seed + c, None if own is None else own[rows])
         hit = faces >= 0
         t = np.zeros((len(q), 16, 3), dtype=np.float64)
         if hit.any():
