@@ -19,6 +19,7 @@ rest, and the exit status is 2.  Also ``python -m prt.bench.cli``.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import math
 import sys
 from pathlib import Path
@@ -128,6 +129,9 @@ def main(argv=None) -> int:
 
         return deform_main(argv[1:])
     args = parse_args(argv)
+    if args.reference == "mitsuba" and importlib.util.find_spec("mitsuba") is None:  # before hours of measuring
+        print("prt-bench: error: --reference mitsuba needs Mitsuba 3: pip install 'prt-runtime[mitsuba]' (or pip install mitsuba)", file=sys.stderr)
+        return 2
     cache = args.cache
     if cache is None and args.json is not None:
         cache = args.json.parent / f"{args.json.stem}_cache"

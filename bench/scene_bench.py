@@ -552,6 +552,8 @@ def check_scene(path, settings: Settings) -> Scene:
     manifest = scene.manifest
     if scene.deformation is not None:  # its reference is traced per pose, at the posed points
         raise InputError(f"{manifest.path}: a deformable scene; measure it with prt-bench deform {manifest.path.parent}")
+    if settings.reference == "mitsuba" and manifest.geometry.type != "mesh":
+        raise InputError(f"{manifest.path}: --reference mitsuba compares mesh scenes only; this one is {manifest.geometry.type}")
     if manifest.geometry.type == "mesh":
         load_mesh(manifest.geometry.path)
     if "glsl" in settings.backends:

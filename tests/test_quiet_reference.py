@@ -63,3 +63,25 @@ def test_unknown_times_do_not_block_and_materials_all_count():
     plan = quiet_plan({"diffuse": 50.0, "glossy": 41.0}, None, {"diffuse": 40.0, "glossy": 40.0}, 256, 64, rays_max=4096, hit_rays_max=64,
                       seconds_direct=None, seconds_bounce=None, views=30, budget=1.0)  # fmt: skip
     assert plan["met"] and plan["rays"] == 1024 and plan["seconds"] is None  # the glossy shortfall (5 dB) decides
+
+
+def test_reference_mitsuba_without_mitsuba_is_one_line_and_exit_2(monkeypatch, capsys, tmp_path):
+    import importlib.util
+
+    from prt.bench import cli
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "mitsuba" else real(name, *a))
+    assert cli.main([str(tmp_path / "scene.json"), "--reference", "mitsuba"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "pip install 'prt-runtime[mitsuba]'" in err[0]
+
+
+@pytest.mark.parametrize("flag", [["--mitsuba-spp", "1"], ["--mitsuba-views", "0"], ["--ref-budget", "-1"], ["--ref-hit-rays-max", "0"],
+                                  ["--mitsuba-variant", "cuda_ad_rgb"]])  # fmt: skip
+def test_bad_reference_options_are_usage_errors(flag, capsys):
+    from prt.bench import cli
+
+    with pytest.raises(SystemExit) as exc:
+        cli.parse_args(["scene.json", *flag])
+    assert exc.value.code == 2
