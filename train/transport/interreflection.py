@@ -25,7 +25,7 @@ sample's normal is the interpolated (smooth) one, so its cosine hemisphere reach
 the flat face, and from an origin lifted along that normal such a ray hits the face itself from
 above (or slips past its edge).  It carries no light (:func:`entering`): a path entering a
 closed surface ends at its inside, as a path tracer spawning the ray from the face finds (Mitsuba
-3, issue 38).  Without the rule the self-hits gathered the sample's own light again: 0.1-0.5 % of
+3, issue 38).  Without the rule the self-hits gathered the sample's own light again: 0.07-0.5 % of
 the rays on the shared meshes, the reference's indirect light 3-4 % (0.1 % of the total) too
 bright on Spot.  Samples with a face (the build's, which know theirs) take the rule; points
 without one find theirs with :func:`surface_faces`.
