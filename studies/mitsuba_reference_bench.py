@@ -97,7 +97,8 @@ def markdown(data: dict) -> str:
             lines.append(f"| {scene} | {res} | {s['mitsuba_spp']} ({s['variant']}) | {s['reference_rays']} ({s['reference_hit_rays']}) "
                          f"| {s['psnr_db']:.2f} | {s['joint_noise_psnr_db']:.2f} | {s['mse_ratio']:.3f} "
                          f"| {100 * s['bias']:+.3f} % ({100 * s['bias_se']:.3f} %) | {verdict} |")  # fmt: skip
-    lines += ["", "Every configuration against Mitsuba (diffuse, per-object albedos; PSNR dB, mean bias):", "",
+    lines += ["", "Every configuration against Mitsuba (diffuse, per-object albedos; PSNR in dB and mean bias over the compared pixels of "
+              "the views pooled):", "",
               "| scene | size | configuration | transfer | PSNR vs Mitsuba | mean bias (se) | PSNR vs our reference |", "|---|---|---|---|---:|---:|---:|"]
     for scene, sizes in data["summary"].items():
         for res, s in sizes.items():
