@@ -8,7 +8,10 @@ precision, :mod:`prt.export.precision`; backend ``glsl``; the vertex-space basel
 renders all views after ``--warmup`` frames (or, under ``--config-budget``, as many views as
 the budget allows at the warm-up's frame time, at least 4, spread over the orbit; the record's
 ``views`` says how many), and is compared (:mod:`prt.bench.metrics`) with a ray-traced
-reference of the same G-buffer (:mod:`prt.bench.reference`).  Every record says which transfer it
+reference of the same G-buffer (:mod:`prt.bench.reference`), whose rays are raised until its
+noise clears the best PSNR by 6 dB (:mod:`prt.bench.quiet_reference`).  With ``--reference
+mitsuba`` every configuration and the reference are also compared with Mitsuba 3
+(:mod:`prt.bench.mitsuba_bench`).  Every record says which transfer it
 renders (``transfer``, :func:`prt.bench.report.transfer_label`): a scene built with ``--bounces N`` has networks,
 texture baseline and reference with N bounces, and its vertex baseline is measured twice, direct
 only and with the same N bounces (:func:`prt.bench.vertex_prt.vertex_bounce_transfer`, the build's
