@@ -27,8 +27,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numpy as np
-
 from prt.bench.bounce_reference import cached_indirect, direct_rgb
 from prt.bench.reference import REFERENCE_MARGIN_DB, View, cached_transfer, noise_psnr, reference_images
 

@@ -281,6 +281,7 @@ class SceneBench:
         self.vertex_bounced = self._vertex_bounces()
         self.records: list[dict] = []
         self.images: dict = defaultdict(list)  # (resolution, material) -> [(label, view 0 image, its PSNR)]
+        self._pilot_images = None  # view 0's configurations at the size being measured (the quiet reference's pilot)
 
     def _interreflection(self) -> None:
         """Scenes built with ``--bounces N``: the reference gets the same N bounces (:mod:`prt.bench.bounce_reference`)."""
@@ -367,8 +368,8 @@ class SceneBench:
     def _pilot(self, renderer, references: dict, covered, size: int) -> dict:
         """{material: best PSNR} at view 0 (the renderer's view) against ``references``, over the fp32
         networks and every vertex and texture baseline (:mod:`prt.bench.quiet_reference`)."""
-        if getattr(self, "_pilot_images", None) is None:
-            self._pilot_images = self.configuration_images(renderer, size, renderer.camera, self.materials)
+        if self._pilot_images is None:
+            self._pilot_images = self._configuration_images(renderer, size, renderer.camera, self.materials)
         best = {}
         for images in self._pilot_images.values():
             for name, image in images.items():
@@ -376,7 +377,7 @@ class SceneBench:
                 best[name] = max(best.get(name, -math.inf), psnr)
         return best
 
-    def configuration_images(self, renderer, size: int, camera, materials: dict) -> dict:
+    def _configuration_images(self, renderer, size: int, camera, materials: dict) -> dict:
         """{label: {material: linear (H, W, 3) image}} of ``camera``'s view: the fp32 networks (``renderer``),
         each vertex baseline and each texture baseline, with ``materials`` ({name: Material})."""
         out = {}
