@@ -6,6 +6,9 @@ train, export and runtime (never the other way round).
 - :mod:`~prt.bench.scene_bench`  :class:`Settings`, :class:`SceneBench` (every configuration of one
   scene), :func:`run` (every scene: the report)
 - :mod:`~prt.bench.reference`    the ray-traced reference, its cache and its noise
+- :mod:`~prt.bench.quiet_reference`  its rays raised (direct and bounce) until its noise clears what it judges
+- :mod:`~prt.bench.mitsuba_reference`, :mod:`~prt.bench.mitsuba_compare`, :mod:`~prt.bench.mitsuba_bench`
+  Mitsuba 3 as an independent reference (``--reference mitsuba``)
 - :mod:`~prt.bench.metrics`      PSNR, SSIM, MAE of tone-mapped images; the FPS-PSNR Pareto front
 - :mod:`~prt.bench.machine`      float32 GEMM limit (numpy, ONNX Runtime), CPU, load, network profile
 - :mod:`~prt.bench.vertex_prt`   the per-vertex PRT baseline (Sloan et al. 2002)

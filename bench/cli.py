@@ -3,7 +3,9 @@
 usage::
 
     prt-bench scene.json [more scenes] [--json out.json] [--md out.md]
-        [--plot out.png] [--views 30] [--size 512 [256 ...]] [--ref-rays 1024] [--baseline-rays N] [--warmup 3]
+        [--plot out.png] [--views 30] [--size 512 [256 ...]] [--ref-rays 1024] [--ref-rays-max 4096]
+        [--ref-hit-rays 64] [--ref-hit-rays-max 1024] [--ref-budget 3600] [--baseline-rays N] [--warmup 3]
+        [--reference ours|mitsuba] [--mitsuba-spp 1024] [--mitsuba-views 3] [--mitsuba-variant auto]
         [--precisions fp32 fp16 fp16-mlp int8] [--interpolate TOL ...] [--backends onnx glsl vertex texture] [--texture-size N ...] [--cache DIR]
         [--gemm-size 4096] [--blas-threads N] [--config-budget SECONDS] [--packing-views N]
         [--images DIR] [--fresh] [--cluster auto|ADDRESS] [--gl-device NAME|INDEX]
@@ -17,6 +19,7 @@ rest, and the exit status is 2.  Also ``python -m prt.bench.cli``.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import math
 import sys
 from pathlib import Path
@@ -46,6 +49,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--ref-rays", type=int, default=1024, help="rays per pixel of the reference (default 1024)")
     p.add_argument("--ref-rays-max", type=int, default=4096, metavar="N",
                    help="more reference rays, up to N, where the reference's noise is not 6 dB above the best PSNR (default 4096)")
+    p.add_argument("--ref-hit-rays-max", type=int, default=1024, metavar="N",
+                   help="scenes with bounces: more bounce rays per pixel, up to N, likewise (default 1024)")
+    p.add_argument("--ref-budget", type=float, default=3600.0, metavar="SECONDS",
+                   help="time the reference of one scene and size may take, predicted from view 0's: rays are raised only "
+                        "within it (default 3600; 0: no limit)")  # fmt: skip
     p.add_argument("--ref-hit-rays", type=int, default=HIT_RAYS, metavar="N",
                    help=f"scenes with bounces: bounce rays per pixel of the reference's indirect light (default {HIT_RAYS}); its noise "
                         "is usually the reference's floor there")  # fmt: skip
@@ -58,6 +66,13 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="also measure the vertex baseline at the build's bytes: per-vertex PRT of the mesh decimated until its "
                         "transfer takes the networks' fp32 bytes, resampled onto the full mesh (the paper's storage argument)")
     p.add_argument("--warmup", type=int, default=3, help="frames before timing each configuration (default 3)")
+    p.add_argument("--reference", choices=("ours", "mitsuba"), default="ours",
+                   help="mitsuba: also path-trace --mitsuba-views views with Mitsuba 3 (the [mitsuba] extra) and compare every "
+                        "configuration and our reference with it, diffuse with per-object albedos (default: ours only)")  # fmt: skip
+    p.add_argument("--mitsuba-spp", type=int, default=1024, metavar="N", help="paths per pixel of Mitsuba's images (default 1024)")
+    p.add_argument("--mitsuba-views", type=int, default=3, metavar="N", help="views compared with Mitsuba, spread over the orbit (default 3)")
+    p.add_argument("--mitsuba-variant", choices=("auto", "llvm_ad_rgb", "scalar_rgb"), default="auto",
+                   help="auto: llvm_ad_rgb where a libLLVM works (DRJIT_LIBLLVM_PATH or Debian's libllvm19), else scalar_rgb")
     p.add_argument("--packing-views", type=int, default=None, metavar="N",
                    help="views of the naive-vs-packed baseline, spread over the orbit (default: all; the naive path "
                         "runs every pixel through every network, seconds per view at 512x512)")  # fmt: skip
@@ -93,6 +108,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         p.error(f"--baseline-rays: expected a positive integer, got {args.baseline_rays}")
     if args.ref_hit_rays < 1 or args.ref_hit_transfer_rays < 1:
         p.error("--ref-hit-rays and --ref-hit-transfer-rays must be positive")
+    if args.ref_rays_max < 1 or args.ref_hit_rays_max < 1:
+        p.error("--ref-rays-max and --ref-hit-rays-max must be positive")
+    if not 0 <= args.ref_budget < math.inf:
+        p.error(f"--ref-budget must be a non-negative number of seconds, got {args.ref_budget}")
+    if args.mitsuba_spp < 2 or args.mitsuba_views < 1:
+        p.error(f"--mitsuba-spp must be at least 2 and --mitsuba-views positive, got {args.mitsuba_spp} and {args.mitsuba_views}")
     for flag, value in (("--gemm-size", args.gemm_size), ("--blas-threads", args.blas_threads), ("--packing-views", args.packing_views)):
         if value is not None and value < 1:
             p.error(f"{flag} must be positive, got {value}")
@@ -115,11 +136,16 @@ def main(argv=None) -> int:
 
         return deform_main(argv[1:])
     args = parse_args(argv)
+    if args.reference == "mitsuba" and importlib.util.find_spec("mitsuba") is None:  # before hours of measuring
+        print("prt-bench: error: --reference mitsuba needs Mitsuba 3: pip install 'prt-runtime[mitsuba]' (or pip install mitsuba)", file=sys.stderr)
+        return 2
     cache = args.cache
     if cache is None and args.json is not None:
         cache = args.json.parent / f"{args.json.stem}_cache"
     settings = Settings(
         views=args.views, sizes=tuple(args.size), ref_rays=args.ref_rays, ref_rays_max=args.ref_rays_max, warmup=args.warmup, config_budget=args.config_budget,
+        ref_hit_rays_max=args.ref_hit_rays_max, ref_budget=args.ref_budget or None,
+        reference=args.reference, mitsuba_spp=args.mitsuba_spp, mitsuba_views=args.mitsuba_views, mitsuba_variant=args.mitsuba_variant,
         baseline_rays=args.baseline_rays, equal_bytes=args.equal_bytes,
         packing_views=args.packing_views,
         precisions=tuple(dict.fromkeys(args.precisions)), backends=tuple(args.backends), cache=cache,

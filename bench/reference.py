@@ -8,14 +8,13 @@ material.  Cached by content (points, normals, rays, seed, geometry) as ``.npz``
 ``transfer/`` of the cache folder (``--cache``; default: ``<json stem>_cache`` next to
 ``--json``), so scenes built from one mesh share their references.  Its
 own noise is reported: PSNR between two references with different seeds (frame spins) at view 0
-(:func:`noise_psnr`).
+(:func:`noise_psnr`); how many rays it traces is :mod:`prt.bench.quiet_reference`'s choice.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,7 +29,7 @@ from prt.train import compute_transfer
 from prt.train.inputs.geometry import Geometry, load_geometry
 
 __all__ = ["mesh_checksum", "load_scene_geometry", "cached_transfer", "shade_image", "reference_images", "noise_psnr", "View",
-           "REFERENCE_MARGIN_DB", "rays_for_margin", "convergence"]
+           "REFERENCE_MARGIN_DB", "convergence"]
 
 # The reference's two-seed PSNR must exceed the best configuration's PSNR by this much (issue 12).
 REFERENCE_MARGIN_DB = 6.0
@@ -101,7 +100,8 @@ def load_scene_geometry(manifest):
     return geometry, {"type": "mesh", "source": str(path), "checksum": checksum, "matches_build_source": matches}
 
 
-def cached_transfer(cache: Path, tag: str, geometry, tracer, points, normals, rays: int, seed: int, geometry_id: str, executor=None):
+def cached_transfer(cache: Path, tag: str, geometry, tracer, points, normals, rays: int, seed: int, geometry_id: str, executor=None,
+                    cost: dict | None = None):
     """Ray-traced transfer at ``points``, read from ``cache`` when computed before.
 
     Parameters
@@ -118,6 +118,9 @@ def cached_transfer(cache: Path, tag: str, geometry, tracer, points, normals, ra
         Identity of the geometry (checksum or SDF name), part of the key.
     executor : prt.train.executor.Executor, optional
         Where the chunks run (``prt-bench --cluster``); the result does not depend on it.
+    cost : dict, optional
+        Receives ``seconds``: what computing it took (then, or when it was cached; None for a
+        file cached before its time was kept).
 
     Returns
     -------
@@ -132,11 +135,15 @@ def cached_transfer(cache: Path, tag: str, geometry, tracer, points, normals, ra
     path = cache / f"{tag}-r{rays}-s{seed}-{digest.hexdigest()[:12]}.npz"
     if path.is_file():
         with np.load(path) as data:
+            if cost is not None:
+                cost["seconds"] = float(data["seconds"]) if "seconds" in data else None
             return data["transfer"], 0.0
     t0 = time.perf_counter()
     transfer = compute_transfer(geometry, points, normals, rays=rays, seed=seed, tracer=tracer, executor=executor)
     seconds = time.perf_counter() - t0
-    atomic_save_npz(path, transfer=transfer)
+    atomic_save_npz(path, transfer=transfer, seconds=np.float64(seconds))
+    if cost is not None:
+        cost["seconds"] = seconds
     return transfer, seconds
 
 
@@ -157,25 +164,6 @@ def reference_images(transfer, gbuffer, eye, lighting, materials: dict) -> dict:
 def noise_psnr(other: dict, references: dict, covered) -> dict:
     """The reference's own noise: {material: PSNR (dB, covered pixels) of a second seed's image against it}."""
     return {m: round(image_metrics(other[m], references[m], covered)["psnr"], 2) for m in references}
-
-
-def rays_for_margin(noise: dict, best: dict, rays: int, most: int, margin: float = REFERENCE_MARGIN_DB) -> int:
-    """Rays per pixel at which the reference's noise clears every material's best PSNR by ``margin``.
-
-    Monte Carlo variance falls as 1/rays, so the two-seed PSNR rises 10 log10(2) ~ 3 dB per
-    doubling: ``rays`` is doubled as often as the largest shortfall needs, capped at ``most``
-    (returned as is when it already suffices, or when ``rays >= most``).
-
-    Parameters
-    ----------
-    noise, best : {material: dB}
-        Two-seed PSNR of the reference; the best configuration's PSNR (a pilot or the run's).
-    """
-    short = max((best[m] + margin - noise[m] for m in noise if m in best), default=0.0)
-    if short <= 0 or rays >= most:
-        return rays
-    doublings = math.ceil(short / (10 * math.log10(2)) - 1e-9)
-    return int(min(most, rays * 2**doublings))
 
 
 def convergence(noise: dict, best: dict, rays: int, margin: float = REFERENCE_MARGIN_DB) -> dict:

@@ -17,10 +17,19 @@ JSON report (``--json``)
     used, ``checksum``, ``matches_build_source``: the vertex checksum of ``build.json``'s
     source re-loaded against ``geometry.npz``, or None), ``networks``, ``weight_bytes``,
     ``reference`` (``rays`` asked for, ``seed``, ``cache``, ``noise_psnr``: {size: {material: dB}},
-    ``noise_note``, ``rays_by_size``: {size: rays used, raised up to ``--ref-rays-max`` where the
-    noise was not 6 dB above a pilot's PSNR}, ``convergence``: {size: ``rays``, ``noise_psnr``,
-    ``best_psnr``, ``margin_db`` per material, ``required_db``, ``floor``: True when the reference
-    is not 6 dB above the best PSNR measured, so it bounds what is measured}), ``packing``: one entry per size with ``resolution``, ``all_pixels``,
+    ``noise_note``, ``rays_max``, ``hit_rays_max``, ``budget_s`` (the limits of the quiet reference,
+    :mod:`prt.bench.quiet_reference`), ``rays_by_size`` and ``hit_rays_by_size``: {size: direct rays
+    and bounce rays per pixel used (None without bounces), raised where the noise was not 6 dB
+    above the pilot's best PSNR}, ``bounce_noise_psnr``: {size: {material: dB}} the two-seed PSNR of
+    the indirect part alone (scenes with bounces), ``plan``: {size: the last plan: ``rays``,
+    ``hit_rays``, ``met``, ``reason``, ``predicted_noise_psnr``, ``seconds``, ``needs``,
+    ``pilot_psnr``, ``noise_psnr``, ``bounce_noise_psnr``}, ``convergence``: {size: ``rays``,
+    ``hit_rays``, ``noise_psnr``, ``best_psnr``, ``margin_db`` per material, ``required_db``,
+    ``floor``: True when the reference is not 6 dB above the best PSNR measured, so it bounds what
+    is measured; then ``reason``: ``caps``, ``budget`` or ``pilot`` (the views' mean PSNR beat view
+    0's pilot) and ``needs``: what the cheapest plan that clears it would take}), ``mitsuba``
+    (with ``--reference mitsuba``: every configuration against Mitsuba 3, keys in
+    :mod:`prt.bench.mitsuba_bench`), ``packing``: one entry per size with ``resolution``, ``all_pixels``,
     ``covered_pixels`` (median), ``network_segments``, ``naive_rows_per_segment``
     ({segment: rows}, each H*W),
     ``naive_total_rows``, ``naive_inference_ms``, ``packed_inference_ms`` (medians over
@@ -67,8 +76,9 @@ JSON report (``--json``)
     ``pareto``: {``"scene WxH material"``: [labels on the front, by increasing FPS]}: only
     configurations with the same reference image compete.
 
-Markdown (``--md``): the records as a table (with a ``transfer`` column), then packing, reference
-noise and machine lines.
+Markdown (``--md``): the records as a table (with a ``transfer`` column), then the reference's
+noise against the best PSNR (and, where it is the floor, why), the comparison with Mitsuba 3
+(``--reference mitsuba``: a table per size), packing and machine lines.
 Plot (``--plot``): FPS (log) against PSNR, one panel per scene and resolution, one labelled
 point per configuration, the Pareto front of each material ringed and connected.
 """
@@ -94,8 +104,9 @@ __all__ = [
     "markdown", "plot", "error_figure", "scene_checkpoint", "save_figure", "transfer_label",
 ]  # fmt: skip
 
-# Raised when records change (2: ``transfer``, the vertex baseline with bounces): older checkpoints are measured again.
-RECORD_FORMAT = 2
+# Raised when records change (2: ``transfer``, the vertex baseline with bounces; 3: the quiet reference's
+# bounce rays and plan, ``mitsuba``): older checkpoints are measured again.
+RECORD_FORMAT = 3
 # The report's keys (documented in the module docstring; the tests hold the output to them).
 REPORT_KEYS = ("tool", "created", "settings", "machine", "scenes", "records", "pareto", "failed")
 MACHINE_KEYS = ("cpu", "cores", "gl_renderer", "onnxruntime", "numpy", "gemm_size", "gemm_numpy_gflops",
@@ -162,6 +173,51 @@ def _texture_lines(scene: dict) -> list[str]:
     ]
 
 
+_FLOOR_REASONS = {
+    "caps": "the ray limits (--ref-rays-max, --ref-hit-rays-max) stopped it",
+    "budget": "the time budget (--ref-budget) stopped it",
+    "pilot": "the views' mean PSNR beat view 0's pilot, which the rays were chosen for",
+}
+
+
+def _floor_reason(convergence: dict) -> str:
+    """Why the reference could not be made quieter (bench/quiet_reference.py), and what it would need."""
+    reason = convergence.get("reason")
+    if not reason:
+        return ""
+    needs = convergence.get("needs") or {}
+    more = (f"; it would need {needs['rays']} rays x {needs['hit_rays']} bounce rays"
+            + (f", about {needs['seconds']:.0f} s" if needs.get("seconds") is not None else "")) if needs else ""  # fmt: skip
+    return f" ({_FLOOR_REASONS.get(reason, reason)}{more})"
+
+
+def _mitsuba_lines(scene: dict) -> list[str]:
+    """The scene's comparison with Mitsuba 3 (``prt-bench --reference mitsuba``), one table per size."""
+    mi = scene.get("mitsuba")
+    if not mi:
+        return []
+    env = mi["envmap"]
+    clamp = (f"clamping its negative radiance removed {', '.join(f'{100 * c:.2f}' for c in env['clamp_share'])} % of the energy (R, G, B)"
+             if env["clamped"] else "non-negative, nothing clamped")  # fmt: skip
+    lines = [f"- **against Mitsuba 3** {mi['mitsuba']} ({mi['variant']}, {mi['spp']} paths per pixel, max_depth {mi['max_depth']}, "
+             f"views {mi['views']}); the band-limited sky is {clamp}; diffuse, per-object albedos; PSNR and bias over the "
+             f"compared pixels of those views pooled (the hardest view weighs most, unlike the mean of per-view PSNRs above):"]  # fmt: skip
+    for res, size in mi["sizes"].items():
+        lines += ["", f"| {scene['scene']} {res} | transfer | PSNR vs Mitsuba | mean bias (se) | PSNR vs our reference |", "|---|---|---:|---:|---:|"]
+        for r in size["rows"]:
+            vs_ours = "-" if r.get("psnr_vs_ours") is None else f"{r['psnr_vs_ours']:.2f}"
+            lines.append(f"| {r['label']} | {r['transfer']} | {r['psnr']:.2f} | {100 * r['bias']:+.2f} % ({100 * r['bias_se']:.2f} %) | {vs_ours} |")
+        ours = size["rows"][0]
+        lines += ["", f"  {size['pixels']:,} pixels compared; Mitsuba's noise {size['mitsuba_noise_psnr']:.1f} dB, ours "
+                  f"{ours['ours_noise_psnr']:.1f} dB (two-seed PSNRs): together {ours['joint_noise_psnr']:.1f} dB expected, "
+                  f"{ours['psnr']:.1f} dB measured (squared error {ours['mse_ratio']:.2f}x the noise's: "
+                  f"{'within' if ours['within_noise'] else '**not within**'} the joint noise); mean bias "
+                  f"{100 * ours['bias']:+.2f} % ({'within' if ours['bias_within'] else '**beyond**'} 0.3 %)."]  # fmt: skip
+        if size.get("figure"):
+            lines.append(f"  Side by side: {size['figure']}")
+    return lines
+
+
 def markdown(report: dict) -> str:
     """The report as Markdown: the configurations' table, then packing, reference and machine lines."""
     machine = report["machine"]
@@ -188,9 +244,11 @@ def markdown(report: dict) -> str:
                      + "; ".join(f"{res}: " + ", ".join(f"{m} {db:.1f} dB" for m, db in d.items()) for res, d in ref["noise_psnr"].items()))  # fmt: skip
         for res, c in ref.get("convergence", {}).items():
             gaps = ", ".join(f"{m} {c['noise_psnr'][m]:.1f} vs {c['best_psnr'][m]:.1f} dB ({c['margin_db'][m]:+.1f})" for m in c["margin_db"])
-            verdict = (f"under {c['required_db']:g} dB apart even at {c['rays']} rays: **the reference is the floor** of these PSNRs"
-                       if c["floor"] else f">= {c['required_db']:g} dB apart at {c['rays']} rays: converged enough")  # fmt: skip
+            rays = f"{c['rays']} rays" + (f" x {c['hit_rays']} bounce rays" if c.get("hit_rays") else "")
+            verdict = (f"under {c['required_db']:g} dB apart at {rays}: **the reference is the floor** of these PSNRs"
+                       f"{_floor_reason(c)}" if c["floor"] else f">= {c['required_db']:g} dB apart at {rays}: quiet enough")  # fmt: skip
             lines.append(f"- reference noise vs best PSNR {res}: {gaps}; {verdict}")
+        lines += _mitsuba_lines(s)
         for p in s["packing"]:
             lines.append(
                 f"- packing {p['resolution']} ({p.get('packing_views', '?')} views): naive {p['naive_inference_ms']:.1f} ms ({p['network_segments']} networks x "
@@ -387,13 +445,17 @@ def scene_checkpoint(scene_path, settings) -> Path:
         options["texture_sizes"] = list(settings.texture_sizes)
     if getattr(settings, "interpolate", ()):  # (likewise)
         options["interpolate"] = list(settings.interpolate)
-    for key, default in (("ref_hit_rays", HIT_RAYS), ("ref_hit_transfer_rays", HIT_TRANSFER_RAYS)):  # (likewise)
+    for key, default in (("ref_hit_rays", HIT_RAYS), ("ref_hit_transfer_rays", HIT_TRANSFER_RAYS), ("ref_hit_rays_max", 1024),
+                         ("ref_budget", 3600.0)):  # (likewise)
         if getattr(settings, key, default) != default:
             options[key] = getattr(settings, key)
     if getattr(settings, "baseline_rays", None) is not None:  # (likewise)
         options["baseline_rays"] = settings.baseline_rays
     if getattr(settings, "gl_device", None) is not None:  # (likewise)
         options["gl_device"] = settings.gl_device
+    if getattr(settings, "reference", "ours") != "ours":  # (likewise)
+        options.update(reference=settings.reference, mitsuba_spp=settings.mitsuba_spp, mitsuba_views=settings.mitsuba_views,
+                       mitsuba_variant=settings.mitsuba_variant)  # fmt: skip
     options["prt"] = _prt_version()  # a new release measures again
     options["records"] = RECORD_FORMAT  # so does a new record format
     digest.update(json.dumps(options, sort_keys=True, default=list).encode())

@@ -8,7 +8,10 @@ precision, :mod:`prt.export.precision`; backend ``glsl``; the vertex-space basel
 renders all views after ``--warmup`` frames (or, under ``--config-budget``, as many views as
 the budget allows at the warm-up's frame time, at least 4, spread over the orbit; the record's
 ``views`` says how many), and is compared (:mod:`prt.bench.metrics`) with a ray-traced
-reference of the same G-buffer (:mod:`prt.bench.reference`).  Every record says which transfer it
+reference of the same G-buffer (:mod:`prt.bench.reference`), whose rays are raised until its
+noise clears the best PSNR by 6 dB (:mod:`prt.bench.quiet_reference`).  With ``--reference
+mitsuba`` every configuration and the reference are also compared with Mitsuba 3
+(:mod:`prt.bench.mitsuba_bench`).  Every record says which transfer it
 renders (``transfer``, :func:`prt.bench.report.transfer_label`): a scene built with ``--bounces N`` has networks,
 texture baseline and reference with N bounces, and its vertex baseline is measured twice, direct
 only and with the same N bounces (:func:`prt.bench.vertex_prt.vertex_bounce_transfer`, the build's
@@ -36,8 +39,9 @@ from threadpoolctl import threadpool_limits
 from prt.bench.machine import busy_seconds, cpu_name, machine_gemm, other_cpu_share
 from prt.bench.metrics import image_metrics, mark_pareto
 from prt.bench.packing import packing_baseline
-from prt.bench.bounce_reference import HIT_RAYS, HIT_TRANSFER_RAYS, cached_indirect, direct_rgb, face_albedo, higher_bounce_samples
-from prt.bench.reference import View, cached_transfer, convergence, load_scene_geometry, noise_psnr, rays_for_margin, reference_images
+from prt.bench.bounce_reference import HIT_RAYS, HIT_TRANSFER_RAYS, face_albedo, higher_bounce_samples
+from prt.bench.quiet_reference import ReferenceSource, reference_views
+from prt.bench.reference import convergence, load_scene_geometry
 from prt.bench.report import error_figure, scene_checkpoint, transfer_label
 from prt.bench.texture_prt import texture_variants
 from prt.bench.vertex_prt import VertexPRT, vertex_bounce_transfer, vertex_transfer
@@ -68,6 +72,8 @@ class Settings:
     sizes: tuple = (512,)
     ref_rays: int = 1024
     ref_rays_max: int = 4096  # more rays, up to this, where the reference is not 6 dB above the best PSNR
+    ref_hit_rays_max: int = 1024  # and bounce rays per pixel, up to this (bench/quiet_reference.py)
+    ref_budget: float | None = 3600.0  # seconds the reference of one scene and size may take (predicted); None: no limit
     warmup: int = 3
     config_budget: float | None = None  # seconds of frames per configuration (slow ones measure fewer views)
     packing_views: int | None = None  # views of the naive-vs-packed baseline (None: all), spread over the orbit
@@ -84,6 +90,10 @@ class Settings:
     ref_hit_rays: int = HIT_RAYS  # interreflection reference: bounce rays per pixel (bench/bounce_reference.py)
     ref_hit_transfer_rays: int = HIT_TRANSFER_RAYS  # and rays of the direct transfer at each hit
     baseline_rays: int | None = None  # rays per vertex / texel of the vertex and texture baselines (None: ref_rays)
+    reference: str = "ours"  # "mitsuba": also compare every configuration with Mitsuba 3 (bench/mitsuba_bench.py)
+    mitsuba_spp: int = 1024  # paths per pixel of Mitsuba's images
+    mitsuba_views: int = 3  # views compared with Mitsuba, spread over the orbit
+    mitsuba_variant: str = "auto"  # llvm_ad_rgb where a libLLVM works, else scalar_rgb
     equal_bytes: bool = False  # also the vertex baseline on the mesh decimated to the build's bytes (bench/equal_bytes.py)
     gl_device: str | None = None  # the EGL device that draws (runtime/gl_devices.py; None: $PRT_GL_DEVICE, else auto)
 
@@ -176,27 +186,32 @@ def _measure_renderer(renderer, views, material_name, material, settings, transf
     return summary, transfer0
 
 
+def vertex_frame(vertex, gbuffer_pass, camera, material, lighting) -> tuple[np.ndarray, dict]:
+    """One frame of the vertex baseline: G-buffer pass + transfer raster + CPU shading; (linear (H, W, 3), timings)."""
+    t0 = time.perf_counter()
+    gbuffer_pass.render(camera)
+    packed = gbuffer_pass.read_packed()
+    t1 = time.perf_counter()
+    transfer, _ = vertex.render(camera)
+    t2 = time.perf_counter()
+    covered = np.flatnonzero(packed[:, 3] > 0.5)
+    rows, t = packed[covered], transfer.reshape(len(packed), -1)[covered]
+    if material.kind == "diffuse":  # the renderer's own float32 fast path (direct or "direct+rgb")
+        radiance = np.maximum(t @ diffuse_light_matrix(lighting, material.albedo, t.shape[1]), 0.0)
+    else:
+        radiance = shade(t, rows[:, 4:7], camera.eye[None, :] - rows[:, 0:3], lighting, material)
+    image = np.zeros((len(packed), 3), dtype=np.float32)
+    image[covered] = radiance
+    t3 = time.perf_counter()
+    timings = {"gbuffer": 1e3 * (t1 - t0), **vertex.timings, "shade": 1e3 * (t3 - t2)}
+    timings["frame"] = 1e3 * (t3 - t0)
+    return image.reshape(vertex.height, vertex.width, 3), timings
+
+
 def _measure_vertex(vertex, gbuffer_pass, views, material_name, material, lighting, settings) -> dict:
-    """The vertex baseline's frames: G-buffer pass + transfer raster + CPU shading, and its errors."""
+    """The vertex baseline's frames (:func:`vertex_frame`) and its errors."""
     def frame(camera):
-        t0 = time.perf_counter()
-        gbuffer_pass.render(camera)
-        packed = gbuffer_pass.read_packed()
-        t1 = time.perf_counter()
-        transfer, _ = vertex.render(camera)
-        t2 = time.perf_counter()
-        covered = np.flatnonzero(packed[:, 3] > 0.5)
-        rows, t = packed[covered], transfer.reshape(len(packed), -1)[covered]
-        if material.kind == "diffuse":  # the renderer's own float32 fast path (direct or "direct+rgb")
-            radiance = np.maximum(t @ diffuse_light_matrix(lighting, material.albedo, t.shape[1]), 0.0)
-        else:
-            radiance = shade(t, rows[:, 4:7], camera.eye[None, :] - rows[:, 0:3], lighting, material)
-        image = np.zeros((len(packed), 3), dtype=np.float32)
-        image[covered] = radiance
-        t3 = time.perf_counter()
-        timings = {"gbuffer": 1e3 * (t1 - t0), **vertex.timings, "shade": 1e3 * (t3 - t2)}
-        timings["frame"] = 1e3 * (t3 - t0)
-        return image.reshape(vertex.height, vertex.width, 3), timings
+        return vertex_frame(vertex, gbuffer_pass, camera, material, lighting)
 
     for i in range(settings.warmup):
         frame(views[0].camera.orbit(0.01 * (i + 1)))
@@ -260,45 +275,43 @@ class SceneBench:
             "reference": {"rays": settings.ref_rays, "seed": settings.seed, "cache": str(self.transfer_cache), "noise_psnr": {},
                           "noise_note": "PSNR between two references with different seeds at view 0 (covered pixels); "
                                         "each is ~3 dB closer to the converged image than this",
-                          "rays_by_size": {}, "convergence": {}},
+                          "rays_by_size": {}, "hit_rays_by_size": {}, "plan": {}, "convergence": {},
+                          "rays_max": settings.ref_rays_max, "hit_rays_max": settings.ref_hit_rays_max, "budget_s": settings.ref_budget},
             "packing": [], "vertex_baseline": vertex_info, "texture_baseline": texture_info, "error_images": [],
         }  # fmt: skip
         self._interreflection()
         self.vertex_bounced = self._vertex_bounces()
         self.records: list[dict] = []
         self.images: dict = defaultdict(list)  # (resolution, material) -> [(label, view 0 image, its PSNR)]
+        self._pilot_images = None  # view 0's configurations at the size being measured (the quiet reference's pilot)
 
     def _interreflection(self) -> None:
         """Scenes built with ``--bounces N``: the reference gets the same N bounces (:mod:`prt.bench.bounce_reference`)."""
         record = (self.manifest.raw or {}).get("interreflection") or {}
         self.bounces = int(record.get("bounces", 0))
         self.bounce_albedo, self.higher = None, None
-        if self.bounces <= 0:
-            return
-        if self.geometry.kind != "mesh":
-            raise InputError(f"{self.manifest.path}: interreflection in an SDF scene: the reference traces bounces on meshes only")
-        self.bounce_albedo = face_albedo(record.get("albedos") or {}, self.geometry)
-        self.higher = higher_bounce_samples(self.geometry, self.tracer, self.bounce_albedo, self.bounces, rays=self.settings.ref_rays,
-                                            seed=self.settings.seed, cache=self.transfer_cache, geometry_id=self.geometry_id, log=self.log)  # fmt: skip
-        self.entry["reference"]["interreflection"] = {"bounces": self.bounces, "gi_off_psnr": {}, "hit_rays": self.settings.ref_hit_rays,
-                                                      "hit_transfer_rays": self.settings.ref_hit_transfer_rays,
-                                                      "note": "PSNR of the direct-only reference against the N-bounce one at view 0: what GI changes"}  # fmt: skip
-
-    def _with_bounces(self, transfer, tag, points, normals, seed):
-        """The reference's transfer in the networks' layout: direct (16) or direct + indirect RGB (64); seconds computed."""
-        if self.bounces <= 0:
-            return transfer, 0.0
-        indirect, spent = cached_indirect(self.transfer_cache, tag, self.geometry, self.tracer, points, normals, self.bounce_albedo,
-                                          self.bounces, higher=self.higher, seed=seed, geometry_id=self.geometry_id,
-                                          hit_rays=self.settings.ref_hit_rays, rays=self.settings.ref_hit_transfer_rays)  # fmt: skip
-        return direct_rgb(transfer, indirect), spent
+        settings = self.settings
+        if self.bounces > 0:
+            if self.geometry.kind != "mesh":
+                raise InputError(f"{self.manifest.path}: interreflection in an SDF scene: the reference traces bounces on meshes only")
+            self.bounce_albedo = face_albedo(record.get("albedos") or {}, self.geometry)
+            self.higher = higher_bounce_samples(self.geometry, self.tracer, self.bounce_albedo, self.bounces, rays=settings.ref_rays,
+                                                seed=settings.seed, cache=self.transfer_cache, geometry_id=self.geometry_id, log=self.log)  # fmt: skip
+            self.entry["reference"]["interreflection"] = {"bounces": self.bounces, "gi_off_psnr": {}, "hit_rays": settings.ref_hit_rays,
+                                                          "hit_transfer_rays": settings.ref_hit_transfer_rays,
+                                                          "note": "PSNR of the direct-only reference against the N-bounce one at view 0: what GI changes"}  # fmt: skip
+        self.source = ReferenceSource(self.geometry, self.tracer, self.transfer_cache, self.geometry_id, self.bounces, self.bounce_albedo,
+                                      self.higher, settings.ref_hit_transfer_rays, self.executor)  # fmt: skip
 
     def run(self) -> tuple[dict, list]:
         """Measure every size; returns the ``scenes[]`` entry and the ``records[]`` of this scene."""
         for size in self.settings.sizes:
             # This renderer's G-buffer defines the pixels; every other renderer draws the same ones.
             with Renderer(self.scene, size, size, backend="onnx", ctx=self.ctx) as base:
-                views = self._references(base, size)
+                self._pilot_images = None  # view 0's configurations at this size (bench/quiet_reference.py's pilot)
+                views = reference_views(self.source, base, self.cameras, size, self.materials, self.settings,
+                                        lambda refs, covered: self._pilot(base, refs, covered, size), self.entry["reference"],
+                                        lambda segment: _segment_flops(self.manifest, segment), self.log)  # fmt: skip
                 if self.entry["networks"] and "onnx" in self.settings.backends:
                     cameras = spread(self.cameras, self.settings.packing_views)
                     self.entry["packing"].append(packing_baseline(self.manifest, base.gbuffer, cameras, self.log))
@@ -313,6 +326,10 @@ class SceneBench:
                                  f"{self.manifest.name} {size}x{size}, view 0")  # fmt: skip
                     self.entry["error_images"].append(str(path))
                     self.log(f"  error maps: {path}")
+                if self.settings.reference == "mitsuba":
+                    from prt.bench.mitsuba_bench import mitsuba_comparison
+
+                    mitsuba_comparison(self, base, size, views, spread(list(range(len(views))), self.settings.mitsuba_views))
         return self.entry, self.records
 
     # ------------------------------------------------------------------ pieces
@@ -365,62 +382,51 @@ class SceneBench:
             self.entry["vertex_baseline"]["equal_bytes"] = self._equal[2]
         return self._equal
 
-    def _references(self, renderer, size: int) -> list:
-        """The views at ``size``: G-buffers, reference images (cached transfer) and the reference's noise.
+    def _pilot(self, renderer, references: dict, covered, size: int) -> dict:
+        """{material: best PSNR} at view 0 (the renderer's view) against ``references``, over the fp32
+        networks and every vertex and texture baseline (:mod:`prt.bench.quiet_reference`)."""
+        if self._pilot_images is None:
+            self._pilot_images = self._configuration_images(renderer, size, renderer.camera, self.materials)
+        best = {}
+        for images in self._pilot_images.values():
+            for name, image in images.items():
+                psnr = image_metrics(tonemap(image), references[name], covered)["psnr"]
+                best[name] = max(best.get(name, -math.inf), psnr)
+        return best
 
-        View 0 is traced with two seeds; while their PSNR is not REFERENCE_MARGIN_DB above a pilot
-        (this renderer's fp32 image of view 0) it is traced again with more rays
-        (:func:`rays_for_margin`, at most ``ref_rays_max``); the other views use the rays settled on.
-        """
-        settings, resolution = self.settings, f"{size}x{size}"
-        views, seconds, rays = [], 0.0, settings.ref_rays
-        for v, camera in enumerate(self.cameras):
+    def _configuration_images(self, renderer, size: int, camera, materials: dict) -> dict:
+        """{label: {material: linear (H, W, 3) image}} of ``camera``'s view: the fp32 networks (``renderer``),
+        each vertex baseline and each texture baseline, with ``materials`` ({name: Material})."""
+        out = {}
+        if self.entry["networks"]:
             renderer.set_camera_object(camera)
-            gbuffer = renderer.gbuffer_image()
-            points, normals = gbuffer.position[gbuffer.covered], gbuffer.normal[gbuffer.covered]
-            tag = f"view{v:03d}-{resolution}"
-            while True:
-                images = {}
-                # A second seed (other frame spins) at view 0 measures the reference's own noise.
-                for seed in (settings.seed, settings.seed + 1) if v == 0 else (settings.seed,):
-                    transfer, spent = cached_transfer(
-                        self.transfer_cache, tag, self.geometry, self.tracer, points, normals, rays, seed, self.geometry_id,
-                        executor=self.executor,
-                    )
-                    seconds += spent
-                    if self.bounces and v == 0 and seed == settings.seed:  # GI on against off
-                        direct_only = reference_images(transfer, gbuffer, camera.eye, renderer.lighting, self.materials)
-                    transfer, spent = self._with_bounces(transfer, tag, points, normals, seed)
-                    seconds += spent
-                    images[seed] = reference_images(transfer, gbuffer, camera.eye, renderer.lighting, self.materials)
-                references = images[settings.seed]
-                if self.bounces and v == 0:
-                    self.entry["reference"]["interreflection"]["gi_off_psnr"][resolution] = noise_psnr(direct_only, references, gbuffer.covered)
-                if v != 0:
-                    break
-                noise = self.entry["reference"]["noise_psnr"][resolution] = noise_psnr(images[settings.seed + 1], references, gbuffer.covered)
-                more = rays_for_margin(noise, self._pilot_psnr(renderer, references, gbuffer.covered), rays, settings.ref_rays_max)
-                if more == rays:
-                    break
-                self.log(f"  reference {resolution}: noise PSNR {noise} at {rays} rays is within 6 dB of the pilot; {more} rays")
-                rays = more
-                renderer.set_camera_object(camera)
-            views.append(View(camera, gbuffer, references, _segment_flops(self.manifest, gbuffer.segment)))
-        self.entry["reference"]["rays_by_size"][resolution] = rays
-        self.log(
-            f"  reference {resolution}: {len(views)} views x {rays} rays ({seconds:.1f} s computed, "
-            f"rest cached); noise PSNR {self.entry['reference']['noise_psnr'][resolution]}"
-        )
-        return views
-
-    def _pilot_psnr(self, renderer, references: dict, covered) -> dict:
-        """{material: PSNR} of ``renderer``'s image of its current view (fp32 networks) against ``references``."""
-        pilot = {}
-        for name, material in self.materials.items():
-            kw = {"specular": material.specular, "exponent": material.exponent} if material.kind == "glossy" else {}
-            renderer.set_material(material.kind, albedo=material.albedo, **kw)
-            pilot[name] = image_metrics(tonemap(renderer.render()), references[name], covered)["psnr"]
-        return pilot
+            out["onnx fp32"] = {}
+            for name, material in materials.items():
+                kw = {"specular": material.specular, "exponent": material.exponent} if material.kind == "glossy" else {}
+                renderer.set_material(material.kind, albedo=material.albedo, **kw)
+                out["onnx fp32"][name] = renderer.render().copy()
+        variants = [] if self.vertex_data is None else [("direct", self.vertex_data)]
+        if self.vertex_bounced is not None:
+            variants.append((transfer_label(self.bounces), self.vertex_bounced))
+        for transfer, data in variants:
+            vertex = VertexPRT(self.ctx, self.geometry, *data, size, size)
+            try:
+                out[f"vertex {transfer}"] = {name: vertex_frame(vertex, renderer.gbuffer, camera, m, renderer.lighting)[0]
+                                             for name, m in materials.items()}  # fmt: skip
+            finally:
+                vertex.release()
+        for texture_size, variant in self.textures.items():
+            bind_framebuffer(self.ctx, self.ctx.fbo)
+            with Renderer(Scene(variant), size, size, backend="texture", ctx=self.ctx) as texture:
+                texture.set_background(False)
+                texture.set_camera_object(camera)
+                out[f"texture {texture_size}"] = {}
+                for name, material in materials.items():
+                    kw = {"specular": material.specular, "exponent": material.exponent} if material.kind == "glossy" else {}
+                    texture.set_material(material.kind, albedo=material.albedo, **kw)
+                    out[f"texture {texture_size}"][name] = texture.render().copy()
+        renderer.set_camera_object(camera)
+        return out
 
     def _check_convergence(self, size: int) -> None:
         """Record the reference's noise against the best PSNR measured at ``size`` (``floor`` when under 6 dB apart)."""
@@ -431,9 +437,15 @@ class SceneBench:
                 best[r["material"]] = max(best.get(r["material"], -math.inf), r["psnr"])
         ref = self.entry["reference"]
         verdict = ref["convergence"][resolution] = convergence(ref["noise_psnr"][resolution], best, ref["rays_by_size"][resolution])
+        verdict["hit_rays"] = ref["hit_rays_by_size"][resolution]
+        plan = ref["plan"].get(resolution)
         if verdict["floor"]:
+            # Why it could not be quieter: the ray caps or the time budget stopped it, or the views'
+            # mean PSNR beat view 0's pilot that the rays were chosen for.
+            verdict["reason"] = plan["reason"] if plan and not plan["met"] else "pilot"
+            verdict["needs"] = plan["needs"] if plan and not plan["met"] else None
             self.log(f"  reference {resolution}: noise PSNR {verdict['noise_psnr']} is not 6 dB above the best PSNR "
-                     f"{verdict['best_psnr']} even at {verdict['rays']} rays (--ref-rays-max): the reference is the floor")  # fmt: skip
+                     f"{verdict['best_psnr']} at {verdict['rays']} rays ({verdict['reason']}): the reference is the floor")  # fmt: skip
 
     def _common(self, size: int, views: list) -> dict:
         """The fields every record of this scene and size shares."""
@@ -567,6 +579,8 @@ def check_scene(path, settings: Settings) -> Scene:
     manifest = scene.manifest
     if scene.deformation is not None:  # its reference is traced per pose, at the posed points
         raise InputError(f"{manifest.path}: a deformable scene; measure it with prt-bench deform {manifest.path.parent}")
+    if settings.reference == "mitsuba" and manifest.geometry.type != "mesh":
+        raise InputError(f"{manifest.path}: --reference mitsuba compares mesh scenes only; this one is {manifest.geometry.type}")
     if manifest.geometry.type == "mesh":
         load_mesh(manifest.geometry.path)
     if "glsl" in settings.backends:

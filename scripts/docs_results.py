@@ -22,7 +22,7 @@ PAGES = [
     ("web", "Web page", "The WebGL2 page against the Python GLSL backend.", ("web",)),
     ("presets", "Build presets and defaults", "Build time and error of the `--quality` presets and of the default build on unseen meshes.",
      ("presets", "defaults", "vertex_estimate")),
-    ("fidelity", "Independent reference", "Our reference and builds against Mitsuba 3.", ("mitsuba",)),
+    ("fidelity", "Independent reference", "Our reference and builds against Mitsuba 3; the bounce rule it led to.", ("mitsuba", "entering")),
     ("paper", "Paper table", "The paper's table: networks against vertex and texture PRT, per mesh.", ("paper",)),
     ("frame-rate", "Frame rate", "Frame times of the backends, screen-space interpolation, precision variants, shader compiles.",
      ("demo_fps", "runtime", "interpolation", "glsl", "network_profile", "int8", "onnx_graph")),

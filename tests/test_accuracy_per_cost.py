@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from prt.bench.reference import REFERENCE_MARGIN_DB, convergence, rays_for_margin
+from prt.bench.quiet_reference import quiet_plan
+from prt.bench.reference import REFERENCE_MARGIN_DB, convergence
 from prt.runtime import sh
 from prt.runtime.errors import InputError
 from prt.runtime.shading import Lighting
@@ -50,15 +51,21 @@ def test_a_bad_window_is_one_input_error(window):
 
 
 def test_reference_rays_grow_until_the_noise_clears_the_best_psnr_by_the_margin():
+    """Direct rays only (no bounces, no budget): bench/quiet_reference.py's plan doubles as often as the worst material needs."""
     assert REFERENCE_MARGIN_DB == 6.0
-    assert rays_for_margin({"diffuse": 50.0}, {"diffuse": 40.0}, 512, 4096) == 512  # 10 dB apart: enough
-    assert rays_for_margin({"diffuse": 46.0}, {"diffuse": 40.0}, 512, 4096) == 512  # exactly 6 dB
+
+    def rays(noise, best, start, most):
+        return quiet_plan(noise, None, best, start, 64, rays_max=most, hit_rays_max=64, seconds_direct=None, seconds_bounce=None, views=1,
+                          budget=None)["rays"]  # fmt: skip
+
+    assert rays({"diffuse": 50.0}, {"diffuse": 40.0}, 512, 4096) == 512  # 10 dB apart: enough
+    assert rays({"diffuse": 46.0}, {"diffuse": 40.0}, 512, 4096) == 512  # exactly 6 dB
     # 2 dB short: one doubling (+3 dB); 4 dB short: two; the worst material decides
-    assert rays_for_margin({"diffuse": 44.0, "glossy": 45.0}, {"diffuse": 40.0, "glossy": 40.0}, 512, 4096) == 1024
-    assert rays_for_margin({"diffuse": 46.0, "glossy": 42.0}, {"diffuse": 40.0, "glossy": 40.0}, 512, 4096) == 2048
-    assert rays_for_margin({"diffuse": 30.0}, {"diffuse": 40.0}, 512, 4096) == 4096  # capped
-    assert rays_for_margin({"diffuse": 30.0}, {"diffuse": 40.0}, 4096, 4096) == 4096
-    assert rays_for_margin({"diffuse": 30.0}, {}, 512, 4096) == 512  # nothing measured to compare with
+    assert rays({"diffuse": 44.0, "glossy": 45.0}, {"diffuse": 40.0, "glossy": 40.0}, 512, 4096) == 1024
+    assert rays({"diffuse": 46.0, "glossy": 42.0}, {"diffuse": 40.0, "glossy": 40.0}, 512, 4096) == 2048
+    assert rays({"diffuse": 30.0}, {"diffuse": 40.0}, 512, 4096) == 4096  # capped
+    assert rays({"diffuse": 30.0}, {"diffuse": 40.0}, 4096, 4096) == 4096
+    assert rays({"diffuse": 30.0}, {}, 512, 4096) == 512  # nothing measured to compare with
 
 
 def test_convergence_says_when_the_reference_is_the_floor():

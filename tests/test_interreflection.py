@@ -50,7 +50,7 @@ def test_open_floor_under_a_red_wall_turns_red():
         mesh = scene
 
     direct = compute_transfer(Geo(), all_points, all_normals, rays=256, progress=False)
-    rays = trace_bounce_rays(scene, all_points, all_normals, np.zeros(len(all_points), int), rays=256, seed=2)
+    rays = trace_bounce_rays(scene, all_points, all_normals, rays=256, seed=2)
     albedo = np.zeros((len(scene.faces), 3))
     albedo[len(floor.faces):] = [0.8, 0.0, 0.0]  # the wall is red, the floor black
     total = interreflect(direct, rays, albedo, 2)

@@ -194,7 +194,7 @@ def test_two_bounces_gather_what_the_bounce_stage_computes(cornell_texture, tmp_
     got = scene_bounces(m2, geometry, cache_dir=tmp_path, log=lambda line: None)
     spec = json.loads((m.root / "build.json").read_text())["spec"]
     samples = load_precompute(m.root / "precompute")["samples"]
-    found = trace_bounce_rays(geometry.mesh, samples["points"], samples["normals"], rays=m.interreflection.bounce_rays,
+    found = trace_bounce_rays(geometry.mesh, samples["points"], samples["normals"], samples["face_index"], rays=m.interreflection.bounce_rays,
                               seed=spec["seed"], chunk=spec.get("chunk_size", DEFAULT_CHUNK), workers=1)  # fmt: skip
     expected = interreflect(samples["transfer"], found, got.face_albedo, 1)
     assert got.bounces == 2 and got.gathered.shape == (len(samples["points"]), N, 3)

@@ -509,7 +509,8 @@ def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log
         spec = dataclasses.replace(spec, bounces=auto_n)
     if spec.bounces:
         albedos = _object_albedos(geometry, materials, spec.material)
-        data_key = _hash(pre_summary["key"], spec.bounces, spec.bounce_rays, albedos, "v2")
+        # v3: bounce rays entering the surface carry nothing (interreflection.entering, issue 38)
+        data_key = _hash(pre_summary["key"], spec.bounces, spec.bounce_rays, albedos, "v3")
         log(f"bounces: {spec.bounces} diffuse bounce(s), {spec.bounce_rays} rays per sample ({len(samples['points']):,} + "
             f"{len(valid['points']):,} samples)")  # fmt: skip
         face_albedo = np.asarray([albedos[n] for n in geometry.object_names], dtype=np.float64)[geometry.object_ids]

@@ -374,7 +374,7 @@ def texel_indirect(tracer, points, normals, bounces: TextureBounces, *, chunk_si
     ``cache_dir`` the chunks' ray indices (not the albedos) are kept, so a bake resumes.
     """
     from ..executor import LocalExecutor
-    from .interreflection import BounceJob, BounceRays, _IndexStore, bounce_matrices, run_ray_chunks
+    from .interreflection import BounceJob, BounceRays, _IndexStore, bounce_matrices, run_ray_chunks, surface_faces
 
     points = np.ascontiguousarray(points, dtype=np.float64)
     normals = np.ascontiguousarray(normals, dtype=np.float64)
@@ -383,7 +383,7 @@ def texel_indirect(tracer, points, normals, bounces: TextureBounces, *, chunk_si
     out = np.full((count, 2, rays), -1, dtype=np.int32)
     store, todo = None, list(range(n_chunks))
     if cache_dir is not None:
-        key = _fingerprint(points, normals, bounces.points, bounces.normals, rays, bounces.seed, chunk_size, tracer.identity, "v2")
+        key = _fingerprint(points, normals, bounces.points, bounces.normals, rays, bounces.seed, chunk_size, tracer.identity, "v3")  # v3: RAY_RULE
         store = _IndexStore(Path(cache_dir) / f"bounce-texels-{key}", n_chunks)
         todo = store.load_into(out, chunk_size)
     job = BounceJob(tracer, bounces.points, bounces.normals, rays=rays, seed=bounces.seed, stream=2, workers=1)
@@ -392,7 +392,9 @@ def texel_indirect(tracer, points, normals, bounces: TextureBounces, *, chunk_si
         from tqdm import tqdm
 
         bar = tqdm(total=count * rays, unit="ray", unit_scale=True, desc="texel bounce rays", mininterval=0.5)
-    items = [(k, points[k * chunk_size : (k + 1) * chunk_size], normals[k * chunk_size : (k + 1) * chunk_size]) for k in todo]
+    faces = surface_faces(tracer, points, normals)  # the texels' own faces: rays entering the surface carry nothing
+    items = [(k, points[k * chunk_size : (k + 1) * chunk_size], normals[k * chunk_size : (k + 1) * chunk_size],
+              faces[k * chunk_size : (k + 1) * chunk_size]) for k in todo]  # fmt: skip
     run_ray_chunks(LocalExecutor(threads), job, items, out, chunk_size, rays, store=store, bar=bar)
     found = BounceRays(out[:, 0].astype(np.int64), out[:, 1].astype(np.int64))
     matrices = bounce_matrices(found, bounces.face_albedo, targets=len(bounces.points))
