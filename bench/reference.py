@@ -131,6 +131,8 @@ def cached_transfer(cache: Path, tag: str, geometry, tracer, points, normals, ra
     points = np.ascontiguousarray(points, dtype=np.float32)
     normals = np.ascontiguousarray(normals, dtype=np.float32)
     rule = getattr(tracer, "origin_rule", "")  # SDFs: how ray origins leave the surface (older caches traced otherwise)
+    if getattr(tracer, "trace_rule", ""):  # SDFs traced by the band tracer: not the sphere tracer's bytes
+        rule = f"{rule}|{tracer.trace_rule}"
     digest = hashlib.sha1(points.tobytes() + normals.tobytes() + f"|{rays}|{seed}|{geometry_id}|v1{'|' + rule if rule else ''}".encode())
     path = cache / f"{tag}-r{rays}-s{seed}-{digest.hexdigest()[:12]}.npz"
     if path.is_file():

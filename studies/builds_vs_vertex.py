@@ -127,13 +127,13 @@ def markdown(result: dict) -> str:
     prov = result.get("provenance", {})
     lines = [f"Made by `{prov.get('command', 'python studies/builds_vs_vertex.py')}` ({prov.get('date', '?')}, {result.get('cpu', '?')}, "
              f"{result.get('cores', '?')} cores; from `{Path(str(result.get('json', 'presets.json'))).name}`).", "",
-             "Build s: wall-clock seconds of `prt-train` under `nice` with `--threads 1`; CPU s: the build's own CPU time (on an idle "
+             f"Build s: wall-clock seconds of `prt-train` under `nice` with `--threads {result['builds'][0]['timing']['threads'] if result['builds'] else '?'}`; CPU s: the build's own CPU time (on an idle "
              "machine a one-thread build's wall time is about its CPU time); others' CPU share: the share of the cores other "
              "processes took during the build (`prt.bench.machine`).  Estimate: `build.json`'s held-out sizing summary (dB over the "
              "per-vertex PRT estimate, worst bundled light; where sizing ended).  Then `prt-bench`'s diffuse PSNR of view images "
              "(networks, per-vertex PRT with the same bounces at the build's rays per vertex, per-vertex PRT on the mesh decimated to "
              "the networks' bytes), and the reference's own noise.", "",
-             "| mesh | vertices | quality | build s (CPU s) | others' CPU share | estimate: gain dB (ended) | light | networks dB | vertex dB | gain | ""| mesh | vertices | quality | build s (CPU s) | others' CPU share | estimate: gain dB (ended) | light | networks dB | vertex dB | gain | "
+             "| mesh | vertices | quality | build s (CPU s) | others' CPU share | estimate: gain dB (ended) | light | networks dB | vertex dB | gain | "
              "bytes / vertex bytes | equal-bytes vertex dB (vertices) | gain at equal bytes | reference noise dB |",
              "|---|---:|---|---:|---:|---|---|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
     for b in result["builds"]:

@@ -26,6 +26,9 @@ def bench_module():
     return load
 
 
+_SESSION_GL = []  # the session's context once a test asked for it
+
+
 @pytest.fixture(scope="session")
 def gl_ctx():
     """One headless OpenGL 3.3 context (EGL) for the session; tests fail, never skip, without it."""
@@ -38,8 +41,20 @@ def gl_ctx():
         ctx, reason = None, str(exc)
     if ctx is None:  # failing outside the except block keeps the report to one line
         pytest.fail(reason, pytrace=False)
+    _SESSION_GL.append(ctx)
     yield ctx
+    _SESSION_GL.clear()
     ctx.release()
+
+
+@pytest.fixture(autouse=True)
+def _gl_current():
+    """The session's context made current for every test once it exists: a test that made and
+    released another context (tests/test_gl_devices.py) leaves none current, and the next GL call
+    on the session's context then fails ("cannot create program") in whichever test comes next."""
+    if _SESSION_GL:
+        _SESSION_GL[0].__enter__()  # make current; no __exit__, which would leave no context current
+    yield
 
 
 @pytest.fixture(scope="session")

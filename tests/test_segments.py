@@ -167,7 +167,7 @@ def test_precompute_key_changes_only_where_the_off_plane_rule_moves_a_cut(tmp_pa
     from prt.train.transport.precompute import FORMAT_VERSION, _geometry_key
 
     plain = hashlib.sha1(json.dumps([_geometry_key(load_geometry(str(DATA / "CornellBox-Original.obj"))),
-                                     {k: v for k, v in asdict(settings).items() if k not in ("adaptive", "split")}, FORMAT_VERSION]).encode()).hexdigest()[:16]  # fmt: skip
+                                     {k: v for k, v in asdict(settings).items() if k not in ("adaptive", "split", "sdf_trace")}, FORMAT_VERSION]).encode()).hexdigest()[:16]  # fmt: skip
     assert keys["cornell"][0] == plain and keys["creature"][0] != plain
 
 

@@ -111,6 +111,7 @@ def test_overlapping_uvs_are_detected_and_reatlased_with_one_warning(gl_ctx, tmp
 
 @pytest.fixture(scope="module")
 def box_gbuffer(gl_ctx, tmp_path_factory):
+    gl_ctx.__enter__()  # current here too: module fixtures are set up before conftest's _gl_current
     geometry = load_geometry(_two_objects(tmp_path_factory.mktemp("uv") / "scene.obj"))
     atlas = build_atlas(geometry, SIZE, "shared", ctx=gl_ctx)
     vertices, faces = np.asarray(geometry.mesh.vertices, np.float32), np.asarray(geometry.mesh.faces)

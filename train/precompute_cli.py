@@ -1,7 +1,7 @@
 """prt-precompute: ground-truth transfer for a scene (the first stage of training).
 
 usage: prt-precompute INPUT -o OUTDIR [--samples N] [--rays R] [--segments S] [--seed K] [--envmap HDR]
-                      [--cluster auto|ADDRESS] [--force]
+                      [--sdf-trace auto|band|sphere] [--cluster auto|ADDRESS] [--force]
 
 INPUT is a mesh file (OBJ, PLY, STL, GLB/glTF, ...) or a built-in SDF scene name
 (``prt-precompute --list-sdf``).  Rerunning the same command resumes an interrupted run.
@@ -21,6 +21,7 @@ from .executor import add_cluster_argument
 from .inputs.geometry import load_geometry
 from .outdir import check_output_folder
 from .transport.precompute import PrecomputeSettings, check_settings, run_precompute
+from .transport.transfer import SDF_TRACE_CHOICES
 from .sdf import sdf_names
 
 __all__ = ["main", "build_parser", "settings_from_args", "check_writable"]
@@ -39,6 +40,8 @@ SETTINGS_OPTIONS = (
     ("by_object", "--no-object-split", "let segments span several objects"),
     ("seed", "--seed", "random seed (samples and ray frames)"),
     ("adaptive", "--adaptive", "share of --samples drawn by a second pass where the first pass's transfer varies fastest"),
+    ("sdf_trace", "--sdf-trace", "how SDF scenes are traced: band (Embree on shells around the surface, the field evaluated "
+                                 "only between them), sphere (plain sphere tracing), auto (band where a neural SDF is in the scene)"),
 )
 
 
@@ -57,6 +60,8 @@ def build_parser() -> argparse.ArgumentParser:
         default = getattr(d, name)
         if flag.startswith("--no-"):
             p.add_argument(flag, action="store_true", help=text)
+        elif name == "sdf_trace":
+            p.add_argument(flag, choices=SDF_TRACE_CHOICES, default=default, help=text)
         else:
             p.add_argument(flag, type=type(default), default=default, help=text)
     p.add_argument("--envmap", type=Path, default=None, help="equirectangular .hdr/.exr lighting the preview (default: a procedural sky)")

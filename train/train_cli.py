@@ -3,7 +3,7 @@
 usage: prt-train INPUT -o OUTDIR [--quality draft|standard|high] [--samples N] [--rays R] [--segments S] [--steps N] [--seed K]
                  [--bounces N|auto] [--hidden K --layers L | --vertex-margin DB | --target MAE | --target-db DB | --match 64x4]
                  [--encoding freq|grid|auto [--grid L6-F2-T12-N4-32]] [--cluster auto|ADDRESS] [--force]
-                 [--neural-sdf [--sdf-size KxL] [--sdf-samples N] [--sdf-steps N]]
+                 [--neural-sdf [--sdf-size KxL] [--sdf-samples N] [--sdf-steps N]] [--sdf-trace auto|band|sphere]
 
 INPUT is a mesh file, a built-in SDF scene name (``prt-precompute --list-sdf``) or a build spec
 (``.json``; the flat fields of :meth:`prt.train.build.BuildSpec.to_dict`, flags override them).
@@ -28,6 +28,7 @@ from .cluster import open_executor
 from .executor import add_cluster_argument
 from .outdir import check_output_folder
 from .networks.segments import SPLIT_BY
+from .transport.transfer import SDF_TRACE_CHOICES
 
 __all__ = ["main", "build_parser"]
 
@@ -77,6 +78,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--sdf-size", default="64x4", metavar="KxL", help="with --neural-sdf: width x hidden layers of the SDF network (the paper: 32x4, 64x4)")
     g.add_argument("--sdf-samples", type=int, default=200_000, help="with --neural-sdf: points with a signed distance to fit")
     g.add_argument("--sdf-steps", type=int, default=3000, help="with --neural-sdf: Adam steps of the SDF fit")
+    g.add_argument("--sdf-trace", choices=SDF_TRACE_CHOICES, default=None,
+                   help="how SDF scenes are ray traced for the ground truth: 'band' (Embree on marching-cubes shells around the "
+                        "surface, the field evaluated only between them), 'sphere' (plain sphere tracing, its reference twin), "
+                        "'auto': band where the scene holds a neural SDF [auto]")
     g.add_argument("--deform", default=None, metavar="SPEC",
                    help="a deformable object (INPUT: a folder of frames, a .glb/.gltf, a mesh, or 'sheet' for fold): 'sequence', "
                         "'gltf[:animation=walk,frames=24,start=S,end=E]', 'bend:angle=0..90,frames=16[,axis=x]', 'twist:angle=0..180', "
@@ -179,6 +184,7 @@ def _spec_from_args(args):
         "segments": args.segments,
         "adaptive": args.adaptive,
         "split": args.split,
+        "sdf_trace": args.sdf_trace,
         "steps": args.steps,
         "epochs": args.epochs,
         "time_budget": args.time_budget,

@@ -16,7 +16,7 @@ import numpy as np
 from .glsl import GLSLWriter
 from .nodes import Node, as_points, columns
 
-__all__ = ["SDF"]
+__all__ = ["SDF", "FieldGrid"]
 
 # Points per batch of finite-difference taps in SDF.gradient.
 _GRADIENT_CHUNK = 1 << 17
@@ -34,6 +34,48 @@ def _ray_box(o, d, lo, hi) -> tuple[np.ndarray, np.ndarray]:
             t_in = np.fmax(t_in, np.fmin(t1, t2))
             t_out = np.fmin(t_out, np.fmax(t1, t2))
     return t_in, t_out
+
+
+@dataclass(frozen=True)
+class FieldGrid:
+    """A field sampled on a regular grid: ``values[i, j, k]`` at ``origin + spacing * (i, j, k)``.
+
+    Attributes
+    ----------
+    values : (nx, ny, nz) float32 ndarray
+        Shared by every user of :meth:`SDF.grid`'s cache: read it, never write to it (it stays
+        writeable because scikit-image's marching cubes refuses read-only arrays).
+    origin : (3,) float64 ndarray
+        Scene position of ``values[0, 0, 0]``.
+    spacing : float
+        Grid step (scene units), the same along every axis.
+    """
+
+    values: np.ndarray
+    origin: np.ndarray
+    spacing: float
+
+
+def _sample_grid(sdf, resolution: int, threads: int | None) -> FieldGrid:
+    """Evaluate ``sdf`` on the grid of :meth:`SDF.grid`, one x-slab per task (bounded memory)."""
+    from ..executor import LocalExecutor
+
+    lo, hi = sdf.bounds
+    h = float((hi - lo).max()) / (resolution - 1)
+    lo = lo - 2.0 * h  # two voxels of margin: the grid boundary is strictly outside
+    counts = np.ceil((hi + 2.0 * h - lo) / h).astype(int) + 1
+    axes = [lo[i] + h * np.arange(counts[i]) for i in range(3)]
+    values = np.empty(tuple(counts), dtype=np.float32)
+    yz = np.stack(np.meshgrid(axes[1], axes[2], indexing="ij"), axis=-1).reshape(-1, 2)
+    slabs = [(i, np.column_stack([np.full(len(yz), x), yz]).astype(np.float32)) for i, x in enumerate(axes[0])]
+    for (i, _), f in LocalExecutor(threads).map(_evaluate_slab, sdf, slabs):
+        values[i] = f.reshape(counts[1], counts[2])
+    return FieldGrid(values, lo, h)
+
+
+def _evaluate_slab(sdf, slab) -> np.ndarray:
+    """One task of :func:`_sample_grid`: the field at one slab's points."""
+    return sdf.evaluate(slab[1])
 
 
 @dataclass(frozen=True, eq=False)
@@ -136,6 +178,32 @@ class SDF:
 
     # ----- meshing and projection ----------------------------------------------------
 
+    def grid(self, resolution: int = 128, threads: int | None = None) -> "FieldGrid":
+        """The field sampled on a regular grid over :attr:`bounds` (cached per resolution).
+
+        The grid :meth:`to_mesh` runs marching cubes on; the band tracer
+        (:mod:`prt.train.sdf.band`) refines it near the surface, so a build evaluates it once.
+
+        Parameters
+        ----------
+        resolution : int
+            Grid samples along the longest side of the bounds (cubic voxels); two voxels of
+            margin on every side keep the grid boundary strictly outside the surface.
+        threads : int, optional
+            Worker threads for the evaluation (default: all cores).
+
+        Returns
+        -------
+        FieldGrid
+        """
+        if int(resolution) < 8:
+            raise ValueError(f"resolution must be >= 8, got {resolution}")
+        cache = self.__dict__.setdefault("_grids", {})  # frozen dataclass: its __dict__ is the cache
+        grid = cache.get(int(resolution))
+        if grid is None:
+            grid = cache[int(resolution)] = _sample_grid(self, int(resolution), threads)
+        return grid
+
     def to_mesh(self, resolution: int = 128):
         """Triangle mesh of the zero level set by marching cubes over :attr:`bounds`.
 
@@ -152,20 +220,10 @@ class SDF:
         import trimesh
         from skimage.measure import marching_cubes
 
-        if int(resolution) < 8:
-            raise ValueError(f"resolution must be >= 8, got {resolution}")
-        lo, hi = self.bounds
-        h = float((hi - lo).max()) / (int(resolution) - 1)
-        lo = lo - 2.0 * h  # two voxels of margin: the grid boundary is strictly outside
-        counts = np.ceil((hi + 2.0 * h - lo) / h).astype(int) + 1
-        axes = [lo[i] + h * np.arange(counts[i]) for i in range(3)]
-        volume = np.empty(tuple(counts), dtype=np.float32)
-        yz = np.stack(np.meshgrid(axes[1], axes[2], indexing="ij"), axis=-1).reshape(-1, 2)
-        for i, x in enumerate(axes[0]):  # one x-slab at a time bounds memory
-            slab = np.column_stack([np.full(len(yz), x), yz]).astype(np.float32)
-            volume[i] = self.evaluate(slab).reshape(counts[1], counts[2])
-        verts, faces, _, _ = marching_cubes(volume, level=0.0, spacing=(h, h, h))
-        mesh = trimesh.Trimesh(vertices=verts + lo, faces=faces, process=True)
+        grid = self.grid(resolution)
+        h = grid.spacing
+        verts, faces, _, _ = marching_cubes(grid.values, level=0.0, spacing=(h, h, h))
+        mesh = trimesh.Trimesh(vertices=verts + grid.origin, faces=faces, process=True)
         mesh.update_faces(mesh.nondegenerate_faces())
         mesh.remove_unreferenced_vertices()
         # The level set is closed (the grid boundary is outside), so a negative signed

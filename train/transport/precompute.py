@@ -30,9 +30,10 @@ from ..outdir import check_output_folder, mark_output_folder
 from ..inputs.adaptive import NEIGHBOURS, adaptive_samples
 from ..inputs.sampling import TRAIN_STREAM, VALIDATION_STREAM, SurfaceSamples, sample_surface
 from ..networks.segments import SPLIT_BY, SPLIT_RULE, segment_samples
-from .transfer import DEFAULT_CHUNK, compute_transfer, make_tracer
+from .transfer import DEFAULT_CHUNK, SDF_TRACE_CHOICES, compute_transfer, make_tracer, sdf_trace_for
 
-__all__ = ["PrecomputeSettings", "SpecLimits", "SPEC_LIMITS", "check_settings", "sample_limit", "run_precompute", "load_precompute"]
+__all__ = ["PrecomputeSettings", "SpecLimits", "SPEC_LIMITS", "check_settings", "sample_limit", "precompute_key", "run_precompute",
+           "load_precompute"]
 
 FORMAT_VERSION = 2  # 2: samples carry the G-buffer's interpolated normals (1: face normals)
 
@@ -58,6 +59,10 @@ class PrecomputeSettings:
     # which k-d leaf is cut next (prt.train.networks.segments.SPLIT_BY): "samples" (equal areas; the cache key
     # of older builds unchanged) or "residual" (leaves where the transfer is complex)
     split: str = "samples"
+    # how SDF scenes are traced (prt.train.transport.transfer.sdf_trace_for): "auto" (the band tracer
+    # where a neural SDF is in the scene), "band" or "sphere" (the plain sphere tracer); keyed by the
+    # tracing rule it resolves to (mesh scenes and the sphere tracer keep the keys of older builds)
+    sdf_trace: str = "auto"
 
     def validation_count(self) -> int:
         return self.validation or max(1000, self.samples // 20)
@@ -139,6 +144,8 @@ def check_settings(settings: PrecomputeSettings, *, flags: bool = False) -> None
             raise SpecError(f"{name(key)}: expected a finite non-negative number, got {value!r}")
     if settings.split not in SPLIT_BY:
         raise SpecError(f"{name('split')}: expected one of {', '.join(SPLIT_BY)}, got {settings.split!r}")
+    if settings.sdf_trace not in SDF_TRACE_CHOICES:
+        raise SpecError(f"{name('sdf_trace')}: expected one of {', '.join(SDF_TRACE_CHOICES)}, got {settings.sdf_trace!r}")
     share = settings.adaptive
     if isinstance(share, bool) or not isinstance(share, (int, float)) or not 0.0 <= share <= 0.9:
         raise SpecError(f"{name('adaptive')}: expected a share of the samples in 0 .. 0.9, got {share!r}")
@@ -156,6 +163,23 @@ def _geometry_key(geometry) -> str:
     if geometry.kind == "mixed":  # the SDF objects' fields, not only their proxies
         h.update(geometry.mixed.glsl().encode())
     return h.hexdigest()[:16]
+
+
+def precompute_key(geometry, settings: PrecomputeSettings) -> str:
+    """The precompute's cache key: the geometry and every setting that changes the result.
+
+    Older builds keep their key: fields added later are keyed only when they differ from their
+    default, and ``sdf_trace`` only where it resolves to the band tracer
+    (:func:`prt.train.transport.transfer.sdf_trace_for`), whose hits are not the sphere tracer's bit
+    for bit; mesh scenes and the sphere tracer keep the keys they had.
+    """
+    keyed = {k: v for k, v in asdict(settings).items() if (k != "adaptive" or v) and (k != "split" or v != "samples")
+             and k != "sdf_trace"}  # fmt: skip
+    if sdf_trace_for(geometry, settings.sdf_trace) == "band":
+        from ..sdf.band_trace import TRACE_RULE
+
+        keyed["sdf_trace"] = TRACE_RULE
+    return hashlib.sha1(json.dumps([_geometry_key(geometry), keyed, FORMAT_VERSION]).encode()).hexdigest()[:16]
 
 
 def run_precompute(
@@ -185,11 +209,8 @@ def run_precompute(
     check_settings(settings)
     check_output_folder(out, "precompute", force=force)
     mark_output_folder(out, "precompute")
-    # older builds keep their key: fields added later are keyed only when they differ from their default
-    keyed = {k: v for k, v in asdict(settings).items() if (k != "adaptive" or v) and (k != "split" or v != "samples")}
-    key = hashlib.sha1(
-        json.dumps([_geometry_key(geometry), keyed, FORMAT_VERSION]).encode()
-    ).hexdigest()[:16]
+    key = precompute_key(geometry, settings)
+    trace = sdf_trace_for(geometry, settings.sdf_trace)
     # Segments cut by the off-plane rule (train/networks/segments.py, split_value) where it moved a cut: then
     # the key changes, and the fits keyed by it are made anew; elsewhere the segments, the key and
     # the cached fits stay what they were.  A folder made before the rule is checked once (its
@@ -204,7 +225,13 @@ def run_precompute(
             return previous
 
     timings = {}
-    tracer = make_tracer(geometry)
+    t0 = time.perf_counter()
+    tracer = make_tracer(geometry, settings.sdf_trace, threads)
+    timings["tracer_s"] = time.perf_counter() - t0
+    if trace == "band":
+        stats = tracer.sdf._band.band.stats if geometry.kind == "mixed" else tracer._band.band.stats
+        log(f"precompute: band tracer: shells at +-{stats['delta']:.2e} ({stats['outer_faces']:,} + {stats['inner_faces']:,} "
+            f"triangles), {stats['evaluated_points']:,} field samples, {timings['tracer_s']:.1f} s")  # fmt: skip
     t0 = time.perf_counter()
     first = settings.samples - int(round(settings.samples * settings.adaptive))
     train = sample_surface(geometry, first, seed=settings.seed, stream=TRAIN_STREAM)

@@ -42,6 +42,9 @@ __all__ = [
     "SDFTracer",
     "MixedTracer",
     "make_tracer",
+    "sdf_trace_for",
+    "SDF_TRACES",
+    "SDF_TRACE_CHOICES",
     "TransferIntegrator",
     "compute_transfer",
     "TransferJob",
@@ -55,6 +58,9 @@ DEFAULT_CHUNK = 2048
 MESH_RAY_OFFSET = 1e-4
 # Sphere tracing stops within ~1e-4 of a surface, so it needs a clearly larger start offset.
 SDF_RAY_OFFSET = 2e-3
+# How SDF scenes are traced (SDFTracer): the band tracer, or the plain sphere tracer (its twin).
+SDF_TRACES = ("band", "sphere")
+SDF_TRACE_CHOICES = ("auto",) + SDF_TRACES
 
 
 def _radical_inverse_base2(i: np.ndarray) -> np.ndarray:
@@ -164,19 +170,33 @@ def _embree_tracer(triangles: np.ndarray, identity: str) -> EmbreeTracer:
 
 
 class SDFTracer:
-    """Occlusion queries against an analytic SDF scene, by its own sphere tracer.
+    """Occlusion queries against an SDF scene: its band tracer, or its plain sphere tracer.
 
-    :meth:`prt.train.sdf.SDF.sphere_trace` is the one implementation; this adapts it to
-    the tracer interface (``offset``, ``identity``, ``occluded``).
+    ``trace="band"``: :class:`prt.train.sdf.band_trace.BandTracer` (Embree on the band's shells,
+    the field evaluated only between them); ``"sphere"``: :meth:`prt.train.sdf.SDF.sphere_trace`,
+    the plain tracer and the band tracer's reference twin.  Both keep the origin rule
+    (:meth:`origins`) and the hit rule; the tracing rule is part of :attr:`identity` (and of
+    :attr:`trace_rule`, which precompute and bench cache keys add where it is not empty).
     """
 
     offset = SDF_RAY_OFFSET
     origin_rule = "lift-v1"  # :meth:`prt.train.sdf.SDF.start_points`
 
-    def __init__(self, sdf):
+    def __init__(self, sdf, trace: str = "sphere", threads: int | None = None):
+        if trace not in SDF_TRACES:
+            raise ValueError(f"trace must be one of {', '.join(SDF_TRACES)}, got {trace!r}")
         self._sdf = sdf
+        self.trace = trace
+        self._band = None
+        self.trace_rule = ""
+        if trace == "band":
+            from ..sdf.band_trace import TRACE_RULE, BandTracer
+
+            self._band = BandTracer(sdf, threads=threads)
+            self.trace_rule = TRACE_RULE
         # the origin rule is part of the identity: builds cached before it trace again
-        self.identity = f"sdf:{self.origin_rule}:" + hashlib.sha1(sdf.glsl().encode()).hexdigest()
+        rule = f"{self.origin_rule}:{self.trace_rule}:" if self.trace_rule else f"{self.origin_rule}:"
+        self.identity = f"sdf:{rule}" + hashlib.sha1(sdf.glsl().encode()).hexdigest()
 
     def origins(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
         """Ray origins (S, 3) float32: ``offset`` along the normal, further where the field is still
@@ -185,13 +205,16 @@ class SDFTracer:
 
     def occluded(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         """origins, dirs : (K, 3) float32 -> (K,) bool, True where the ray hits the scene."""
+        if self._band is not None:
+            return self._band.occluded(origins, dirs)
         return self._sdf.sphere_trace(origins, dirs)  # t_max: across the whole scene
 
 
 class MixedTracer:
-    """Occlusion against every object: Embree for the mesh objects OR the sphere tracer for the SDFs."""
+    """Occlusion against every object: Embree for the mesh objects OR the SDF tracer for the SDFs
+    (``sdf_trace``: :class:`SDFTracer`'s ``trace``, for the union of the SDF objects)."""
 
-    def __init__(self, geometry):
+    def __init__(self, geometry, sdf_trace: str = "sphere", threads: int | None = None):
         parts = geometry.mixed
         keep = ~parts.proxy_faces
         self.offset = SDF_RAY_OFFSET  # the sphere tracer's start offset; ample for Embree too
@@ -203,9 +226,11 @@ class MixedTracer:
             faces = np.asarray(geometry.mesh.faces)[keep]
             self.mesh = EmbreeTracer(trimesh.Trimesh(np.asarray(geometry.mesh.vertices), faces, process=False))
         union = parts.union()
-        self.sdf = SDFTracer(union) if union is not None else None
+        self.sdf = SDFTracer(union, sdf_trace, threads) if union is not None else None
+        self.trace_rule = ""
         if self.sdf is not None:
             self.origin_rule = self.sdf.origin_rule
+            self.trace_rule = self.sdf.trace_rule
         ids = [t.identity for t in (self.mesh, self.sdf) if t is not None]
         self.identity = "mixed:" + hashlib.sha1("|".join(ids).encode()).hexdigest()
 
@@ -227,13 +252,49 @@ class MixedTracer:
         return hit
 
 
-def make_tracer(geometry):
-    """The visibility tracer for a geometry: sphere tracing for SDFs, Embree for meshes, both
-    for mixed scenes (:class:`prt.train.inputs.mixed.MixedTracer`)."""
+def sdf_trace_for(geometry, sdf_trace: str = "auto") -> str | None:
+    """How a geometry's SDFs are traced: ``"band"`` or ``"sphere"`` (None: no SDF in it).
+
+    ``"auto"`` (the default): the band tracer wherever the scene holds a neural SDF, whose
+    network makes every sphere-tracing step costly; analytic SDFs keep the plain sphere tracer
+    (measured: their cheap exact distances leave it the faster; ``docs/guides/sdf-and-mixed.md``).
+    """
+    if sdf_trace not in SDF_TRACE_CHOICES:
+        raise ValueError(f"sdf_trace must be one of {', '.join(SDF_TRACE_CHOICES)}, got {sdf_trace!r}")
+    kind = getattr(geometry, "kind", None)
+    if kind == "mixed":
+        fields = list(geometry.mixed.sdfs.values())
+    elif geometry.sdf is not None:
+        fields = [geometry.sdf]
+    else:
+        return None
+    if sdf_trace != "auto":
+        return sdf_trace
+    return "band" if any(_has_network(f.root) for f in fields) else "sphere"
+
+
+def _has_network(node) -> bool:
+    """Whether an SDF node tree holds a network (:class:`prt.train.sdf.neural.NeuralNode`)."""
+    from ..sdf import Node
+    from ..sdf.neural import NeuralNode
+
+    if isinstance(node, NeuralNode):
+        return True
+    for value in vars(node).values():  # children, child, base, cutter...
+        for child in value if isinstance(value, (tuple, list)) else (value,):
+            if isinstance(child, Node) and _has_network(child):
+                return True
+    return False
+
+
+def make_tracer(geometry, sdf_trace: str = "auto", threads: int | None = None):
+    """The visibility tracer for a geometry: Embree for meshes, the SDF tracer for SDFs
+    (``sdf_trace``: :func:`sdf_trace_for`), both for mixed scenes (:class:`MixedTracer`)."""
+    trace = sdf_trace_for(geometry, sdf_trace)
     if getattr(geometry, "kind", None) == "mixed":
-        return MixedTracer(geometry)
+        return MixedTracer(geometry, trace, threads)
     if geometry.sdf is not None:
-        return SDFTracer(geometry.sdf)
+        return SDFTracer(geometry.sdf, trace, threads)
     return EmbreeTracer(geometry.mesh)
 
 
