@@ -290,6 +290,26 @@ def readme_rows(root: Path) -> list[tuple[str, str, str, str]]:
             text += f"; first frame {first[512]['first_frame_ms'] / 1e3:.1f} s at 512x512 in software WebGL"
         return text
 
+    def mitsuba(d):
+        cells = []
+        for scene, sizes in d.get("summary", {}).items():
+            for size, m in sizes.items():
+                cells.append(f"{scene.split('-')[0]} {m['psnr_db']:.1f} dB (joint noise {m['joint_noise_psnr_db']:.1f}), "
+                             f"bias {100 * m['bias']:+.2f} %")
+        return "; ".join(cells) or None
+
+    def presets(d):
+        cells = []
+        for b in d.get("builds", []):
+            t, rows = b["timing"], b.get("rows") or []
+            own = next((r for r in rows if r.get("scene") == b.get("scene")), None)
+            psnr = f", {own['psnr_db']:.1f} dB vs vertex PRT {own['vertex_psnr_db']:.1f} dB" if own else ""
+            cells.append(f"{t['quality']} {t['wall_s'] / 60:.1f} min{psnr}")
+        name = Path(d["builds"][0]["timing"]["mesh"]).name if d.get("builds") else "?"
+        return f"{name} ({d['builds'][0]['timing']['vertices']:,} vertices): " + "; ".join(cells) if cells else None
+
+    add("mitsuba_reference.json", "our reference against Mitsuba 3 (path traced, same scene)", mitsuba)
+    add("presets.json", "`prt-train --quality` build time on this machine, diffuse PSNR", presets)
     add("web.json", "`prt-web` page of the demo: same pixels", web_pixels)
     add("web.json", "`prt-web` page of the demo: payload, first frame", web_payload)
     return rows

@@ -1,6 +1,6 @@
 """How well the build's held-out estimate predicts the image comparison with per-vertex PRT.
 
-usage: python studies/vertex_estimate_check.py BUILD --json OUT.json [--cache DIR]
+usage: python studies/vertex_estimate_check.py BUILD --json OUT.json [--cache DIR] [--quiet-rays N]
 
 For a finished mesh build with bounces (a ``prt-train`` folder): the per-vertex PRT estimate
 (:mod:`prt.train.transport.vertex_estimate`, as the default sizing rule computes it now) and the
@@ -9,6 +9,12 @@ split by side (samples whose normal agrees with their triangle's winding, "front
 shaded, tone-mapped PSNR under the bundled env maps.  Set it beside ``prt-bench``'s image PSNR of
 the same build (``BUILD/bench.json`` from ``studies/builds_vs_vertex.py``) to see how far the
 held-out samples' verdict is from the images'.
+
+``--quiet-rays N`` also traces the held-out samples' direct transfer again with N rays and another
+seed, a truth whose noise is independent of the build's and N / rays times smaller: the direct
+parts of the networks, the vertex estimate and the build's own held-out truth are set against it
+(``direct_vs_quiet_psnr_db``), which says whether the build-time verdict is the noise's or the
+predictors'.
 """
 
 from __future__ import annotations
@@ -42,6 +48,7 @@ def main(argv=None) -> int:
     p.add_argument("build", type=Path)
     p.add_argument("--json", type=Path, required=True)
     p.add_argument("--cache", type=Path, default=Path("/tmp/prt-vertex-estimate-check"))
+    p.add_argument("--quiet-rays", type=int, default=0, help="also a direct-transfer truth of N rays with another seed")
     args = p.parse_args(argv)
     b = args.build
     rep = json.loads((b / "build.json").read_text())
@@ -77,6 +84,17 @@ def main(argv=None) -> int:
            "held_out_psnr_db": {"networks": _psnr(network, truth, lights), "vertex": _psnr(vertex, truth, lights)},
            "front_psnr_db": {"networks": _psnr(network, truth, lights, front), "vertex": _psnr(vertex, truth, lights, front)},
            "back_psnr_db": {"networks": _psnr(network, truth, lights, ~front), "vertex": _psnr(vertex, truth, lights, ~front)}}  # fmt: skip
+    if args.quiet_rays:
+        from prt.train.transport.transfer import compute_transfer
+
+        quiet = compute_transfer(geometry, valid["points"], valid["normals"], rays=args.quiet_rays, bands=4, seed=spec["seed"] + 1009,
+                                 threads=2, cache_dir=args.cache / "quiet")  # fmt: skip
+        out["quiet_rays"] = args.quiet_rays
+        out["direct_vs_quiet_psnr_db"] = {name: {side: _psnr(pred[:, :16], quiet, lights, mask) for side, mask in
+                                                 (("all", None), ("front", front), ("back", ~front))}
+                                          for name, pred in (("networks", network), ("vertex", vertex), ("build truth", truth))}  # fmt: skip
+        out["direct_vs_build_truth_psnr_db"] = {name: _psnr(pred[:, :16], truth[:, :16], lights) for name, pred in
+                                                (("networks", network), ("vertex", vertex))}  # fmt: skip
     bench = b / "bench.json"
     if bench.is_file():
         records = [r for r in json.loads(bench.read_text())["records"] if r["material"] == "diffuse" and r["precision"] == "fp32"]
