@@ -309,7 +309,20 @@ def readme_rows(root: Path) -> list[tuple[str, str, str, str]]:
         return f"{name} ({d['builds'][0]['timing']['vertices']:,} vertices): " + "; ".join(cells) if cells else None
 
     add("mitsuba_reference.json", "our reference against Mitsuba 3 (path traced, same scene)", mitsuba)
+    def defaults(d):
+        cells = {}
+        for b in d.get("builds", []):
+            for r in b.get("rows") or []:
+                cell = cells.setdefault(r["mesh"], {"gains": [], "bytes": r["weight_bytes"] / r["vertex_bytes"], "equal": []})
+                cell["gains"].append(f"{r['gain_db']:+.2f}")
+                cell["equal"].append(f"{r['gain_equal_bytes_db']:+.2f}")
+        return "; ".join(f"{Path(m).stem} {' / '.join(c['gains'])} dB at {c['bytes']:.2f}x its bytes "
+                         f"({' / '.join(c['equal'])} dB at equal bytes)" for m, c in cells.items()) or None
+
     add("presets.json", "`prt-train --quality` build time on this machine, diffuse PSNR", presets)
+    add("presets_bunny.json", "`prt-train --quality` build time on this machine, diffuse PSNR", presets)
+    add("defaults_unseen.json", "default build vs per-vertex PRT with the same bounces, unseen meshes (diffuse PSNR gain, own light / venice_sunset)",
+        defaults)
     add("web.json", "`prt-web` page of the demo: same pixels", web_pixels)
     add("web.json", "`prt-web` page of the demo: payload, first frame", web_payload)
     return rows
