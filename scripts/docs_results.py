@@ -239,7 +239,9 @@ def _short_date(date: str) -> str:
 
 def _short_machine(prov: dict) -> str:
     machine = prov["machine"]
-    return machine.split(",")[0] if not machine.startswith("not recorded") else "not recorded"
+    if machine.startswith("not recorded"):
+        return "not recorded"
+    return re.sub(r"\s+", " ", re.sub(r"\((R|TM)\)|\bProcessor\b|\bCPU\b", "", machine.split(",")[0])).strip()
 
 
 def readme_rows(root: Path) -> list[tuple[str, str, str, str]]:
@@ -319,8 +321,8 @@ def readme_rows(root: Path) -> list[tuple[str, str, str, str]]:
         return "; ".join(f"{Path(m).stem} {' / '.join(c['gains'])} dB at {c['bytes']:.2f}x its bytes "
                          f"({' / '.join(c['equal'])} dB at equal bytes)" for m, c in cells.items()) or None
 
-    add("presets.json", "`prt-train --quality` build time on this machine, diffuse PSNR", presets)
-    add("presets_bunny.json", "`prt-train --quality` build time on this machine, diffuse PSNR", presets)
+    add("presets.json", "`prt-train --quality` build time on 2 cores, diffuse PSNR", presets)
+    add("presets_bunny.json", "`prt-train --quality` build time on 2 cores, diffuse PSNR", presets)
     add("defaults_unseen.json", "default build vs per-vertex PRT with the same bounces, unseen meshes (diffuse PSNR gain, own light / venice_sunset)",
         defaults)
     add("web.json", "`prt-web` page of the demo: same pixels", web_pixels)
