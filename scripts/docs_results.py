@@ -323,6 +323,7 @@ def readme_rows(root: Path) -> list[tuple[str, str, str, str]]:
 
     add("presets.json", "`prt-train --quality` build time on 2 cores, diffuse PSNR", presets)
     add("presets_bunny.json", "`prt-train --quality` build time on 2 cores, diffuse PSNR", presets)
+    add("presets_spot.json", "`prt-train --quality` build time on 2 cores, diffuse PSNR", presets)
     add("defaults_unseen.json", "default build vs per-vertex PRT with the same bounces, unseen meshes (diffuse PSNR gain, own light / venice_sunset)",
         defaults)
     add("web.json", "`prt-web` page of the demo: same pixels", web_pixels)
