@@ -61,10 +61,7 @@ def _transfers(sb, base, size: int, camera, covered) -> dict:
             with Renderer(sb.scene, size, size, backend="glsl", ctx=sb.ctx) as glsl:
                 glsl.set_camera_object(camera)
                 out["glsl"] = (glsl.render_transfer()[covered], transfer_label(sb.bounces))
-    variants = [] if sb.vertex_data is None else [("direct", sb.vertex_data)]
-    if sb.vertex_bounced is not None:
-        variants.append((transfer_label(sb.bounces), sb.vertex_bounced))
-    for transfer, data in variants:
+    for transfer, data in sb.vertex_variants():
         vertex = VertexPRT(sb.ctx, sb.geometry, *data, size, size)
         try:
             image, _ = vertex.render(camera)

@@ -346,6 +346,14 @@ class SceneBench:
         info = {"vertices": n_vertices, "back_vertices": back_vertices, "weight_bytes": 16 * 4 * (n_vertices + back_vertices), "rays": rays}
         return (front, back), info
 
+    def vertex_variants(self) -> list[tuple[str, tuple]]:
+        """(transfer label, per-vertex data) of the vertex baseline: direct, then with the scene's N
+        bounces where it has them; empty without a vertex baseline."""
+        variants = [] if self.vertex_data is None else [("direct", self.vertex_data)]
+        if self.vertex_bounced is not None:
+            variants.append((transfer_label(self.bounces), self.vertex_bounced))
+        return variants
+
     def _vertex_bounces(self):
         """The vertex baseline with the scene's N bounces ("direct+rgb"; None without bounces or vertex baseline).
 
@@ -405,10 +413,7 @@ class SceneBench:
                 kw = {"specular": material.specular, "exponent": material.exponent} if material.kind == "glossy" else {}
                 renderer.set_material(material.kind, albedo=material.albedo, **kw)
                 out["onnx fp32"][name] = renderer.render().copy()
-        variants = [] if self.vertex_data is None else [("direct", self.vertex_data)]
-        if self.vertex_bounced is not None:
-            variants.append((transfer_label(self.bounces), self.vertex_bounced))
-        for transfer, data in variants:
+        for transfer, data in self.vertex_variants():
             vertex = VertexPRT(self.ctx, self.geometry, *data, size, size)
             try:
                 out[f"vertex {transfer}"] = {name: vertex_frame(vertex, renderer.gbuffer, camera, m, renderer.lighting)[0]
