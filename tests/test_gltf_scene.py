@@ -3,7 +3,8 @@
 Synthetic GLB files written here (``write_glb``) cover: a mesh instanced by three nodes (two of
 the same name, one mirrored by a negative scale) under a transformed parent, ``baseColorFactor``
 alone, an embedded ``baseColorTexture``, metallic-roughness (factors and texture),
-``KHR_materials_pbrSpecularGlossiness``, a mesh with two primitives, and a primitive without a
+``KHR_materials_pbrSpecularGlossiness``, a mesh with two primitives (and a line primitive)
+used by two nodes of one name, and a primitive without a
 material: the only object the "no material" warning may name.  Loading the same file in two
 processes gives byte-identical ``geometry.npz`` and the same object names.
 """
@@ -66,7 +67,7 @@ def write_house(path, *, bare: bool = True) -> None:
     document = {
         "asset": {"version": "2.0"},
         "scene": 0,
-        "scenes": [{"nodes": [0, 5, 6, 7, 8, 9]}],
+        "scenes": [{"nodes": [0, 5, 6, 7, 8, 9, 10]}],
         "nodes": [
             {"name": "Storey", "translation": [0, 0, 10], "children": [1, 2, 3, 4]},
             {"name": "Chair", "mesh": 0, "translation": [2, 0, 0]},
@@ -78,6 +79,7 @@ def write_house(path, *, bare: bool = True) -> None:
             {"mesh": 3, "translation": [0, 9, 0]},  # unnamed node: its mesh's name
             {"name": "Lamp", "mesh": 5, "translation": [0, 12, 0]},
             {"name": "Bare", "mesh": 6, "translation": [0, 15, 0]},
+            {"name": "Window", "mesh": 1, "translation": [0, 18, 0]},  # a second window: Window_1/0, Window_1/1
         ],
         "meshes": [
             {"name": "chair_mesh", "primitives": [dict(box, material=0)]},
@@ -106,7 +108,7 @@ def write_house(path, *, bare: bool = True) -> None:
     write_glb(path, document, binary)
 
 
-NAMES = ["Chair", "Chair_2", "Chair_3", "Chair_1", "Window/0", "Window/1", "Picture", "Cabinet", "Lamp", "Bare"]
+NAMES = ["Chair", "Chair_2", "Chair_3", "Chair_1", "Window/0", "Window/1", "Picture", "Cabinet", "Lamp", "Bare", "Window_1/0", "Window_1/1"]
 
 
 @pytest.fixture

@@ -12,10 +12,11 @@ determinant).  Skins and morph targets are not applied (the bind pose as stored)
 Object names (the same file always gives the same names; nothing random):
 
 - a node's label: its ``name``, else its mesh's ``name``, else ``node<i>`` (``i`` its index);
+- a label already taken by an earlier node (in traversal order) gets the first free ``_1``,
+  ``_2``, ... suffix, never one that another node's label is;
 - a part of a mesh with one triangle primitive is named by its node's label; a mesh with several
-  gives ``<label>/<k>``, ``k`` the primitive's index in the mesh's ``primitives``;
-- a name already taken by an earlier part gets the first free ``_1``, ``_2``, ... suffix (in
-  traversal order; names the file gives elsewhere are never taken by a suffix);
+  gives ``<label>/<k>``, ``k`` the primitive's index in the mesh's ``primitives``; a name still
+  repeated (a node literally called ``A/0`` beside node ``A``'s primitive 0) takes a suffix too;
 - a file with a single part names it after the file (as for every other single-mesh format).
 
 The materials' images (:meth:`GltfScene.image`) are decoded from buffer views, data URIs or files
@@ -247,7 +248,7 @@ def _scene_parts(gltf: GltfFile) -> list[GltfPart]:
     else:
         children = {c for n in nodes for c in n.get("children", [])}
         roots = [i for i in range(len(nodes)) if i not in children]
-    parts: list[GltfPart] = []
+    labelled: list[tuple[str, bool, list[GltfPart]]] = []  # per mesh node: label, several primitives, parts
     stack = [(int(r), np.eye(4)) for r in reversed(roots)]
     seen: set[int] = set()
     while stack:
@@ -264,12 +265,17 @@ def _scene_parts(gltf: GltfFile) -> list[GltfPart]:
             mesh = meshes[mesh_index]
             label = _label(node.get("name")) or _label(mesh.get("name")) or f"node{index}"
             triangle_prims = [k for k, p in enumerate(mesh["primitives"]) if p.get("mode", _TRIANGLES) in (_TRIANGLES, _STRIP, _FAN)]
-            for k in triangle_prims:
-                part = _part(gltf, mesh_index, k, mesh["primitives"][k], index, world)
-                if len(part.faces):
-                    part.name = label if len(triangle_prims) == 1 else f"{label}/{k}"
-                    parts.append(part)
+            node_parts = [_part(gltf, mesh_index, k, mesh["primitives"][k], index, world) for k in triangle_prims]
+            node_parts = [p for p in node_parts if len(p.faces)]
+            if node_parts:
+                labelled.append((label, len(triangle_prims) > 1, node_parts))
         stack.extend((int(c), world) for c in reversed(node.get("children", [])))
+    # Repeated node labels are told apart first (Door, Door_1), then primitives (Door_1/0, Door_1/1).
+    parts = []
+    for label, (_, several, node_parts) in zip(unique_names([entry[0] for entry in labelled]), labelled):
+        for part in node_parts:
+            part.name = f"{label}/{part.primitive}" if several else label
+            parts.append(part)
     return parts
 
 
