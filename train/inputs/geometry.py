@@ -35,7 +35,8 @@ __all__ = ["Geometry", "load_geometry", "MESH_EXTENSIONS"]
 # Faces whose area is at most this times the squared bounding-box diagonal are degenerate.
 DEGENERATE_AREA = 1e-12
 
-# Extensions read by trimesh; .obj is read by our own parser (trimesh resolves negative indices wrongly).
+# Extensions read by trimesh; .obj is read by our own parser (trimesh resolves negative indices wrongly),
+# .glb/.gltf by gltf_scene (deterministic object names).
 _TRIMESH_EXTENSIONS = ("ply", "stl", "off", "glb", "gltf")
 MESH_EXTENSIONS = ("obj",) + _TRIMESH_EXTENSIONS
 
