@@ -1,7 +1,8 @@
 """Scene geometry: a cleaned, consistently oriented triangle mesh in normalised scene units.
 
 :func:`load_geometry` turns a mesh file (OBJ through :func:`prt.train.inputs.objfile.read_obj`; PLY, STL,
-OFF through trimesh; GLB and glTF through :func:`prt.train.inputs.gltf_scene.read_gltf_scene`) or the name of a built-in SDF scene into a :class:`Geometry`:
+OFF through trimesh; GLB and glTF through :func:`prt.train.inputs.gltf_scene.read_gltf_scene`) or the
+name of a built-in SDF scene into a :class:`Geometry`:
 
 1. read triangles and per-face object ids (a trimesh scene gives one object per geometry node; a
    glTF file one per node and triangle primitive, named by :mod:`prt.train.inputs.gltf_scene`);
