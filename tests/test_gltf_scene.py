@@ -11,8 +11,6 @@ processes gives byte-identical ``geometry.npz`` and the same object names.
 
 from __future__ import annotations
 
-import hashlib
-import io
 import json
 import subprocess
 import sys
@@ -260,3 +258,16 @@ def test_pbr_and_spec_gloss_rules():
     assert rough.kind == "diffuse" and np.allclose(rough.albedo, 0.8 * 0.96 + 0.08)
     assert spec_gloss_material([1, 1, 1], [1, 1, 1], 1.0) == Material("glossy", albedo=(0, 0, 0), specular=(1, 1, 1), exponent=1024.0)
 
+
+
+def test_corrupt_embedded_image_is_one_line(tmp_path):
+    views, accessors, binary = pack_accessors([QUAD_V, QUAD_F.reshape(-1, 1), QUAD_UV])
+    views.append({"buffer": 0, "byteOffset": len(binary), "byteLength": 16})
+    document = {"asset": {"version": "2.0"}, "scenes": [{"nodes": [0]}], "nodes": [{"name": "a", "mesh": 0}],
+                "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 2}, "indices": 1, "material": 0}]}],
+                "materials": [{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}], "textures": [{"source": 0}],
+                "images": [{"bufferView": 3, "mimeType": "image/png"}], "bufferViews": views, "accessors": accessors}  # fmt: skip
+    write_glb(tmp_path / "bad.glb", document, binary + b"\x89PNG not really!")
+    with pytest.raises(GeometryError, match=r"bad\.glb: image 0: cannot decode the image") as info:
+        mesh_materials(str(tmp_path / "bad.glb"), ["bad"], DEFAULT, print)
+    assert "\n" not in str(info.value)
