@@ -7,7 +7,8 @@ three corner positions (in source units, through ``Geometry.to_source``, rounded
 1e-7 of the mesh's size), and each corner takes the UV of the file corner at its position.  A
 triangle without a match (none is expected) gets UV 0.
 
-UV convention: OBJ's (``v = 0`` at the bottom of the image); trimesh gives glTF UVs the same way.
+UV convention: OBJ's (``v = 0`` at the bottom of the image); glTF UVs are flipped to it
+(:meth:`prt.train.inputs.gltf_scene.GltfScene.texcoords`).
 """
 
 from __future__ import annotations
@@ -76,23 +77,19 @@ def _obj_corner_uvs(path: str):
 
 
 def _gltf_corner_uvs(path: str, extension: str):
-    import trimesh
+    """Each part's triangles with the UV set its albedo texture reads (zeros where it has none)."""
+    from .gltf_scene import albedo_texture_info, read_gltf_scene
 
-    scene = trimesh.load_scene(path, file_type=extension, process=False)
-    positions, uvs = [], []
-    for node in scene.graph.nodes_geometry:
-        transform, name = scene.graph[node]
-        mesh = scene.geometry[name]
-        if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-            continue
-        uv = getattr(mesh.visual, "uv", None)
-        if uv is None or len(uv) != len(mesh.vertices):
-            continue
-        points = trimesh.transformations.transform_points(np.asarray(mesh.vertices, dtype=np.float64), transform)
-        faces = np.asarray(mesh.faces, dtype=np.int64)
-        positions.append(points[faces])
-        uvs.append(np.asarray(uv, dtype=np.float64)[faces])
-    if not positions:
+    scene = read_gltf_scene(path)
+    positions, uvs, any_uv = [], [], False
+    for part in scene.parts:
+        info = albedo_texture_info(scene.document, part.material)
+        uv = scene.texcoords(part, int(info.get("texCoord", 0)) if info else 0)
+        any_uv |= uv is not None
+        uv = np.zeros((len(part.vertices), 2)) if uv is None else uv
+        positions.append(part.vertices[part.faces])
+        uvs.append(uv[part.faces])
+    if not any_uv:
         return None
     return np.concatenate(positions), np.concatenate(uvs)
 

@@ -1,9 +1,11 @@
 """Scene geometry: a cleaned, consistently oriented triangle mesh in normalised scene units.
 
 :func:`load_geometry` turns a mesh file (OBJ through :func:`prt.train.inputs.objfile.read_obj`; PLY, STL,
-OFF, GLB and glTF through trimesh) or the name of a built-in SDF scene into a :class:`Geometry`:
+OFF through trimesh; GLB and glTF through :func:`prt.train.inputs.gltf_scene.read_gltf_scene`) or the
+name of a built-in SDF scene into a :class:`Geometry`:
 
-1. read triangles and per-face object ids (a trimesh scene gives one object per geometry node);
+1. read triangles and per-face object ids (a trimesh scene gives one object per geometry node; a
+   glTF file one per node and triangle primitive, named by :mod:`prt.train.inputs.gltf_scene`);
 2. clean: drop faces touching non-finite vertices, merge coincident vertices (within an object)
    and drop faces that collapse to a repeated vertex; faces keep their order and object id;
 3. orient: make the winding consistent over each connected component, turn every watertight
@@ -34,7 +36,8 @@ __all__ = ["Geometry", "load_geometry", "MESH_EXTENSIONS"]
 # Faces whose area is at most this times the squared bounding-box diagonal are degenerate.
 DEGENERATE_AREA = 1e-12
 
-# Extensions read by trimesh; .obj is read by our own parser (trimesh resolves negative indices wrongly).
+# Extensions read by trimesh; .obj is read by our own parser (trimesh resolves negative indices wrongly),
+# .glb/.gltf by gltf_scene (deterministic object names).
 _TRIMESH_EXTENSIONS = ("ply", "stl", "off", "glb", "gltf")
 MESH_EXTENSIONS = ("obj",) + _TRIMESH_EXTENSIONS
 
@@ -214,6 +217,14 @@ def _read_mesh_file(path: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, list
         if object_names == [DEFAULT_OBJECT]:
             object_names = [stem]
         return vertices, faces, object_ids, object_names
+    if extension in ("glb", "gltf"):  # our reader: deterministic object names (gltf_scene)
+        from .gltf_scene import read_gltf_scene
+
+        try:
+            return read_gltf_scene(path, stem).arrays()
+        except GeometryError as error:
+            detail = str(error).removeprefix(f"{path}: ")
+            raise GeometryError(f"{path}: cannot read {extension.upper()} file, corrupt or not {extension.upper()} ({detail})") from None
     if extension == "stl":
         _check_stl(path)
     try:

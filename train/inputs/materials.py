@@ -1,7 +1,7 @@
 """Per-object materials read from a mesh's own files: OBJ + MTL, glTF / GLB.
 
 One material per object of :class:`prt.train.inputs.geometry.Geometry` (the objects its reader made:
-OBJ ``o``/``g`` groups, or ``usemtl`` runs in a file without groups; glTF nodes).  An object
+OBJ ``o``/``g`` groups, or ``usemtl`` runs in a file without groups; glTF node primitives).  An object
 whose faces use several materials takes the one most of its faces use (one warning line).
 
 Rules
@@ -11,14 +11,29 @@ Rules
   the object's albedo texture (multiplied by ``Kd``, as the MTL format defines it); a missing
   texture file is a warning (``Kd`` alone is used), an unreadable one a one-line error.  ``Ka``,
   ``Ke``, ``Ni``, ``d`` and ``illum`` are ignored (no emission: lights are the env map).
-- glTF: the albedo is ``baseColorFactor`` (linear RGB; times the base colour texture, if any)
-  times ``1 - metallic``; the specular is
-  ``0.04 (1 - metallic) + baseColor * metallic`` (the glTF BRDF's F0).  Roughness ``r`` maps to a
-  Phong exponent by the Blinn-Phong equivalence of the GGX width ``alpha = r^2``:
-  ``n = 2 / alpha^2 - 2`` (Walter et al. 2007), glossy when ``n >= 1`` (``r <= ~0.9``), capped at
-  :data:`MAX_EXPONENT`; rougher surfaces are diffuse.  glTF's default roughness is 1 (diffuse).
+- glTF (objects and names of :mod:`prt.train.inputs.gltf_scene`: one per node and triangle
+  primitive, so every primitive keeps its own material).  Metallic-roughness: with ``base`` =
+  ``baseColorFactor`` (linear RGB) times the primitive's mean ``COLOR_0``, ``m`` =
+  ``metallicFactor`` and ``r`` = ``roughnessFactor`` (glTF defaults 1, 1; times the mean of the
+  ``metallicRoughnessTexture``'s B and G channels where there is one), the diffuse albedo is
+  ``base (1 - m)``, the specular ``0.04 (1 - m) + base * m`` (the glTF BRDF's F0; a metal's base
+  times its colour texture's mean), and ``r`` maps to a Phong exponent by the Blinn-Phong
+  equivalence of the GGX width ``alpha = r^2``: ``n = 2 / alpha^2 - 2`` (Walter et al. 2007),
+  capped at :data:`MAX_EXPONENT` (four SH bands hold nothing sharper).  Below ``n = 1``
+  (``r > ~0.90``, glTF's default included) the lobe is as wide as the diffuse one and is
+  reflected diffusely: the material is diffuse with albedo ``base`` (a rough metal keeps its
+  colour; the dielectric 4 % is dropped).  ``KHR_materials_pbrSpecularGlossiness`` (preferred
+  where present, as the extension asks): ``c_diff = diffuseFactor * (1 - max(specular))``
+  (times the mean ``COLOR_0``), F0 = ``specularFactor``, roughness ``1 - glossinessFactor``
+  (both times the means of the ``specularGlossinessTexture``'s RGB and A), the same exponent
+  rule; too rough for a lobe, albedo ``c_diff + specular`` (the specular over the diffuse
+  texture's mean, at most 1).  ``baseColorTexture`` / ``diffuseTexture`` (embedded or beside
+  the file, by its ``texCoord`` set) is the object's albedo texture, multiplying the albedo; the
+  other textures enter as their means, ``KHR_texture_transform`` and emission are ignored.  A
+  missing image file is a warning (the factors alone), an undecodable one a one-line error.
 - Missing: objects with no material (no ``mtllib``, an unknown ``usemtl`` name, a missing MTL
-  file, PLY/STL files) take the scene-wide material; one warning line lists them.
+  file, a glTF primitive without ``material``, PLY/STL files) take the scene-wide material; one
+  warning line lists them (only them).
 
 A malformed MTL statement (``Kd`` with a non-number, a negative value) is a one-line
 :class:`~prt.runtime.errors.GeometryError` naming the file and line.
@@ -32,13 +47,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ...runtime.albedo_textures import read_albedo_texture
+from ...runtime.albedo_textures import MAX_TEXTURE_SIZE, read_albedo_texture, srgb_to_linear
 from ...runtime.errors import GeometryError, InputError
 from ...runtime.materials import ObjectMaterial
 from ...runtime.shading import Material
 from .objfile import DEFAULT_OBJECT
 
-__all__ = ["read_mtl", "obj_material_names", "mesh_materials", "roughness_to_exponent", "MAX_EXPONENT"]
+__all__ = ["read_mtl", "obj_material_names", "mesh_materials", "pbr_material", "spec_gloss_material", "gltf_part_material",
+           "roughness_to_exponent", "MAX_EXPONENT"]
 
 # Phong exponents above this are all "mirror" to 4 SH bands (their band factors are ~1).
 MAX_EXPONENT = 1024.0
@@ -190,50 +206,116 @@ def _obj_materials(path: str, object_names: list[str], default: Material, warn) 
 
 
 def _gltf_materials(path: str, object_names: list[str], default: Material, warn) -> list[ObjectMaterial]:
-    import trimesh
+    """The materials of a glTF file's objects, read by the reader (and names) load_geometry uses."""
+    from .gltf_scene import read_gltf_scene
 
-    from .geometry import _extension
-
-    try:
-        scene = trimesh.load_scene(path, file_type=_extension(path), process=False)
-    except Exception as error:  # already read once by load_geometry; a failure here is unexpected
-        raise GeometryError(f"{path}: cannot read materials ({' '.join(str(error).split())})") from None
-    # The node order and naming of load_geometry's reader.
-    geometry_order = {key: index for index, key in enumerate(scene.geometry)}
-    nodes = sorted(scene.graph.nodes_geometry, key=lambda node: (geometry_order[scene.graph[node][1]], str(node)))
-    nodes = [n for n in nodes if isinstance(scene.geometry[scene.graph[n][1]], trimesh.Trimesh) and len(scene.geometry[scene.graph[n][1]].faces)]
-    names = [str(n) for n in nodes] if len(nodes) > 1 else list(object_names[:1])
-    out = []
-    for node, name in zip(nodes, names):
-        if name not in object_names:
-            continue
-        visual = scene.geometry[scene.graph[node][1]].visual
-        material = getattr(visual, "material", None)
-        if material is None or not hasattr(material, "baseColorFactor"):
-            continue
-        image = getattr(material, "baseColorTexture", None)
-        texture = None if image is None else np.asarray(image.convert("RGB"), dtype=np.uint8)  # embedded: written by the export
-        out.append(ObjectMaterial(name, pbr_material(material.baseColorFactor, material.roughnessFactor, material.metallicFactor),
-                                  f"{os.path.basename(path)}: {getattr(material, 'name', None) or 'material'}", texture))  # fmt: skip
-    return out
+    scene = read_gltf_scene(path)  # errors already reported by load_geometry
+    wanted = set(object_names)
+    return [gltf_part_material(scene, part, warn) for part in scene.parts if part.name in wanted and part.material is not None]
 
 
-def pbr_material(base_color, roughness, metallic) -> Material:
+def gltf_part_material(scene, part, warn) -> ObjectMaterial:
+    """The :class:`ObjectMaterial` of one part (node primitive) of a :class:`~prt.train.inputs.gltf_scene.GltfScene`
+    that has a ``material`` (the rules of the module docstring)."""
+    from ..deform.gltf_animation import malformed_gltf
+    from .gltf_scene import SPEC_GLOSS, albedo_texture_info
+
+    with malformed_gltf(scene.path):
+        spec = scene.document["materials"][part.material]
+        label = spec.get("name") or f"material {part.material}"
+        where = f"{scene.path}: object {part.name!r} ({label})"
+        colour = scene.mean_vertex_colour(part)
+        colour = np.ones(3) if colour is None else colour
+        gloss = spec.get("extensions", {}).get(SPEC_GLOSS)
+        texture_info = albedo_texture_info(scene.document, part.material)
+        if gloss is not None:
+            texture, mean = _albedo_texture(scene, part, texture_info, where, warn)
+            specular = np.asarray(gloss.get("specularFactor", [1.0, 1.0, 1.0]), dtype=np.float64)[:3]
+            glossiness = float(gloss.get("glossinessFactor", 1.0))
+            if gloss.get("specularGlossinessTexture") is not None:
+                image = _texture_image(scene, gloss["specularGlossinessTexture"], where, "specular-glossiness", warn)
+                if image is not None:
+                    specular = specular * srgb_to_linear(_unit(image)[:, :, :3]).mean(axis=(0, 1))
+                    glossiness *= float(_unit(image)[:, :, 3].mean()) if image.shape[2] == 4 else 1.0
+            diffuse = np.asarray(gloss.get("diffuseFactor", [1.0, 1.0, 1.0, 1.0]), dtype=np.float64)[:3] * colour
+            material = spec_gloss_material(diffuse, specular, glossiness, mean)
+        else:
+            pbr = spec.get("pbrMetallicRoughness", {})
+            texture, mean = _albedo_texture(scene, part, texture_info, where, warn)
+            roughness, metallic = float(pbr.get("roughnessFactor", 1.0)), float(pbr.get("metallicFactor", 1.0))
+            if pbr.get("metallicRoughnessTexture") is not None:
+                image = _texture_image(scene, pbr["metallicRoughnessTexture"], where, "metallic-roughness", warn)
+                if image is not None and image.shape[2] >= 3:  # linear: G roughness, B metalness
+                    roughness *= float(_unit(image)[:, :, 1].mean())
+                    metallic *= float(_unit(image)[:, :, 2].mean())
+            base = np.asarray(pbr.get("baseColorFactor", [1.0, 1.0, 1.0, 1.0]), dtype=np.float64)[:3] * colour
+            material = pbr_material(base, roughness, metallic, mean)
+    return ObjectMaterial(part.name, material, f"{os.path.basename(scene.path)}: {label}", texture)
+
+
+def _unit(image: np.ndarray) -> np.ndarray:
+    """An 8- or 16-bit image's values in [0, 1] (float64)."""
+    return image.astype(np.float64) / float(np.iinfo(image.dtype).max)
+
+
+def _texture_image(scene, info, where: str, role: str, warn) -> np.ndarray | None:
+    image = scene.image(int(info["index"]))
+    if image is None:
+        warn(f"{where}: the {role} texture's image file is missing; using the factors alone")
+    elif max(image.shape[:2]) > MAX_TEXTURE_SIZE:
+        raise GeometryError(f"{where}: {role} texture {image.shape[1]}x{image.shape[0]} exceeds {MAX_TEXTURE_SIZE} pixels a side")
+    return image
+
+
+def _albedo_texture(scene, part, info, where: str, warn) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The base colour (diffuse) texture as (H, W, 3) uint8 sRGB and its mean linear colour, or (None, None)."""
+    if info is None:
+        return None, None
+    if scene.texcoords(part, int(info.get("texCoord", 0))) is None:
+        warn(f"{where}: its colour texture needs TEXCOORD_{int(info.get('texCoord', 0))}, which the primitive lacks; using the factors alone")
+        return None, None
+    image = _texture_image(scene, info, where, "colour", warn)
+    if image is None:
+        return None, None
+    rgb = image[:, :, :3] if image.shape[2] >= 3 else np.repeat(image[:, :, :1], 3, axis=2)
+    rgb8 = rgb if rgb.dtype == np.uint8 else np.round(_unit(rgb) * 255.0).astype(np.uint8)
+    return np.ascontiguousarray(rgb8), srgb_to_linear(rgb8 / 255.0).mean(axis=(0, 1))
+
+
+def pbr_material(base_color, roughness, metallic, texture_mean=None) -> Material:
     """A glTF metallic-roughness material as a :class:`Material` (see the module docstring).
 
-    ``base_color`` is RGB(A) in [0, 1] or uint8 (trimesh stores uint8); None means 1.
+    ``base_color`` is RGB(A) in [0, 1] or uint8; None means 1.  ``roughness`` and ``metallic``
+    None take glTF's defaults (1).  ``texture_mean``: the base colour texture's mean linear colour
+    (it tints a metal's specular; None: no texture).
     """
     base = np.ones(3) if base_color is None else np.asarray(base_color, dtype=np.float64).reshape(-1)[:3]
     if base_color is not None and np.asarray(base_color).dtype.kind in "ui":
         base = base / 255.0
+    base = np.clip(base, 0.0, 1.0)
     rough = 1.0 if roughness is None else float(np.clip(roughness, 0.0, 1.0))
-    metal = 0.0 if metallic is None else float(np.clip(metallic, 0.0, 1.0))
-    albedo = base * (1.0 - metal)
+    metal = 1.0 if metallic is None else float(np.clip(metallic, 0.0, 1.0))
+    tint = np.ones(3) if texture_mean is None else np.asarray(texture_mean, dtype=np.float64)
     exponent = roughness_to_exponent(rough)
-    if exponent < 1.0:
-        return Material("diffuse", albedo=albedo)
-    specular = DIELECTRIC_F0 * (1.0 - metal) + base * metal
-    return Material("glossy", albedo=albedo, specular=specular, exponent=exponent)
+    if exponent < 1.0:  # a lobe as wide as the diffuse one: reflected diffusely (4 % dielectric dropped)
+        return Material("diffuse", albedo=base)
+    specular = DIELECTRIC_F0 * (1.0 - metal) + base * tint * metal
+    return Material("glossy", albedo=base * (1.0 - metal), specular=specular, exponent=exponent)
+
+
+def spec_gloss_material(diffuse, specular, glossiness, texture_mean=None) -> Material:
+    """A ``KHR_materials_pbrSpecularGlossiness`` material as a :class:`Material` (module docstring).
+
+    ``diffuse`` and ``specular`` RGB in [0, 1], ``glossiness`` in [0, 1]; ``texture_mean``: the
+    diffuse texture's mean linear colour (None: no texture).
+    """
+    spec = np.clip(np.asarray(specular, dtype=np.float64).reshape(-1)[:3], 0.0, 1.0)
+    c_diff = np.clip(np.asarray(diffuse, dtype=np.float64).reshape(-1)[:3], 0.0, 1.0) * (1.0 - float(spec.max()))
+    exponent = roughness_to_exponent(1.0 - float(np.clip(glossiness, 0.0, 1.0)))
+    if exponent < 1.0:  # too rough for a lobe: the specular reflection joins the diffuse albedo
+        tint = np.ones(3) if texture_mean is None else np.maximum(np.asarray(texture_mean, dtype=np.float64), 1e-3)
+        return Material("diffuse", albedo=np.minimum(c_diff + spec / tint, 1.0))
+    return Material("glossy", albedo=c_diff, specular=spec, exponent=exponent)
 
 
 # --------------------------------------------------------------------------- entry point

@@ -1,0 +1,323 @@
+"""glTF 2.0 scenes as the build reads them: one object per (node, triangle primitive), named deterministically.
+
+:func:`read_gltf_scene` walks the default scene (``scene``, else the first of ``scenes``, else
+every node that is no node's child) depth first, children in their order, and gives one
+:class:`GltfPart` per triangle primitive (modes 4, 5 and 6; points and lines have no surface) of
+every node with a mesh.  A mesh used by several nodes (instancing) gives a part per node.  Each
+part's vertices are in world space (the node's world matrix, ``matrix`` or ``T * R * S``
+composed from the root); where that matrix has a negative determinant the triangles' winding is
+reversed, as the glTF specification defines front faces (counter-clockwise only for a positive
+determinant).  Skins and morph targets are not applied (the bind pose as stored).
+
+Object names (the same file always gives the same names; nothing random):
+
+- a node's label: its ``name``, else its mesh's ``name``, else ``node<i>`` (``i`` its index);
+- a label already taken by an earlier node (in traversal order) gets the first free ``_1``,
+  ``_2``, ... suffix, never one that another node's label is;
+- a part of a mesh with one triangle primitive is named by its node's label; a mesh with several
+  gives ``<label>/<k>``, ``k`` the primitive's index in the mesh's ``primitives``; a name still
+  repeated (a node literally called ``A/0`` beside node ``A``'s primitive 0) takes a suffix too;
+- a file with a single part names it after the file (as for every other single-mesh format).
+
+The materials' images (:meth:`GltfScene.image`) are decoded from buffer views, data URIs or files
+beside the scene; texture coordinates (:meth:`GltfScene.texcoords`) are returned in OBJ's
+convention (``v = 0`` at the image's bottom: ``v = 1 - v_gltf``).  Every failure is a one-line
+:class:`~prt.runtime.errors.GeometryError` naming the file.
+"""
+
+from __future__ import annotations
+
+import base64
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ...runtime.errors import GeometryError
+from ..deform.gltf_animation import GltfFile, malformed_gltf, read_gltf, trs_matrix
+
+__all__ = ["GltfPart", "GltfScene", "read_gltf_scene", "unique_names", "albedo_texture_info", "SPEC_GLOSS"]
+
+SPEC_GLOSS = "KHR_materials_pbrSpecularGlossiness"
+
+_TRIANGLES, _STRIP, _FAN = 4, 5, 6
+_MIME_EXTENSIONS = {"image/png": ".png", "image/jpeg": ".jpg", "image/webp": ".webp", "image/bmp": ".bmp", "image/gif": ".gif"}
+
+
+@dataclass
+class GltfPart:
+    """One triangle primitive of one node: an object of the scene.
+
+    Attributes
+    ----------
+    name : str
+    node, mesh, primitive : int
+        Indices in the document (``primitive`` within the mesh).
+    material : int or None
+        The primitive's ``material`` index; None when it has none.
+    vertices : (V, 3) float64
+        World-space positions.
+    faces : (F, 3) int64
+        Triangles over ``vertices`` (winding reversed under a negative-determinant matrix).
+    attributes : dict
+        The primitive's ``attributes`` (accessor indices by semantic).
+    """
+
+    name: str
+    node: int
+    mesh: int
+    primitive: int
+    material: int | None
+    vertices: np.ndarray
+    faces: np.ndarray
+    attributes: dict = field(default_factory=dict)
+
+
+@dataclass
+class GltfScene:
+    """A glTF file's default scene as parts (see the module docstring)."""
+
+    gltf: GltfFile
+    parts: list
+    _images: dict = field(default_factory=dict)
+
+    @property
+    def path(self) -> str:
+        return self.gltf.path
+
+    @property
+    def document(self) -> dict:
+        return self.gltf.document
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
+        """All parts as one triangle soup: vertices, faces, object ids, object names."""
+        if not self.parts:
+            return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), np.zeros(0, dtype=np.int64), []
+        offsets = np.cumsum([0] + [len(p.vertices) for p in self.parts])
+        vertices = np.concatenate([p.vertices for p in self.parts])
+        faces = np.concatenate([p.faces + o for p, o in zip(self.parts, offsets)])
+        object_ids = np.repeat(np.arange(len(self.parts), dtype=np.int64), [len(p.faces) for p in self.parts])
+        return vertices, faces, object_ids, [p.name for p in self.parts]
+
+    def texcoords(self, part: GltfPart, index: int = 0) -> np.ndarray | None:
+        """``TEXCOORD_<index>`` of ``part`` (V, 2) in OBJ's convention, or None when it has none."""
+        key = f"TEXCOORD_{int(index)}"
+        if key not in part.attributes:
+            return None
+        with malformed_gltf(self.path):
+            uv = self.gltf.accessor(part.attributes[key])[:, :2].astype(np.float64)
+        if len(uv) != len(part.vertices):
+            raise GeometryError(f"{self.path}: mesh {part.mesh} primitive {part.primitive}: {key} has {len(uv)} values for {len(part.vertices)} vertices")
+        return np.stack([uv[:, 0], 1.0 - uv[:, 1]], axis=1)
+
+    def mean_vertex_colour(self, part: GltfPart) -> np.ndarray | None:
+        """The mean linear RGB of ``part``'s ``COLOR_0`` over its vertices, or None without one."""
+        if "COLOR_0" not in part.attributes:
+            return None
+        with malformed_gltf(self.path):
+            colours = self.gltf.accessor(part.attributes["COLOR_0"])
+        if len(colours) == 0:
+            return None
+        return np.asarray(colours[:, :3], dtype=np.float64).mean(axis=0)
+
+    def image(self, texture: int) -> np.ndarray | None:
+        """The image of texture ``texture`` as (H, W, C) uint8 or uint16 (C 1-4), decoded once;
+        None when its file is missing (the caller warns).  A corrupt image is a GeometryError."""
+        if texture in self._images:
+            return self._images[texture]
+        with malformed_gltf(self.path):
+            spec = self.document["textures"][texture]
+            source = spec.get("source")
+            for extension in ("EXT_texture_webp", "KHR_texture_basisu", "MSFT_texture_dds"):
+                if source is None and extension in spec.get("extensions", {}):
+                    source = spec["extensions"][extension].get("source")
+            if source is None:
+                raise GeometryError(f"{self.path}: texture {texture} has no image source")
+            image = self.document["images"][source]
+            data, suffix = self._image_bytes(source, image)
+        decoded = None if data is None else _decode_image(data, suffix, f"{self.path}: image {source}")
+        self._images[texture] = decoded
+        return decoded
+
+    def _image_bytes(self, index: int, image: dict) -> tuple[bytes | None, str | None]:
+        suffix = _MIME_EXTENSIONS.get(image.get("mimeType"))
+        if "bufferView" in image:
+            view = self.document["bufferViews"][image["bufferView"]]
+            buffer = self.gltf.buffers[view.get("buffer", 0)]
+            start = int(view.get("byteOffset", 0))
+            return bytes(buffer[start : start + int(view["byteLength"])]), suffix
+        uri = image.get("uri")
+        if not isinstance(uri, str):
+            raise GeometryError(f"{self.path}: image {index} has neither a bufferView nor a uri")
+        if uri.startswith("data:"):
+            header, _, payload = uri.partition(",")
+            suffix = _MIME_EXTENSIONS.get(header[5:].split(";")[0], suffix)
+            try:
+                return base64.b64decode(payload, validate=True), suffix
+            except ValueError:
+                raise GeometryError(f"{self.path}: image {index}: malformed base64 data URI") from None
+        from urllib.parse import unquote
+
+        external = os.path.join(os.path.dirname(self.path), unquote(uri))
+        if not os.path.isfile(external):
+            return None, None
+        with open(external, "rb") as handle:
+            return handle.read(), os.path.splitext(external)[1].lower() or suffix
+
+
+def albedo_texture_info(document: dict, material: int | None) -> dict | None:
+    """The ``textureInfo`` of material ``material``'s albedo texture (the spec-gloss extension's
+    ``diffuseTexture`` where the extension is present, else ``baseColorTexture``), or None."""
+    if material is None:
+        return None
+    spec = document["materials"][material]
+    gloss = spec.get("extensions", {}).get(SPEC_GLOSS)
+    if gloss is not None:
+        return gloss.get("diffuseTexture")
+    return spec.get("pbrMetallicRoughness", {}).get("baseColorTexture")
+
+
+def _decode_image(data: bytes, suffix: str | None, where: str) -> np.ndarray:
+    import warnings
+
+    import imageio.v3 as iio
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)
+            image = np.asarray(iio.imread(data, extension=suffix) if suffix else iio.imread(data))
+    except Exception as exc:  # imageio raises many kinds on bad bytes
+        text = " ".join(str(exc).split())[:160]
+        raise GeometryError(f"{where}: cannot decode the image, corrupt or an unsupported format ({type(exc).__name__}: {text})") from None
+    if image.ndim == 2:
+        image = image[:, :, None]
+    if image.ndim != 3 or image.shape[2] not in (1, 2, 3, 4) or image.dtype.kind != "u" or min(image.shape[:2]) < 1:
+        raise GeometryError(f"{where}: expected a grey, RGB or RGBA image, got shape {image.shape} {image.dtype}")
+    return image
+
+
+def read_gltf_scene(path, stem: str | None = None) -> GltfScene:
+    """Read a ``.glb`` / ``.gltf`` file's default scene as named parts (see the module docstring).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    stem : str, optional
+        The name of a single-part file's object (default: the file name without extension).
+
+    Raises
+    ------
+    GeometryError
+        Unreadable or malformed file (one line naming it).
+    """
+    path = os.fspath(path)
+    gltf = read_gltf(path)
+    with malformed_gltf(path):
+        parts = _scene_parts(gltf)
+    names = unique_names([p.name for p in parts])
+    if len(parts) == 1:
+        names = [stem if stem is not None else os.path.splitext(os.path.basename(path))[0]]
+    for part, name in zip(parts, names):
+        part.name = name
+    return GltfScene(gltf=gltf, parts=parts)
+
+
+def unique_names(names: list[str]) -> list[str]:
+    """``names`` with each repeat given the first free ``_1``, ``_2``, ... suffix, in order.
+
+    A suffix never produces a name that appears anywhere in ``names``.
+    """
+    given, taken, out = set(names), set(), []
+    for name in names:
+        unique, k = name, 0
+        while unique in taken or (k and unique in given):
+            k += 1
+            unique = f"{name}_{k}"
+        taken.add(unique)
+        out.append(unique)
+    return out
+
+
+def _scene_parts(gltf: GltfFile) -> list[GltfPart]:
+    document, path = gltf.document, gltf.path
+    nodes = document.get("nodes", [])
+    meshes = document.get("meshes", [])
+    scenes = document.get("scenes")
+    if scenes:
+        roots = scenes[int(document.get("scene", 0))].get("nodes", [])
+    else:
+        children = {c for n in nodes for c in n.get("children", [])}
+        roots = [i for i in range(len(nodes)) if i not in children]
+    labelled: list[tuple[str, bool, list[GltfPart]]] = []  # per mesh node: label, several primitives, parts
+    stack = [(int(r), np.eye(4)) for r in reversed(roots)]
+    seen: set[int] = set()
+    while stack:
+        index, parent = stack.pop()
+        if not 0 <= index < len(nodes):
+            raise GeometryError(f"{path}: node {index} does not exist ({len(nodes)} nodes)")
+        if index in seen:  # a node with two parents (or a cycle) breaks the spec; one visit
+            continue
+        seen.add(index)
+        node = nodes[index]
+        world = parent @ _local_matrix(node, f"{path}: node {index}")
+        if "mesh" in node:
+            mesh_index = int(node["mesh"])
+            mesh = meshes[mesh_index]
+            label = _label(node.get("name")) or _label(mesh.get("name")) or f"node{index}"
+            triangle_prims = [k for k, p in enumerate(mesh["primitives"]) if p.get("mode", _TRIANGLES) in (_TRIANGLES, _STRIP, _FAN)]
+            node_parts = [_part(gltf, mesh_index, k, mesh["primitives"][k], index, world) for k in triangle_prims]
+            node_parts = [p for p in node_parts if len(p.faces)]
+            if node_parts:
+                labelled.append((label, len(triangle_prims) > 1, node_parts))
+        stack.extend((int(c), world) for c in reversed(node.get("children", [])))
+    # Repeated node labels are told apart first (Door, Door_1), then primitives (Door_1/0, Door_1/1).
+    parts = []
+    for label, (_, several, node_parts) in zip(unique_names([entry[0] for entry in labelled]), labelled):
+        for part in node_parts:
+            part.name = f"{label}/{part.primitive}" if several else label
+            parts.append(part)
+    return parts
+
+
+def _label(name) -> str | None:
+    return name.strip() if isinstance(name, str) and name.strip() else None
+
+
+def _local_matrix(node: dict, where: str) -> np.ndarray:
+    if "matrix" in node:
+        matrix = np.asarray(node["matrix"], dtype=np.float64).reshape(4, 4).T
+    else:
+        matrix = trs_matrix(node.get("translation", [0.0, 0.0, 0.0]), node.get("rotation", [0.0, 0.0, 0.0, 1.0]), node.get("scale", [1.0, 1.0, 1.0]))
+    if not np.isfinite(matrix).all():
+        raise GeometryError(f"{where}: non-finite transform")
+    return matrix
+
+
+def _part(gltf: GltfFile, mesh: int, number: int, prim: dict, node: int, world: np.ndarray) -> GltfPart:
+    where = f"{gltf.path}: mesh {mesh} primitive {number}"
+    attributes = prim.get("attributes", {})
+    if "POSITION" not in attributes:
+        raise GeometryError(f"{where}: no POSITION attribute")
+    positions = gltf.accessor(attributes["POSITION"])[:, :3]
+    indices = gltf.accessor(prim["indices"]).reshape(-1) if "indices" in prim else np.arange(len(positions), dtype=np.int64)
+    if len(indices) and (indices.min() < 0 or indices.max() >= len(positions)):
+        raise GeometryError(f"{where}: an index is outside its {len(positions)} vertices")
+    faces = _triangles(indices, prim.get("mode", _TRIANGLES))
+    if np.linalg.det(world[:3, :3]) < 0:
+        faces = faces[:, ::-1]  # front faces are clockwise under a mirroring transform
+    vertices = positions @ world[:3, :3].T + world[:3, 3]
+    material = prim.get("material")
+    return GltfPart(name="", node=node, mesh=mesh, primitive=number, material=None if material is None else int(material),
+                    vertices=vertices, faces=np.ascontiguousarray(faces, dtype=np.int64), attributes=dict(attributes))  # fmt: skip
+
+
+def _triangles(indices: np.ndarray, mode: int) -> np.ndarray:
+    """Triangles of a triangle list, strip or fan (the glTF specification's vertex order)."""
+    indices = np.asarray(indices, dtype=np.int64)
+    if mode == _TRIANGLES:
+        return indices[: len(indices) - len(indices) % 3].reshape(-1, 3)
+    count = max(len(indices) - 2, 0)
+    i = np.arange(count)
+    if mode == _STRIP:  # p_i = {v_i, v_{i+(1+i%2)}, v_{i+(2-i%2)}}
+        return np.stack([indices[i], indices[i + 1 + i % 2], indices[i + 2 - i % 2]], axis=1)
+    return np.stack([indices[i + 1], indices[i + 2], np.full(count, indices[0] if len(indices) else 0)], axis=1)  # fan
