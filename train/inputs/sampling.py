@@ -53,7 +53,7 @@ def _rng(seed: int, stream: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([int(seed), int(stream)]))
 
 
-def sample_surface(geometry, count: int, *, seed: int = 0, stream: int = TRAIN_STREAM) -> SurfaceSamples:
+def sample_surface(geometry, count: int, *, seed: int = 0, stream: int = TRAIN_STREAM, sides=None) -> SurfaceSamples:
     """Draw ``count`` area-uniform samples on ``geometry``.
 
     Meshes: a face is chosen with probability proportional to its area, then a uniform
@@ -70,11 +70,20 @@ def sample_surface(geometry, count: int, *, seed: int = 0, stream: int = TRAIN_S
     geometry : prt.train.inputs.geometry.Geometry
     count : int, number of samples (> 0)
     seed, stream : keys of the random generator (use another stream for validation)
+    sides : (F, 2) bool or None
+        Meshes: the sides of each face samples may stand for (side 0 along the face's winding,
+        side 1 against it; :func:`prt.train.inputs.visibility.surface_sides`).  Faces are then
+        drawn by area times their number of allowed sides, and each sample takes an allowed side
+        (at random where both are).  None: the geometry's own sides (one-sided faces their
+        front, two-sided ones either), drawn exactly as before.
     """
     if count <= 0:
         raise ValueError(f"sample count must be positive, got {count}")
     mesh = geometry.mesh
     areas = np.asarray(mesh.area_faces, dtype=np.float64)
+    if sides is not None:
+        sides = np.asarray(sides, dtype=bool)
+        areas = areas * sides.sum(axis=1)
     total = areas.sum()
     if not np.isfinite(total) or total <= 0:
         raise GeometryError(f"{geometry.source}: surface has no area to sample")
@@ -102,8 +111,13 @@ def sample_surface(geometry, count: int, *, seed: int = 0, stream: int = TRAIN_S
         face_normal, corner = corner_normals(np.asarray(mesh.vertices), np.asarray(mesh.faces))
         weights = np.stack([1.0 - r1, r1 * (1.0 - r2), r1 * r2], axis=1)
         normals = interpolated_normals(corner, face_normal, faces, weights)
-        two_sided = np.asarray(geometry.two_sided, dtype=bool)[faces]
-        normals[two_sided & flip] *= -1.0
+        if sides is None:
+            two_sided = np.asarray(geometry.two_sided, dtype=bool)[faces]
+            normals[two_sided & flip] *= -1.0
+        else:
+            allowed = sides[faces]
+            back = np.where(allowed.all(axis=1), flip, allowed[:, 1])
+            normals[back] *= -1.0  # corner normals lie within 40 degrees of the front (CREASE_COS)
     normals = _safe_normalise(normals)
     return SurfaceSamples(
         points.astype(np.float32),

@@ -30,6 +30,7 @@ from ..outdir import check_output_folder, mark_output_folder
 from ..inputs.adaptive import NEIGHBOURS, adaptive_samples
 from ..inputs.sampling import TRAIN_STREAM, VALIDATION_STREAM, SurfaceSamples, sample_surface
 from ..networks.segments import SPLIT_BY, SPLIT_RULE, segment_samples
+from ..inputs.visibility import SIDE_RULE, hidden_points, surface_sides
 from .transfer import DEFAULT_CHUNK, SDF_TRACE_CHOICES, compute_transfer, make_tracer, sdf_trace_for
 
 __all__ = ["PrecomputeSettings", "SpecLimits", "SPEC_LIMITS", "check_settings", "sample_limit", "precompute_key", "run_precompute",
@@ -165,7 +166,7 @@ def _geometry_key(geometry) -> str:
     return h.hexdigest()[:16]
 
 
-def precompute_key(geometry, settings: PrecomputeSettings) -> str:
+def precompute_key(geometry, settings: PrecomputeSettings, sides=None) -> str:
     """The precompute's cache key: the geometry and every setting that changes the result.
 
     Older builds keep their key: fields added later are keyed only when they differ from their
@@ -179,6 +180,9 @@ def precompute_key(geometry, settings: PrecomputeSettings) -> str:
         from ..sdf.band_trace import TRACE_RULE
 
         keyed["sdf_trace"] = TRACE_RULE
+    if sides is not None and sides.changed:  # samples only on reachable sides (prt.train.inputs.visibility)
+        keyed["sides"] = [SIDE_RULE, hashlib.sha1(np.packbits(sides.allowed).tobytes()
+                                                  + np.packbits(sides.two_sided).tobytes()).hexdigest()[:16]]
     return hashlib.sha1(json.dumps([_geometry_key(geometry), keyed, FORMAT_VERSION]).encode()).hexdigest()[:16]
 
 
@@ -209,7 +213,8 @@ def run_precompute(
     check_settings(settings)
     check_output_folder(out, "precompute", force=force)
     mark_output_folder(out, "precompute")
-    key = precompute_key(geometry, settings)
+    sides = scene_sides(geometry, seed=settings.seed, log=log)
+    key = precompute_key(geometry, settings, sides)
     trace = sdf_trace_for(geometry, settings.sdf_trace)
     # Segments cut by the off-plane rule (train/networks/segments.py, split_value) where it moved a cut: then
     # the key changes, and the fits keyed by it are made anew; elsewhere the segments, the key and
@@ -234,10 +239,16 @@ def run_precompute(
             f"triangles), {stats['evaluated_points']:,} field samples, {timings['tracer_s']:.1f} s")  # fmt: skip
     t0 = time.perf_counter()
     first = settings.samples - int(round(settings.samples * settings.adaptive))
-    train = sample_surface(geometry, first, seed=settings.seed, stream=TRAIN_STREAM)
+    allowed = sides.allowed if sides is not None and sides.changed else None
+    train = sample_surface(geometry, first, seed=settings.seed, stream=TRAIN_STREAM, sides=allowed)
     valid = sample_surface(
-        geometry, settings.validation_count(), seed=settings.seed, stream=VALIDATION_STREAM
+        geometry, settings.validation_count(), seed=settings.seed, stream=VALIDATION_STREAM, sides=allowed
     )
+    if allowed is not None:  # points inside other solids (interpenetrating parts): dropped
+        train, valid, dropped = _drop_hidden_points(geometry, sides, train, valid, settings.seed)
+        timings["hidden_points_dropped"] = dropped
+        if sum(dropped):
+            log(f"precompute: {dropped[0]:,} training and {dropped[1]:,} held-out samples inside other solids drawn again")
     timings["sampling_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -333,6 +344,44 @@ def run_precompute(
     }
     atomic_write_json(summary_path, summary)
     return summary
+
+
+def scene_sides(geometry, *, seed: int = 0, log=print):
+    """The reachable sides of a mesh scene (:func:`prt.train.inputs.visibility.surface_sides`), its
+    ``two_sided`` flags updated in place where the rule changes them; None for SDF and mixed scenes."""
+    if geometry.kind != "mesh":
+        return None
+    sides = surface_sides(geometry, seed=seed)
+    for note in sides.notes:
+        log(f"precompute: sides: {note}")
+    if sides.changed:
+        geometry.two_sided = sides.two_sided.copy()
+    return sides
+
+
+def _drop_hidden_points(geometry, sides, train: SurfaceSamples, valid: SurfaceSamples, seed: int):
+    """Training and held-out samples without those inside other solids, each set topped up to its
+    size from further draws (streams of their own); how many each lost."""
+    out, dropped = [], []
+    for k, (samples, stream) in enumerate(((train, TRAIN_STREAM), (valid, VALIDATION_STREAM))):
+        hidden = hidden_points(geometry, sides, samples.points, samples.normals, seed=seed + k)
+        lost = int(np.count_nonzero(hidden))
+        kept, want = [samples.subset(np.flatnonzero(~hidden))] if lost else [samples], len(samples)
+        for attempt in range(4):
+            have = sum(len(s) for s in kept)
+            if have >= want:
+                break
+            extra_count = int((want - have) * 1.5 * len(samples) / max(len(samples) - lost, 1)) + 64
+            extra = sample_surface(geometry, extra_count, seed=seed, stream=stream + 16 * (attempt + 1), sides=sides.allowed)
+            good = np.flatnonzero(~hidden_points(geometry, sides, extra.points, extra.normals, seed=seed + 16 * (attempt + 1) + k))
+            kept.append(extra.subset(good[: want - have]))
+        merged = kept[0] if len(kept) == 1 else SurfaceSamples(*(np.concatenate(parts) for parts in zip(
+            *((s.points, s.normals, s.face_index, s.object_ids, s.weights) for s in kept))))  # fmt: skip
+        if len(merged) == 0:
+            merged = samples  # nothing would be left: keep them all
+        out.append(merged)
+        dropped.append(lost)
+    return out[0], out[1], dropped
 
 
 def _read_summary(path: Path) -> dict | None:

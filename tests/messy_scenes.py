@@ -1,0 +1,91 @@
+"""Small synthetic scenes with what real scene files carry (tests/test_messy_geometry.py).
+
+Each function writes one file into a folder and returns its path.  Boxes are written as
+exporters write them: every face with its own vertices (no shared corners).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+
+def box(lo, hi, *, flip_every: int = 0) -> trimesh.Trimesh:
+    """A closed box with per-face vertices; ``flip_every`` > 0 reverses every n-th triangle."""
+    m = trimesh.creation.box(extents=np.subtract(hi, lo))
+    m.apply_translation((np.add(lo, hi)) / 2)
+    faces = np.arange(len(m.faces) * 3).reshape(-1, 3)
+    if flip_every:
+        faces[::flip_every] = faces[::flip_every, ::-1]
+    return trimesh.Trimesh(m.vertices[m.faces].reshape(-1, 3), faces, process=False)
+
+
+def ground(y: float, half: float) -> trimesh.Trimesh:
+    """An open square at height ``y`` (two-sided in the loader)."""
+    v = [[-half, y, -half], [half, y, -half], [half, y, half], [-half, y, half]]
+    return trimesh.Trimesh(v, [[0, 2, 1], [0, 3, 2]], process=False)
+
+
+def _write(scene: trimesh.Scene, path: Path) -> Path:
+    scene.export(path)
+    return path
+
+
+def layered_wall(folder: Path) -> Path:
+    """A BIM wall: three closed layer solids in one mesh sharing coincident faces, on a ground."""
+    scene = trimesh.Scene()
+    layers, z = (0.03, 0.25, 0.05), -0.15
+    parts = []
+    for thickness in layers:
+        parts.append(box((-2, 0, z), (2, 2.5, z + thickness)))
+        z += thickness
+    scene.add_geometry(trimesh.util.concatenate(parts), node_name="wall")
+    scene.add_geometry(ground(0.0, 4.0), node_name="ground")
+    return _write(scene, Path(folder) / "layered_wall.glb")
+
+
+def interpenetrating(folder: Path) -> Path:
+    """CAD parts: a block with a shaft through it and a plate sunk half into it, on a ground."""
+    scene = trimesh.Scene()
+    scene.add_geometry(box((-1, 0, -1), (1, 1, 1)), node_name="block")
+    scene.add_geometry(box((-0.2, -0.0, -2), (0.2, 0.4, 2)), node_name="shaft")
+    scene.add_geometry(box((-1.5, 0.7, -0.5), (1.5, 1.3, 0.5)), node_name="plate")
+    scene.add_geometry(ground(0.0, 4.0), node_name="ground")
+    return _write(scene, Path(folder) / "interpenetrating.glb")
+
+
+def flipped(folder: Path) -> Path:
+    """Inconsistent winding: a closed box with every third triangle reversed, an open roof sheet
+    with one triangle reversed, on a ground."""
+    scene = trimesh.Scene()
+    scene.add_geometry(box((-1, 0, -1), (1, 1.5, 1), flip_every=3), node_name="box")
+    sheet = trimesh.Trimesh([[-1.5, 2, -1.5], [1.5, 2, -1.5], [1.5, 2.2, 1.5], [-1.5, 2.2, 1.5]], [[0, 2, 1], [0, 2, 3]], process=False)
+    scene.add_geometry(sheet, node_name="sheet")
+    scene.add_geometry(ground(0.0, 4.0), node_name="ground")
+    return _write(scene, Path(folder) / "flipped.glb")
+
+
+def mirrored_instances(folder: Path) -> Path:
+    """One mesh instanced by two nodes, one of them mirrored (a negative-determinant transform)."""
+    scene = trimesh.Scene()
+    wedge = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], process=False)
+    name = scene.add_geometry(wedge, node_name="left", transform=trimesh.transformations.translation_matrix((0.5, 0, 0)))
+    mirror = trimesh.transformations.translation_matrix((-0.5, 0, 0)) @ np.diag([-1.0, 1.0, 1.0, 1.0])
+    scene.graph.update(frame_to="right", frame_from=scene.graph.base_frame, geometry=name, matrix=mirror)
+    scene.add_geometry(ground(0.0, 3.0), node_name="ground")
+    return _write(scene, Path(folder) / "mirrored.glb")
+
+
+def slivers(folder: Path) -> Path:
+    """A box whose top is fanned into needle-thin slivers, and degenerate triangles, as OBJ."""
+    b = box((-1, 0, -1), (1, 1, 1))
+    v = [list(p) for p in b.vertices]
+    f = [list(t) for t in b.faces]
+    base = len(v)
+    v += [[0.0, 1.5, 0.0], [1.0, 1.5, 0.0], [1.0, 1.5, 1e-7], [0.5, 1.5, 0.5]]
+    f += [[base, base + 1, base + 2], [base, base + 3, base + 3]]  # a needle, a repeated vertex
+    path = Path(folder) / "slivers.obj"
+    path.write_text("".join(f"v {x} {y} {z}\n" for x, y, z in v) + "".join(f"f {a + 1} {b_ + 1} {c + 1}\n" for a, b_, c in f))
+    return path
