@@ -168,6 +168,14 @@ def surface_sides(geometry, *, rays: int = PILOT_RAYS, points: int = PILOT_POINT
     hit, hit_side = _trace(scene, origins, dirs, normal)
 
     node = np.repeat(2 * face + side, rays)
+    # A pilot point whose origin starts inside a closed solid (parts that overlap by less than the
+    # offset, at edges) sees that solid's back faces: its rays would leak reach into the solid.
+    on_closed = (hit >= 0) & ~two_sided[np.maximum(hit, 0)]
+    closed_hits = on_closed.reshape(-1, rays).sum(axis=1)
+    back_hits = (on_closed & (hit_side == 1)).reshape(-1, rays).sum(axis=1)
+    inside = (closed_hits >= rays // 4) & (2 * back_hits > closed_hits)
+    usable = ~np.repeat(inside, rays)
+    hit, hit_side, node = hit[usable], hit_side[usable], node[usable]
     escaped = np.zeros(2 * n_faces, dtype=bool)
     escaped[node[hit < 0]] = True
     reach = np.zeros(2 * n_faces + 1, dtype=bool)
@@ -180,7 +188,8 @@ def surface_sides(geometry, *, rays: int = PILOT_RAYS, points: int = PILOT_POINT
         order = scipy.sparse.csgraph.breadth_first_order(graph, root, directed=True, return_predecessors=False)
         reach[order] = True
     reachable = reach[: 2 * n_faces].reshape(n_faces, 2)
-    stats = {"pilot_points": int(len(pts)), "pilot_rays": int(len(dirs)), "faces": n_faces}
+    stats = {"pilot_points": int(len(pts)), "pilot_rays": int(len(dirs)), "faces": n_faces,
+             "pilot_points_inside_solids": int(inside.sum())}
     notes: list[str] = []
     if not reachable.any():
         stats["seconds"] = time.perf_counter() - t0
