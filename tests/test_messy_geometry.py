@@ -144,3 +144,25 @@ def test_sides_are_deterministic(tmp_path):
     geometry = load_geometry(messy_scenes.interpenetrating(tmp_path))
     a, b = surface_sides(geometry, seed=3), surface_sides(geometry, seed=3)
     assert np.array_equal(a.allowed, b.allowed) and np.array_equal(a.two_sided, b.two_sided)
+
+
+def test_glass_is_left_out_and_named(tmp_path):
+    """Glass (a blended, mostly transparent glTF material) lets light in: a room behind a pane is lit."""
+    import trimesh
+    from prt.train.inputs.gltf_scene import is_see_through
+
+    assert is_see_through({"alphaMode": "BLEND", "pbrMetallicRoughness": {"baseColorFactor": [0.8, 0.9, 1.0, 0.1]}})
+    assert not is_see_through({"alphaMode": "OPAQUE", "pbrMetallicRoughness": {"baseColorFactor": [0.8, 0.9, 1.0, 0.1]}})
+    assert not is_see_through({"alphaMode": "BLEND", "pbrMetallicRoughness": {"baseColorFactor": [0.8, 0.9, 1.0, 0.9]}})
+    assert is_see_through({"extensions": {"KHR_materials_transmission": {"transmissionFactor": 1.0}}})
+    scene = trimesh.Scene()
+    pane = messy_scenes.box((-1, 0, 0), (1, 1, 0.01))
+    pane.visual = trimesh.visual.TextureVisuals(material=trimesh.visual.material.PBRMaterial(
+        baseColorFactor=[200, 220, 255, 25], alphaMode="BLEND"))
+    scene.add_geometry(pane, node_name="pane")
+    scene.add_geometry(messy_scenes.box((-1, 0, 0.5), (1, 1, 0.6)), node_name="wall")
+    path = tmp_path / "glass.glb"
+    scene.export(path)
+    geometry = load_geometry(path)
+    assert geometry.object_names == ["wall"] and geometry.see_through == ["pane"]
+    assert "1 see-through (glass) parts left out" in geometry.summary() and "pane" in geometry.summary()

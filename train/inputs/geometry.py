@@ -21,7 +21,7 @@ Every failure is a :class:`~prt.runtime.errors.GeometryError` whose one-line mes
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse
@@ -79,6 +79,7 @@ class Geometry:
     sdf: object | None = None
     dropped_nonfinite: int = 0
     mixed: object | None = None
+    see_through: list = field(default_factory=list)  # glTF parts left out as glass (gltf_scene.is_see_through)
 
     @property
     def kind(self) -> str:
@@ -122,6 +123,9 @@ class Geometry:
         closed = "watertight" if n_open == 0 else f"open ({n_open} of {n_faces} triangles two-sided)"
         low, high = (", ".join(f"{x:.4g}" for x in corner) for corner in self.source_bounds())
         dropped = f", {self.dropped_nonfinite} triangles with NaN/Inf vertices dropped" if self.dropped_nonfinite else ""
+        if self.see_through:
+            shown = ", ".join(self.see_through[:3]) + (f" and {len(self.see_through) - 3} more" if len(self.see_through) > 3 else "")
+            dropped += f"; {len(self.see_through)} see-through (glass) parts left out, light passes them: {shown}"
         return (
             f"{self.source} [{self.kind}]: {n_faces} triangles, {len(self.mesh.vertices)} vertices, "
             f"{self.n_objects} objects, {closed}, bounds [{low}]..[{high}] (source units){dropped}"
@@ -165,7 +169,12 @@ def load_geometry(source, *, normalise: bool = True, sdf_resolution: int = 128) 
         return _load_neural_sdf(name, sdf_resolution)
     if os.path.exists(name):
         vertices, faces, object_ids, object_names = _read_mesh_file(name)
-        return _build_geometry(vertices, faces, object_ids, object_names, name, normalise=normalise)
+        geometry = _build_geometry(vertices, faces, object_ids, object_names, name, normalise=normalise)
+        if _extension(name) in ("glb", "gltf"):
+            from .gltf_scene import read_gltf_scene
+
+            geometry.see_through = read_gltf_scene(name).transparent
+        return geometry
     if _extension(name) in MESH_EXTENSIONS or os.sep in name or (os.altsep and os.altsep in name):
         raise GeometryError(f"{name}: no such file")
     return _load_sdf_scene(name, sdf_resolution)

@@ -80,6 +80,7 @@ class GltfScene:
     gltf: GltfFile
     parts: list
     _images: dict = field(default_factory=dict)
+    transparent: list = field(default_factory=list)  # names of the parts left out as see-through (is_see_through)
 
     @property
     def path(self) -> str:
@@ -219,7 +220,37 @@ def read_gltf_scene(path, stem: str | None = None) -> GltfScene:
         names = [stem if stem is not None else os.path.splitext(os.path.basename(path))[0]]
     for part, name in zip(parts, names):
         part.name = name
-    return GltfScene(gltf=gltf, parts=parts)
+    materials = gltf.document.get("materials", [])
+    clear = [p for p in parts if p.material is not None and 0 <= p.material < len(materials) and is_see_through(materials[p.material])]
+    if clear and len(clear) < len(parts):
+        parts = [p for p in parts if not any(p is c for c in clear)]
+    else:
+        clear = []
+    return GltfScene(gltf=gltf, parts=parts, transparent=[p.name for p in clear])
+
+
+# Glass: a blended material this transparent, or one that transmits this much, lets light through.
+SEE_THROUGH_ALPHA = 0.5
+SEE_THROUGH_TRANSMISSION = 0.5
+
+
+def is_see_through(material: dict) -> bool:
+    """Whether a glTF material is glass-like: ``alphaMode`` BLEND with a base (or spec-gloss diffuse)
+    alpha below ``SEE_THROUGH_ALPHA``, or ``KHR_materials_transmission`` at least
+    ``SEE_THROUGH_TRANSMISSION``.  Transfer here is opaque occlusion, so such parts are left out
+    of the scene (light passes through them, as the camera looks through them)."""
+    if not isinstance(material, dict):
+        return False
+    extensions = material.get("extensions") or {}
+    transmission = (extensions.get("KHR_materials_transmission") or {}).get("transmissionFactor", 0.0)
+    if isinstance(transmission, (int, float)) and transmission >= SEE_THROUGH_TRANSMISSION:
+        return True
+    if material.get("alphaMode") != "BLEND":
+        return False
+    factor = (material.get("pbrMetallicRoughness") or {}).get("baseColorFactor")
+    gloss = (extensions.get("KHR_materials_pbrSpecularGlossiness") or {}).get("diffuseFactor")
+    alpha = [f[3] for f in (factor, gloss) if isinstance(f, list) and len(f) == 4 and isinstance(f[3], (int, float))]
+    return bool(alpha) and min(alpha) < SEE_THROUGH_ALPHA
 
 
 def unique_names(names: list[str]) -> list[str]:
