@@ -42,9 +42,9 @@ __all__ = ["SIDE_RULE", "SurfaceSides", "surface_sides", "hidden_points", "PILOT
 # Part of the precompute key of builds whose sides differ from the geometry's own.
 SIDE_RULE = "reach-v1"
 # Rays per pilot point; pilot points per face side (fewer on very large meshes, at least 1).
-PILOT_RAYS = 16
+PILOT_RAYS = 12
 PILOT_POINTS = 2
-PILOT_BUDGET = 600_000  # pilot points in all (both sides of every face)
+PILOT_BUDGET = 250_000  # pilot points in all (both sides of every face)
 # Rays per sample of the point check.
 POINT_RAYS = 8
 
@@ -95,12 +95,19 @@ def _hemisphere(normals: np.ndarray, rays: int, rng: np.random.Generator) -> np.
     return d.reshape(-1, 3).astype(np.float32)
 
 
-def _trace(scene, origins: np.ndarray, dirs: np.ndarray, face_normal: np.ndarray, chunk: int = 1 << 20):
+def _trace(scene, origins: np.ndarray, dirs: np.ndarray, face_normal: np.ndarray, chunk: int = 1 << 18):
     """Hit face (-1: escaped) and the side of it each ray arrives at (0: its front)."""
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+
     hit = np.empty(len(dirs), dtype=np.int64)
-    for start in range(0, len(dirs), chunk):
+
+    def run(start: int) -> None:  # Embree releases the GIL while it traces
         stop = start + chunk
         hit[start:stop] = scene.run(origins[start:stop], dirs[start:stop], query="INTERSECT")
+
+    with ThreadPoolExecutor(max_workers=max(1, min(8, os.cpu_count() or 1))) as pool:
+        list(pool.map(run, range(0, len(dirs), chunk)))
     side = np.zeros(len(dirs), dtype=np.int64)
     ok = hit >= 0
     side[ok] = (np.einsum("kc,kc->k", dirs[ok].astype(np.float64), face_normal[hit[ok]]) > 0).astype(np.int64)
