@@ -22,8 +22,22 @@ Study scripts (paper table, int8, graph folding, stage timings) live in ``studie
 of a checkout and are not installed.
 """
 
-from prt.bench.metrics import image_metrics, pareto_front
-from prt.bench.report import markdown, plot
-from prt.bench.scene_bench import SceneBench, Settings, run
+import importlib
 
 __all__ = ["Settings", "SceneBench", "run", "markdown", "plot", "image_metrics", "pareto_front"]
+
+# Loaded on first use (PEP 562), so that ``prt-bench`` (:mod:`prt.bench.cli`) can report a missing
+# [train] extra in one line before anything imports scipy, scikit-image or trimesh.
+_LAZY = {
+    "image_metrics": ".metrics", "pareto_front": ".metrics", "markdown": ".report", "plot": ".report",
+    "SceneBench": ".scene_bench", "Settings": ".scene_bench", "run": ".scene_bench",
+}  # fmt: skip
+
+
+def __getattr__(name: str):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(module, __name__), name)
+    globals()[name] = value
+    return value

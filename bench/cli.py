@@ -19,26 +19,22 @@ rest, and the exit status is 2.  Also ``python -m prt.bench.cli``.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import math
 import sys
 from pathlib import Path
 
-from prt.bench.bounce_reference import HIT_RAYS, HIT_TRANSFER_RAYS
-from prt.bench.report import markdown, plot
-from prt.bench.scene_bench import Settings, run
-from prt.export.precision import PRECISIONS
-from prt.runtime.errors import PRTError
-from prt.runtime.files import atomic_write_bytes, atomic_write_json
-from prt.runtime.gl import create_context
-from prt.train.cluster import open_executor
-from prt.train.executor import add_cluster_argument
+# Everything else is imported when the command runs (after :func:`_load`), so that a runtime-only
+# install (no [train] extra: scipy, scikit-image, trimesh, ...) gets one line saying what to install.
 
 __all__ = ["parse_args", "main"]
 
 
 def parse_args(argv=None) -> argparse.Namespace:
     """The command line's options, checked (``fp32`` is always measured: the others are compared with it)."""
+    from prt.bench.bounce_reference import HIT_RAYS, HIT_TRANSFER_RAYS
+    from prt.export.precision import PRECISIONS
+    from prt.train.executor import add_cluster_argument
+
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("scenes", nargs="+", type=Path, help="scene.json files (or their folders)")
     p.add_argument("--json", type=Path, default=None, help="write the JSON report here")
@@ -127,14 +123,31 @@ def parse_args(argv=None) -> argparse.Namespace:
     return args
 
 
+def _load(module: str, command: str):
+    """``module`` imported, or None after one line naming the missing package and the extra to install."""
+    from prt.train.entry import load_command
+
+    return load_command(module, command, purpose="benchmarking")
+
+
 def main(argv=None) -> int:
     """``prt-bench``: measure, print the Markdown table, write the reports asked for; the exit status.
     ``prt-bench deform SCENE...``: deformable scenes (:mod:`prt.bench.deform_bench`)."""
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["deform"]:
-        from .deform_bench import main as deform_main
+        deform = _load("prt.bench.deform_bench", "prt-bench deform")
+        return 2 if deform is None else deform.main(argv[1:])
+    if _load("prt.bench.scene_bench", "prt-bench") is None:
+        return 2
+    import importlib.util
 
-        return deform_main(argv[1:])
+    from prt.bench.report import markdown, plot
+    from prt.bench.scene_bench import Settings, run
+    from prt.runtime.errors import PRTError
+    from prt.runtime.files import atomic_write_bytes, atomic_write_json
+    from prt.runtime.gl import create_context
+    from prt.train.cluster import open_executor
+
     args = parse_args(argv)
     if args.reference == "mitsuba" and importlib.util.find_spec("mitsuba") is None:  # before hours of measuring
         print("prt-bench: error: --reference mitsuba needs Mitsuba 3: pip install 'prt-runtime[mitsuba]' (or pip install mitsuba)", file=sys.stderr)
