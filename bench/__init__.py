@@ -12,6 +12,10 @@ train, export and runtime (never the other way round).
 - :mod:`~prt.bench.metrics`      PSNR, SSIM, MAE of tone-mapped images; the FPS-PSNR Pareto front
 - :mod:`~prt.bench.machine`      float32 GEMM limit (numpy, ONNX Runtime), CPU, load, network profile
 - :mod:`~prt.bench.vertex_prt`   the per-vertex PRT baseline (Sloan et al. 2002)
+- :mod:`~prt.bench.probe_grid`, :mod:`~prt.bench.probe_bench`  the engines' baseline: an L2 SH irradiance probe grid
+- :mod:`~prt.bench.cameras`      ``--cameras``: views from a JSON file
+- :mod:`~prt.bench.exposure`     ``--exposure auto``: the reference frame's auto exposure
+- :mod:`~prt.bench.leak`         light leaking as a figure
 - :mod:`~prt.bench.packing`      every network on every pixel against the packed path
 - :mod:`~prt.bench.report`       JSON keys, Markdown, plot, error maps, scene checkpoints
 - :mod:`~prt.bench.cli`          ``prt-bench`` (:func:`~prt.bench.cli.main`)

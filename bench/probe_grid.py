@@ -3,8 +3,8 @@
 What Unity's Adaptive Probe Volumes, Godot's LightmapGI and three.js's light-probe grids serve
 for scenes, reduced to its core:
 
-- **Probes** on a regular grid over the mesh's bounds (:func:`grid_layout`: cubic cells,
-  centred on the bounds, at least 2 probes per axis).  Two densities are measured: at the
+- **Probes** on a regular grid over the mesh's bounds (:func:`grid_layout`: at the centres of
+  cubic cells tiling the bounds, at least 2 probes per axis; none on the bounds' own faces).  Two densities are measured: at the
   networks' fp32 bytes (``equal bytes``: as many probes as 27 float32 each, plus a validity
   bit, fit in them) and at a density engines use (``engine``: :data:`ENGINE_SPACING_M` = 1 m
   between probes in the source file's units, glTF's metres; Unity APV's default minimum probe
@@ -62,10 +62,12 @@ IRRADIANCE_BANDS = np.array([1.0, 2.0 / 3.0, 2.0 / 3.0, 2.0 / 3.0, 0.25, 0.25, 0
 
 
 def grid_layout(lo, hi, spacing: float) -> tuple[np.ndarray, np.ndarray]:
-    """(origin (3,), dims (3,) int) of the grid of cubic cells ``spacing`` wide covering ``[lo, hi]``, centred on it."""
+    """(origin (3,), dims (3,) int) of the probes at the centres of about ``extent / spacing`` cells per axis
+    tiling ``[lo, hi]`` (at least :data:`MIN_PER_AXIS`), ``spacing`` apart, centred on it: no probe sits on the
+    bounds' faces (the outer walls of a building), each is a quarter to three quarters of a spacing inside."""
     lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
     extent = np.maximum(hi - lo, 0.0)
-    dims = np.maximum(MIN_PER_AXIS, np.ceil(extent / spacing - 1e-9).astype(np.int64) + 1)
+    dims = np.maximum(MIN_PER_AXIS, np.round(extent / spacing).astype(np.int64))
     origin = 0.5 * (lo + hi) - 0.5 * (dims - 1) * spacing
     return origin, dims
 

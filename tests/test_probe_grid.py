@@ -53,8 +53,15 @@ def test_trilinear_lookup_matches_its_plain_twin():
 def test_grid_layout_covers_the_bounds_and_equal_bytes_fits_the_budget():
     lo, hi = np.array([-1.0, -0.5, -1.0]), np.array([1.0, 0.5, 1.0])
     origin, dims = grid_layout(lo, hi, 0.25)
-    assert np.all(origin <= lo + 1e-12) and np.all(origin + 0.25 * (dims - 1) >= hi - 1e-12)
-    assert list(dims) == [9, 5, 9]
+    assert list(dims) == [8, 4, 8]  # cell centres: a probe half a spacing inside each face of the bounds
+    np.testing.assert_allclose(origin, lo + 0.125)
+    np.testing.assert_allclose(origin + 0.25 * (dims - 1), hi - 0.125)
+    for spacing in (0.3, 0.45, 0.7, 3.0):
+        origin, dims = grid_layout(lo, hi, spacing)
+        inset = np.concatenate([origin - lo, hi - (origin + spacing * (dims - 1))])
+        assert np.all(dims >= 2) and np.allclose(inset[:3], inset[3:])
+        more = np.tile(dims, 2) > 2  # (two probes per axis is the floor: a coarse spacing may put them outside)
+        assert np.all(inset[more] >= spacing / 4 - 1e-12) and np.all(inset[more] <= 3 * spacing / 4 + 1e-12), (spacing, inset)
     for budget in (500, 10_000, 200_000):
         spacing = equal_bytes_spacing(lo, hi, budget)
         n = int(np.prod(grid_layout(lo, hi, spacing)[1]))
@@ -280,8 +287,12 @@ def test_the_probe_grid_leaks_into_a_closed_room_and_the_reference_does_not(room
     # light leaking: the reference's second seed puts no light where the first is dark; the probe grid does
     floor = scene["reference"]["leak"]["40x40"]["diffuse"]
     assert floor["leak"] is not None and floor["leak"] <= 0.02, floor
+    for density in ("equal-bytes", "engine"):  # probes outside the room light the window wall's dark inside
+        leak = records[f"probes {density} diffuse"]["leak"]
+        assert leak > floor["leak"] + 0.1 and leak > 10 * floor["leak"], (density, leak, floor)
+    assert records["probes engine diffuse"]["leak"] > 0.5
+    assert records["vertex diffuse"]["leak"] <= floor["leak"] + 0.02  # per-vertex visibility: no light through the wall
     probes = records["probes equal-bytes diffuse"]
-    assert probes["leak"] > 0.2 and probes["leak"] > floor["leak"] + 0.2, probes
     assert probes["probe_grid"]["density"] == "equal-bytes" and probes["weight_bytes"] <= max(scene["weight_bytes"], 8 * PROBE_BYTES + 1)
     assert scene["probe_grid"]["mitigation"].startswith("probe validity")
     md = (tmp_path / "r.md").read_text()
