@@ -124,7 +124,7 @@ REPORT_KEYS = ("tool", "created", "settings", "machine", "scenes", "records", "p
 MACHINE_KEYS = ("cpu", "cores", "gl_renderer", "onnxruntime", "numpy", "gemm_size", "gemm_numpy_gflops",
                 "gemm_onnxruntime_gflops", "machine_gflops", "resumed", "load_average", "other_cpu_share")
 SCENE_KEYS = ("scene", "path", "geometry", "networks", "weight_bytes", "reference", "packing", "vertex_baseline",
-              "error_images", "measured", "checkpoint")  # fmt: skip
+              "error_images", "measured", "checkpoint", "views_from", "exposure")  # fmt: skip
 PACKING_KEYS = (
     "resolution", "all_pixels", "covered_pixels", "network_segments", "naive_rows_per_segment", "naive_total_rows",
     "naive_inference_ms", "packed_inference_ms", "packing_speedup", "pixel_ratio", "work_ratio", "naive_max_abs_diff",
