@@ -332,6 +332,10 @@ class SceneBench:
         for size in self.settings.sizes:
             # This renderer's G-buffer defines the pixels; every other renderer draws the same ones.
             with Renderer(self.scene, size, size, backend="onnx", ctx=self.ctx) as base:
+                for v, camera in enumerate(self.cameras if self.settings.cameras else []):  # before any ray is traced
+                    base.set_camera_object(camera)
+                    if not base.gbuffer_image().covered.any():
+                        raise InputError(f"{self.settings.cameras_file}: views[{v}] sees no part of the scene at {size}x{size}")
                 self._pilot_images = None  # view 0's configurations at this size (bench/quiet_reference.py's pilot)
                 views = reference_views(self.source, base, self.cameras, size, self.materials, self.settings,
                                         lambda refs, covered, exposure: self._pilot(base, refs, covered, exposure, size), self.entry["reference"],

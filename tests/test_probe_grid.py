@@ -259,7 +259,7 @@ def _inside_views(scene_json: Path) -> list[dict]:
 
 
 @pytest.mark.gl
-def test_the_probe_grid_leaks_into_a_closed_room_and_the_reference_does_not(room, tmp_path, gl_ctx):
+def test_the_probe_grid_leaks_into_a_closed_room_and_the_reference_does_not(room, tmp_path, gl_ctx, capsys):
     views = tmp_path / "views.json"
     views.write_text(json.dumps({"views": _inside_views(room)}))
     out = tmp_path / "r.json"
@@ -297,3 +297,8 @@ def test_the_probe_grid_leaks_into_a_closed_room_and_the_reference_does_not(room
     assert scene["probe_grid"]["mitigation"].startswith("probe validity")
     md = (tmp_path / "r.md").read_text()
     assert "light leaking" in md and "probes equal-bytes diffuse" in md
+    # a view that sees nothing of the scene: one line naming the file and the view, the scene left out, exit 2
+    views.write_text(json.dumps({"views": [_inside_views(room)[0], {"eye": [0, 0, 30], "target": [0, 0, 60], "fov": 40}]}))
+    assert cli.main([*argv[:-4], "--json", str(tmp_path / "none.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{views}: views[1] sees no part of the scene" in err[0], err
