@@ -1,7 +1,11 @@
 """Every configuration of one scene, measured against the reference (:class:`SceneBench`), and :func:`run`.
 
 For every scene, a camera trajectory of ``--views`` views orbits the manifest camera about its
-target (the paper's Table 1 protocol).  Every configuration (backend ``onnx`` at each ONNX
+target (the paper's Table 1 protocol), or the views of a ``--cameras`` file are rendered
+(:mod:`prt.bench.cameras`; inside views too).  Images are scored at ``--exposure``
+(``auto``: the reference frame's own, :mod:`prt.bench.exposure`); every record also carries the
+light-leaking figure (:mod:`prt.bench.leak`); ``--backends probes`` adds the engines' L2 SH
+probe grid (:mod:`prt.bench.probe_bench`).  Every configuration (backend ``onnx`` at each ONNX
 precision, :mod:`prt.export.precision`; backend ``glsl``; the vertex-space baseline,
 :mod:`prt.bench.vertex_prt`; the texture-space baseline at each ``--texture-size``,
 :mod:`prt.bench.texture_prt`; material diffuse and glossy, :data:`MATERIALS`; each ``--size``)
