@@ -302,3 +302,33 @@ def test_the_probe_grid_leaks_into_a_closed_room_and_the_reference_does_not(room
     assert cli.main([*argv[:-4], "--json", str(tmp_path / "none.json")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"{views}: views[1] sees no part of the scene" in err[0], err
+
+
+@pytest.mark.gl
+def test_probes_with_bounces_match_the_references_brightness(cornell_rgb, tmp_path, gl_ctx):
+    """The Cornell box with 2 bounces (every wall's light partly interreflected): the probe grid's frame
+    carries the reference's brightness on average, floor, ceiling and walls alike (the hits' radiance
+    with one bounce less, from the nearest independent sample), where the direct light alone is over 10 %
+    darker: a grid whose hits sent nothing, or too much, fails."""
+    from prt.bench.probe_bench import probe_frame, scene_grids
+    from prt.bench.reference import shade_image
+    from prt.bench.scene_bench import SceneBench, Settings
+    from prt.runtime.renderer import Renderer
+
+    settings = Settings(views=1, sizes=(32,), ref_rays=64, ref_hit_rays=32, precisions=("fp32",), backends=("probes",), cache=tmp_path)
+    sb = SceneBench(cornell_rgb, settings, gl_ctx, 1.0, lambda *_: None)
+    with Renderer(sb.scene, 32, 32, backend="onnx", ctx=gl_ctx) as base:
+        grids, entry = scene_grids(sb, base.lighting)
+        assert entry["samples"] > 0 and set(grids) == {"equal-bytes", "engine"}
+        camera = sb.cameras[0]
+        base.set_camera_object(camera)
+        g = base.gbuffer_image()
+        covered = g.covered
+        traced = sb.source.trace("probe-test", g.position[covered], g.normal[covered], 64, 32, 0)
+        diffuse = sb.materials["diffuse"]
+        reference = shade_image(sb.source.combine(traced["direct"], traced["indirect"]), g, camera.eye, base.lighting, diffuse)
+        direct_only = shade_image(traced["direct"], g, camera.eye, base.lighting, diffuse)
+        image, _ = probe_frame(grids["equal-bytes"], base.gbuffer, camera, diffuse.albedo, 32, 32)
+    ref, probes, direct = reference[covered].mean(), image[covered].mean(), direct_only[covered].mean()
+    assert ref > 1.1 * direct  # the bounces matter here
+    assert abs(probes / ref - 1.0) < 0.5 * (ref / direct - 1.0), (probes, ref, direct)
