@@ -3,10 +3,10 @@
 usage::
 
     prt-bench scene.json [more scenes] [--json out.json] [--md out.md]
-        [--plot out.png] [--views 30] [--size 512 [256 ...]] [--ref-rays 1024] [--ref-rays-max 4096]
+        [--plot out.png] [--views 30 | --cameras views.json] [--exposure 1|auto] [--size 512 [256 ...]] [--ref-rays 1024] [--ref-rays-max 4096]
         [--ref-hit-rays 64] [--ref-hit-rays-max 1024] [--ref-budget 3600] [--baseline-rays N] [--warmup 3]
         [--reference ours|mitsuba] [--mitsuba-spp 1024] [--mitsuba-views 3] [--mitsuba-variant auto]
-        [--precisions fp32 fp16 fp16-mlp int8] [--interpolate TOL ...] [--backends onnx glsl vertex texture] [--texture-size N ...] [--cache DIR]
+        [--precisions fp32 fp16 fp16-mlp int8] [--interpolate TOL ...] [--backends onnx glsl vertex texture probes] [--texture-size N ...] [--cache DIR]
         [--gemm-size 4096] [--blas-threads N] [--config-budget SECONDS] [--packing-views N]
         [--images DIR] [--fresh] [--cluster auto|ADDRESS] [--gl-device NAME|INDEX]
 
@@ -19,32 +19,35 @@ rest, and the exit status is 2.  Also ``python -m prt.bench.cli``.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import math
 import sys
 from pathlib import Path
 
-from prt.bench.bounce_reference import HIT_RAYS, HIT_TRANSFER_RAYS
-from prt.bench.report import markdown, plot
-from prt.bench.scene_bench import Settings, run
-from prt.export.precision import PRECISIONS
-from prt.runtime.errors import PRTError
-from prt.runtime.files import atomic_write_bytes, atomic_write_json
-from prt.runtime.gl import create_context
-from prt.train.cluster import open_executor
-from prt.train.executor import add_cluster_argument
+# Everything else is imported when the command runs (after :func:`_load`), so that a runtime-only
+# install (no [train] extra: scipy, scikit-image, trimesh, ...) gets one line saying what to install.
 
 __all__ = ["parse_args", "main"]
 
 
 def parse_args(argv=None) -> argparse.Namespace:
     """The command line's options, checked (``fp32`` is always measured: the others are compared with it)."""
+    from prt.bench.bounce_reference import HIT_RAYS, HIT_TRANSFER_RAYS
+    from prt.export.precision import PRECISIONS
+    from prt.train.executor import add_cluster_argument
+
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("scenes", nargs="+", type=Path, help="scene.json files (or their folders)")
     p.add_argument("--json", type=Path, default=None, help="write the JSON report here")
     p.add_argument("--md", type=Path, default=None, help="write the Markdown table here")
     p.add_argument("--plot", type=Path, default=None, help="write the FPS-PSNR plot (PNG) here")
     p.add_argument("--views", type=int, default=30, help="orbit views per configuration (default 30)")
+    p.add_argument("--cameras", type=Path, default=None, metavar="FILE",
+                   help='render the views a JSON file gives instead of the orbit: {"views": [{"eye": [x, y, z], "target": [x, y, z], '
+                        '"fov": degrees}, ...]} in the scene\'s normalised space (scene.json\'s camera convention), views inside '
+                        'the scene included (replaces --views)')  # fmt: skip
+    p.add_argument("--exposure", type=_exposure, default=1.0, metavar="auto|E",
+                   help="the exposure every image is tone-mapped and scored at: a number, or auto: per view and material the "
+                        "exposure auto-exposure gives the reference's frame (interiors; default 1)")  # fmt: skip
     p.add_argument("--size", type=int, nargs="+", default=[512], help="image sizes, square (default 512)")
     p.add_argument("--ref-rays", type=int, default=1024, help="rays per pixel of the reference (default 1024)")
     p.add_argument("--ref-rays-max", type=int, default=4096, metavar="N",
@@ -83,8 +86,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--precisions", nargs="+", choices=PRECISIONS, default=list(PRECISIONS))
     p.add_argument("--interpolate", type=float, nargs="+", default=[], metavar="TOL",
                    help="also measure the fp32 ONNX backend with screen-space interpolation at these tolerances (prt-runtime --interpolate)")
-    p.add_argument("--backends", nargs="+", choices=("onnx", "glsl", "vertex", "texture"), default=["onnx", "glsl", "vertex"],
-                   help="texture: the texture-space baseline (transfer textures baked at --texture-size)")
+    p.add_argument("--backends", nargs="+", choices=("onnx", "glsl", "vertex", "texture", "probes"), default=["onnx", "glsl", "vertex"],
+                   help="texture: the texture-space baseline (transfer textures baked at --texture-size); probes: an L2 SH "
+                        "irradiance probe grid, the engines' baseline, at equal bytes and at 1 m spacing (mesh scenes, diffuse)")  # fmt: skip
     p.add_argument("--texture-size", type=int, nargs="+", default=[1024], metavar="N",
                    help="transfer texture sizes of the texture baseline, texels per side (default 1024)")
     p.add_argument("--cache", type=Path, default=None, help="reference / variant cache (default: next to --json)")
@@ -127,18 +131,55 @@ def parse_args(argv=None) -> argparse.Namespace:
     return args
 
 
+def _exposure(text: str):
+    """argparse type of ``--exposure``: ``auto`` or a positive number."""
+    try:
+        from prt.bench.exposure import parse_exposure
+
+        return parse_exposure(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected auto or a positive number, got {text!r}") from None
+
+
+def _load(module: str, command: str):
+    """``module`` imported, or None after one line naming the missing package and the extra to install."""
+    from prt.train.entry import load_command
+
+    return load_command(module, command, purpose="benchmarking")
+
+
 def main(argv=None) -> int:
     """``prt-bench``: measure, print the Markdown table, write the reports asked for; the exit status.
     ``prt-bench deform SCENE...``: deformable scenes (:mod:`prt.bench.deform_bench`)."""
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["deform"]:
-        from .deform_bench import main as deform_main
+        deform = _load("prt.bench.deform_bench", "prt-bench deform")
+        return 2 if deform is None else deform.main(argv[1:])
+    if _load("prt.bench.scene_bench", "prt-bench") is None:
+        return 2
+    import importlib.util
 
-        return deform_main(argv[1:])
+    from prt.bench.report import markdown, plot
+    from prt.bench.scene_bench import Settings, run
+    from prt.runtime.errors import PRTError
+    from prt.runtime.files import atomic_write_bytes, atomic_write_json
+    from prt.runtime.gl import create_context
+    from prt.train.cluster import open_executor
+
     args = parse_args(argv)
     if args.reference == "mitsuba" and importlib.util.find_spec("mitsuba") is None:  # before hours of measuring
         print("prt-bench: error: --reference mitsuba needs Mitsuba 3: pip install 'prt-runtime[mitsuba]' (or pip install mitsuba)", file=sys.stderr)
         return 2
+    cameras = None
+    if args.cameras is not None:  # a malformed file: one line naming it and the field, before any measuring
+        from prt.bench.cameras import camera_record, load_views
+
+        try:
+            cameras = tuple(tuple(camera_record(c)) for c in load_views(args.cameras))
+        except PRTError as exc:
+            print(f"prt-bench: error: {exc}", file=sys.stderr)
+            return 2
+        args.views = len(cameras)
     cache = args.cache
     if cache is None and args.json is not None:
         cache = args.json.parent / f"{args.json.stem}_cache"
@@ -153,6 +194,7 @@ def main(argv=None) -> int:
         texture_sizes=tuple(dict.fromkeys(args.texture_size)),
         gemm_size=args.gemm_size, blas_threads=args.blas_threads, fresh=args.fresh, images=args.images,
         ref_hit_rays=args.ref_hit_rays, ref_hit_transfer_rays=args.ref_hit_transfer_rays, gl_device=args.gl_device,
+        cameras=cameras, cameras_file=None if args.cameras is None else str(args.cameras), exposure=args.exposure,
     )  # fmt: skip
     try:
         if args.gl_device is not None:  # a device that does not exist: one line now, before minutes of work

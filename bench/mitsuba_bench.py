@@ -7,7 +7,12 @@ the build's bounces, ``--mitsuba-spp`` paths per pixel in two independent halves
 
 - our reference (the rays it settled on, two seeds: its own noise);
 - the fp32 networks of the ONNX backend (and of the GLSL backend when measured);
-- each vertex baseline (direct, and with the build's bounces) and each texture baseline.
+- each vertex baseline (direct, and with the build's bounces) and each texture baseline;
+- the probe grids (``--backends probes``: ``probes equal-bytes``, ``probes engine``).
+
+The views are the benchmark's (the orbit, or ``--cameras``'); with ``--exposure auto`` every
+image of a view (Mitsuba's included) is scaled by that view's diffuse exposure before the
+tone-mapped PSNR, as the benchmark's own images are.
 
 The scene entry's ``mitsuba`` record: ``variant``, ``libllvm``, ``mitsuba`` (version), ``spp``,
 ``max_depth``, ``views`` (orbit indices), ``albedos`` ({object: RGB}), ``envmap`` (the band-limited
@@ -109,11 +114,13 @@ def mitsuba_comparison(sb, base, size: int, views: list, chosen: list) -> dict:
         objects = pixel_objects(sb.ctx, sb.manifest, camera, size, size, g)
         mask = compared_pixels(g, render, camera.eye) & (objects >= 0)
         albedo_rows = table[np.maximum(objects[covered], 0)]
+        e = (view.exposure or {}).get("diffuse", 1.0)  # --exposure: every image of the view at the reference frame's
+        render = {**render, "radiance": e * np.asarray(render["radiance"]), "passes": e * np.asarray(render["passes"])}
 
-        def image(transfer):
+        def image(transfer=None, irradiance=None):
             out = np.zeros((size, size, 3))
-            out[covered] = diffuse_radiance(transfer, base.lighting, albedo_rows)
-            return out
+            out[covered] = diffuse_radiance(transfer, base.lighting, albedo_rows) if irradiance is None else np.maximum(irradiance * albedo_rows, 0.0)
+            return e * out
 
         points, normals = g.position[covered], g.normal[covered]
         ours = [image(sb.source.combine(t["direct"], t["indirect"]))
@@ -122,6 +129,9 @@ def mitsuba_comparison(sb, base, size: int, views: list, chosen: list) -> dict:
         per_view.append({"view": v, **compare(ours[0], render, mask, ours[1])})
         for label, (transfer, carries) in _transfers(sb, base, size, camera, covered).items():
             per_config.setdefault(label, (carries, []))[1].append((image(transfer), render, mask, None, ours[0]))
+        for density, grid in (getattr(sb, "probe_grids", None) or {}).items():  # the probe grid: irradiance x each object's albedo
+            probes = image(irradiance=grid.irradiance(points, normals))
+            per_config.setdefault(f"probes {density}", (transfer_label(sb.bounces), []))[1].append((probes, render, mask, None, ours[0]))
         if figure is None and settings.images is not None:
             rows = [("our reference", ours[0], render["radiance"], mask)]
             if "onnx fp32" in per_config:

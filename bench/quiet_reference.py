@@ -27,8 +27,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 from prt.bench.bounce_reference import cached_indirect, direct_rgb
-from prt.bench.reference import REFERENCE_MARGIN_DB, View, cached_transfer, noise_psnr, reference_images
+from prt.bench.exposure import auto_exposure, luminance
+from prt.bench.leak import leak_figures
+from prt.bench.reference import REFERENCE_MARGIN_DB, View, cached_transfer, noise_psnr, reference_images, reference_linear
+from prt.runtime.shading import tonemap
 
 __all__ = ["MAX_DOUBLINGS", "quiet_plan", "ReferenceSource", "reference_views"]
 
@@ -162,16 +167,20 @@ def reference_views(source: ReferenceSource, renderer, cameras, size: int, mater
     renderer : prt.runtime.renderer.Renderer
         Its G-buffer defines the pixels.
     pilot : callable
-        ``pilot(references, covered) -> {material: best PSNR}`` of view 0's configurations against
-        ``references`` (tone-mapped images per material); called with the renderer at view 0.
+        ``pilot(references, covered, exposure) -> {material: best PSNR}`` of view 0's configurations against
+        ``references`` (tone-mapped images per material, at ``exposure`` {material: e}); called with the renderer at view 0.
     entry : dict
         The scene's ``reference`` record: ``noise_psnr``, ``rays_by_size``, ``hit_rays_by_size``,
-        ``plan`` and (with bounces) ``interreflection.gi_off_psnr`` are filled per size.
+        ``plan``, ``leak`` (the second seed's :func:`prt.bench.leak.leak_figures` against the first at
+        view 0) and (with bounces) ``interreflection.gi_off_psnr`` are filled per size.  Every view's
+        images are tone-mapped at ``settings.exposure``: a number, or ``"auto"`` (the reference
+        frame's :func:`prt.bench.exposure.auto_exposure`, per material).
     flops : callable
         ``flops(segment image) -> float`` for the View.
     """
     resolution = f"{size}x{size}"
     seed, rays, hit_rays = settings.seed, settings.ref_rays, settings.ref_hit_rays
+    mode = getattr(settings, "exposure", 1.0)  # "auto" (prt.bench.exposure) or a fixed exposure
     views, computed, plan = [], 0.0, None
     for v, camera in enumerate(cameras):
         renderer.set_camera_object(camera)
@@ -182,21 +191,26 @@ def reference_views(source: ReferenceSource, renderer, cameras, size: int, mater
         for _ in range(2 * MAX_DOUBLINGS + 1):  # view 0: until the plan keeps the rays (each round doubles at least one count)
             first = source.trace(tag, points, normals, rays, hit_rays, seed)
             computed += first["spent"]
-            references = reference_images(source.combine(first["direct"], first["indirect"]), gbuffer, camera.eye, renderer.lighting, materials)
+            linear = reference_linear(source.combine(first["direct"], first["indirect"]), gbuffer, camera.eye, renderer.lighting, materials)
+            key = {m: auto_exposure(image, covered) for m, image in linear.items()}  # the leak figure's key, and --exposure auto's
+            exposure = key if mode == "auto" else {m: float(mode) for m in linear}
+            references = {m: tonemap(image, exposure[m]) for m, image in linear.items()}
             if v != 0:
                 break
             second = source.trace(tag, points, normals, rays, hit_rays, seed + 1)
             computed += second["spent"]
-            other = reference_images(source.combine(second["direct"], second["indirect"]), gbuffer, camera.eye, renderer.lighting, materials)
+            other_linear = reference_linear(source.combine(second["direct"], second["indirect"]), gbuffer, camera.eye, renderer.lighting, materials)
+            other = {m: tonemap(image, exposure[m]) for m, image in other_linear.items()}
             noise = entry["noise_psnr"][resolution] = noise_psnr(other, references, covered)
+            entry.setdefault("leak", {})[resolution] = {m: leak_figures(other_linear[m], luminance(linear[m]), key[m], covered) for m in linear}
             bounce_noise = None
             if source.bounces > 0:
-                mixed = reference_images(source.combine(first["direct"], second["indirect"]), gbuffer, camera.eye, renderer.lighting, materials)
+                mixed = reference_images(source.combine(first["direct"], second["indirect"]), gbuffer, camera.eye, renderer.lighting, materials, exposure)
                 bounce_noise = entry.setdefault("bounce_noise_psnr", {})[resolution] = noise_psnr(mixed, references, covered)
-                direct_only = reference_images(first["direct"], gbuffer, camera.eye, renderer.lighting, materials)
+                direct_only = reference_images(first["direct"], gbuffer, camera.eye, renderer.lighting, materials, exposure)
                 entry["interreflection"]["gi_off_psnr"][resolution] = noise_psnr(direct_only, references, covered)
             renderer.set_camera_object(camera)
-            best = pilot(references, covered)
+            best = pilot(references, covered, exposure)
             plan = quiet_plan(noise, bounce_noise, best, rays, hit_rays, rays_max=settings.ref_rays_max, hit_rays_max=settings.ref_hit_rays_max,
                               seconds_direct=first["seconds_direct"], seconds_bounce=first["seconds_bounce"], views=len(cameras),
                               budget=settings.ref_budget)  # fmt: skip
@@ -207,7 +221,8 @@ def reference_views(source: ReferenceSource, renderer, cameras, size: int, mater
                 f"{REFERENCE_MARGIN_DB:g} dB of the pilot {plan['pilot_psnr']}; {plan['rays']} x {plan['hit_rays']}")  # fmt: skip
             rays, hit_rays = plan["rays"], plan["hit_rays"]
             renderer.set_camera_object(camera)
-        views.append(View(camera, gbuffer, references, flops(gbuffer.segment)))
+        views.append(View(camera, gbuffer, references, flops(gbuffer.segment), exposure,
+                          {m: luminance(image).astype(np.float32) for m, image in linear.items()}, key))  # fmt: skip
     entry["rays_by_size"][resolution] = rays
     entry.setdefault("hit_rays_by_size", {})[resolution] = hit_rays if source.bounces > 0 else None
     entry.setdefault("plan", {})[resolution] = plan

@@ -28,7 +28,7 @@ from prt.runtime.shading import shade, tonemap
 from prt.train import compute_transfer
 from prt.train.inputs.geometry import Geometry, load_geometry
 
-__all__ = ["mesh_checksum", "load_scene_geometry", "cached_transfer", "shade_image", "reference_images", "noise_psnr", "View",
+__all__ = ["mesh_checksum", "load_scene_geometry", "cached_transfer", "shade_image", "reference_linear", "reference_images", "noise_psnr", "View",
            "REFERENCE_MARGIN_DB", "convergence"]
 
 # The reference's two-seed PSNR must exceed the best configuration's PSNR by this much (issue 12).
@@ -43,6 +43,13 @@ class View:
     gbuffer: object
     references: dict  # material name -> tone-mapped (H, W, 3) reference image
     flops: float
+    exposure: dict | None = None  # material name -> the exposure every image of this view is tone-mapped at (None: 1)
+    luminance: dict | None = None  # material name -> (H, W) linear luminance of the reference (prt.bench.leak)
+    key_exposure: dict | None = None  # material name -> the reference frame's auto exposure (prt.bench.leak)
+
+    def tonemap(self, image, material: str):
+        """``image`` (linear) tone-mapped as this view's reference of ``material`` is."""
+        return tonemap(image, (self.exposure or {}).get(material, 1.0))
 
 
 def mesh_checksum(vertices, faces) -> str:
@@ -158,9 +165,15 @@ def shade_image(transfer, gbuffer, eye, lighting, material) -> np.ndarray:
     return image
 
 
-def reference_images(transfer, gbuffer, eye, lighting, materials: dict) -> dict:
-    """Tone-mapped reference image per material: {name: (H, W, 3) in [0, 1]}."""
-    return {m: tonemap(shade_image(transfer, gbuffer, eye, lighting, material)) for m, material in materials.items()}
+def reference_linear(transfer, gbuffer, eye, lighting, materials: dict) -> dict:
+    """Linear reference image per material: {name: (H, W, 3)}."""
+    return {m: shade_image(transfer, gbuffer, eye, lighting, material) for m, material in materials.items()}
+
+
+def reference_images(transfer, gbuffer, eye, lighting, materials: dict, exposure: dict | None = None) -> dict:
+    """Tone-mapped reference image per material: {name: (H, W, 3) in [0, 1]}, at ``exposure`` ({name: e}; None: 1)."""
+    linear = reference_linear(transfer, gbuffer, eye, lighting, materials)
+    return {m: tonemap(image, (exposure or {}).get(m, 1.0)) for m, image in linear.items()}
 
 
 def noise_psnr(other: dict, references: dict, covered) -> dict:

@@ -48,7 +48,11 @@ JSON report (``--json``)
     configuration's error map; empty without ``--images``), ``measured`` (ISO time
     the scene was measured) and ``checkpoint`` (where its measurement is kept: a later run with
     the same scene files and settings takes it from there instead of measuring again, unless
-    ``--fresh``; its records then keep the ``machine_gflops`` of the run that measured them).
+    ``--fresh``; its records then keep the ``machine_gflops`` of the run that measured them),
+    ``views_from`` (``orbit``, or the ``--cameras`` file), ``exposure``, ``probe_grid``
+    (``--backends probes``: :mod:`prt.bench.probe_bench`), and in ``reference`` ``leak``: {size:
+    {material: ``leak``, ``leak_error``}} of the reference's second seed against its first at view 0
+    (the leak figure's noise floor).
 
     ``records``: one per configuration, with ``scene``, ``backend`` (onnx, glsl, vertex, texture;
     texture records add ``texture_size`` and ``precompute_s``, and their ``network_ms`` is the fetch pass),
@@ -71,7 +75,15 @@ JSON report (``--json``)
     ``transfer_max_abs_diff`` (transfer against the fp32 ONNX path at view 0, covered pixels),
     ``ref_rays``, ``ref_noise_psnr``, ``label`` (vertex and texture records name a transfer other than
     direct: ``vertex 2 bounces diffuse``), ``pareto`` (on the FPS-PSNR Pareto front of
-    its scene, resolution and material).
+    its scene, resolution and material), ``leak`` and ``leak_error`` (light leaking,
+    :mod:`prt.bench.leak`: the share of the reference's dark pixels the configuration lights, and the
+    mean excess light there in units of the frame's key; means over the views with dark pixels,
+    None when none has).  Probe-grid records (backend ``probes``, ``--backends probes``, diffuse
+    only) add ``probe_grid`` (``density``: ``equal-bytes`` or ``engine``, ``dims``, ``probes``,
+    ``spacing``, ``invalid``, ``rays``, ``weight_bytes``, ``seconds``; :mod:`prt.bench.probe_bench`);
+    their ``network_ms`` is the probe lookup.  Every PSNR, SSIM and MAE is of images tone-mapped at
+    the scene entry's ``exposure`` (``--exposure``: a number, or ``auto``, the reference frame's own
+    auto exposure per view and material, :mod:`prt.bench.exposure`).
 
     ``pareto``: {``"scene WxH material"``: [labels on the front, by increasing FPS]}: only
     configurations with the same reference image compete.
@@ -105,14 +117,14 @@ __all__ = [
 ]  # fmt: skip
 
 # Raised when records change (2: ``transfer``, the vertex baseline with bounces; 3: the quiet reference's
-# bounce rays and plan, ``mitsuba``): older checkpoints are measured again.
-RECORD_FORMAT = 3
+# bounce rays and plan, ``mitsuba``; 4: ``leak``, ``leak_error``): older checkpoints are measured again.
+RECORD_FORMAT = 4
 # The report's keys (documented in the module docstring; the tests hold the output to them).
 REPORT_KEYS = ("tool", "created", "settings", "machine", "scenes", "records", "pareto", "failed")
 MACHINE_KEYS = ("cpu", "cores", "gl_renderer", "onnxruntime", "numpy", "gemm_size", "gemm_numpy_gflops",
                 "gemm_onnxruntime_gflops", "machine_gflops", "resumed", "load_average", "other_cpu_share")
 SCENE_KEYS = ("scene", "path", "geometry", "networks", "weight_bytes", "reference", "packing", "vertex_baseline",
-              "error_images", "measured", "checkpoint")  # fmt: skip
+              "error_images", "measured", "checkpoint", "views_from", "exposure")  # fmt: skip
 PACKING_KEYS = (
     "resolution", "all_pixels", "covered_pixels", "network_segments", "naive_rows_per_segment", "naive_total_rows",
     "naive_inference_ms", "packed_inference_ms", "packing_speedup", "pixel_ratio", "work_ratio", "naive_max_abs_diff",
@@ -122,7 +134,7 @@ RECORD_KEYS = (
     "scene", "backend", "transfer", "precision", "material", "resolution", "width", "height", "views", "fps", "frame_ms",
     "stages_ms", "network_ms", "mae", "psnr", "ssim", "psnr_whole", "weight_bytes", "flops_per_fragment",
     "covered_pixels", "achieved_gflops", "machine_gflops", "machine_percent", "transfer_max_abs_diff", "ref_rays",
-    "ref_noise_psnr", "label", "pareto",
+    "ref_noise_psnr", "label", "pareto", "leak", "leak_error",
 )  # fmt: skip
 
 
@@ -145,6 +157,9 @@ def _backend_cell(record: dict) -> str:
     """The backend column: the texture baseline names its texture size, the equal-bytes vertex baseline its vertices."""
     if record.get("equal_bytes"):
         return f"vertex at equal bytes ({record['equal_bytes']['vertices']:,} vertices)"
+    if "probe_grid" in record:
+        g = record["probe_grid"]
+        return f"probes {g['density']} ({'x'.join(map(str, g['dims']))})"
     if "texture_size" in record:
         return f"texture {record['texture_size']}^2"
     if record.get("interpolate"):  # screen-space interpolation: its tolerance and the share of pixels that ran a network
@@ -218,6 +233,36 @@ def _mitsuba_lines(scene: dict) -> list[str]:
     return lines
 
 
+def _probe_lines(scene: dict) -> list[str]:
+    """The probe-grid baseline's grids and leak mitigation (``--backends probes``)."""
+    pg = scene.get("probe_grid")
+    if not pg:
+        return []
+    if "note" in pg:
+        return [f"- probe grid: {pg['note']}"]
+    grids = "; ".join(f"{d}: {'x'.join(map(str, g['dims']))} = {g['probes']:,} probes ({g['invalid']} invalid), spacing "
+                      f"{g['spacing']:.4g} scene units, {g['weight_bytes']:,} bytes" for d, g in pg["grids"].items())  # fmt: skip
+    engine = f"engine density {pg['engine_spacing_m']:g} m in the source's units" + (" (clamped to the probe limits)" if pg["engine_clamped"] else "")
+    return [f"- probe grid (L2 SH irradiance, 27 float32 per probe, trilinear): {grids}; {engine}; leak mitigation: {pg['mitigation']}; "
+            f"{pg['radiance']}"]
+
+
+def _leak_lines(scene: dict, records: list) -> list[str]:
+    """Light leaking per configuration (:mod:`prt.bench.leak`), with the reference's second seed as its floor."""
+    rows = [r for r in records if r.get("leak") is not None]
+    floor = scene["reference"].get("leak") or {}
+    if not rows and not floor:
+        return []
+    lines = ["- light leaking (share of the reference's dark pixels, under 1/8 of the frame's key, lit above 1/2 of it; "
+             "mean excess there in key units):"]
+    for res, per in floor.items():
+        cells = ", ".join(f"{m} {100 * f['leak']:.2f} % / {f['leak_error']:.4f}" for m, f in per.items() if f["leak"] is not None)
+        lines.append(f"  - reference, second seed at view 0, {res}: {cells or 'no dark pixels'}")
+    for r in rows:
+        lines.append(f"  - {r['resolution']} {r['label']}: {100 * r['leak']:.2f} % / {r['leak_error']:.4f}")
+    return lines
+
+
 def markdown(report: dict) -> str:
     """The report as Markdown: the configurations' table, then packing, reference and machine lines."""
     machine = report["machine"]
@@ -272,6 +317,7 @@ def markdown(report: dict) -> str:
                 b = vb["bounces"]
                 lines.append(f"- vertex baseline with {transfer_label(b['bounces'])}: x 64 float32 (direct + indirect RGB) = {b['weight_bytes']:,} "
                              f"bytes; {b['rays']} bounce rays per vertex sample; estimator: {b['estimator']}")  # fmt: skip
+        lines += _probe_lines(s) + _leak_lines(s, [r for r in report["records"] if r["scene"] == s["scene"]])
     gemm = f"numpy {machine['gemm_numpy_gflops']:.1f}, onnxruntime {machine['gemm_onnxruntime_gflops']:.1f}" if "gemm_numpy_gflops" in machine else "numpy"
     if machine.get("resumed"):
         times = sorted(r["measured"] for r in machine["resumed"])
@@ -453,6 +499,10 @@ def scene_checkpoint(scene_path, settings) -> Path:
         options["baseline_rays"] = settings.baseline_rays
     if getattr(settings, "gl_device", None) is not None:  # (likewise)
         options["gl_device"] = settings.gl_device
+    if getattr(settings, "cameras", None):  # (likewise)
+        options["cameras"] = [list(c) for c in settings.cameras]
+    if getattr(settings, "exposure", 1.0) != 1.0:  # (likewise)
+        options["exposure"] = settings.exposure
     if getattr(settings, "reference", "ours") != "ours":  # (likewise)
         options.update(reference=settings.reference, mitsuba_spp=settings.mitsuba_spp, mitsuba_views=settings.mitsuba_views,
                        mitsuba_variant=settings.mitsuba_variant)  # fmt: skip

@@ -1,7 +1,11 @@
 """Every configuration of one scene, measured against the reference (:class:`SceneBench`), and :func:`run`.
 
 For every scene, a camera trajectory of ``--views`` views orbits the manifest camera about its
-target (the paper's Table 1 protocol).  Every configuration (backend ``onnx`` at each ONNX
+target (the paper's Table 1 protocol), or the views of a ``--cameras`` file are rendered
+(:mod:`prt.bench.cameras`; inside views too).  Images are scored at ``--exposure``
+(``auto``: the reference frame's own, :mod:`prt.bench.exposure`); every record also carries the
+light-leaking figure (:mod:`prt.bench.leak`); ``--backends probes`` adds the engines' L2 SH
+probe grid (:mod:`prt.bench.probe_bench`).  Every configuration (backend ``onnx`` at each ONNX
 precision, :mod:`prt.export.precision`; backend ``glsl``; the vertex-space baseline,
 :mod:`prt.bench.vertex_prt`; the texture-space baseline at each ``--texture-size``,
 :mod:`prt.bench.texture_prt`; material diffuse and glossy, :data:`MATERIALS`; each ``--size``)
@@ -36,6 +40,7 @@ import numpy as np
 import onnxruntime
 from threadpoolctl import threadpool_limits
 
+from prt.bench.leak import leak_figures, mean_leak
 from prt.bench.machine import busy_seconds, cpu_name, machine_gemm, other_cpu_share
 from prt.bench.metrics import image_metrics, mark_pareto
 from prt.bench.packing import packing_baseline
@@ -96,6 +101,9 @@ class Settings:
     mitsuba_variant: str = "auto"  # llvm_ad_rgb where a libLLVM works, else scalar_rgb
     equal_bytes: bool = False  # also the vertex baseline on the mesh decimated to the build's bytes (bench/equal_bytes.py)
     gl_device: str | None = None  # the EGL device that draws (runtime/gl_devices.py; None: $PRT_GL_DEVICE, else auto)
+    cameras: tuple | None = None  # --cameras: ([eye], [target], [up], fov) per view (bench/cameras.py); None: the orbit
+    cameras_file: str | None = None  # where they came from (reported)
+    exposure: object = 1.0  # every image's exposure: a number, or "auto" (the reference frame's, bench/exposure.py)
 
     @property
     def rays_of_baselines(self) -> int:
@@ -159,7 +167,7 @@ def _measure_renderer(renderer, views, material_name, material, settings, transf
         renderer.render()
         warm_s = time.perf_counter() - t0
     measured = budget_views(views, settings.config_budget, warm_s)
-    stages, metrics, gflops, frames, fractions = defaultdict(list), defaultdict(list), [], [], []
+    stages, metrics, gflops, frames, fractions, leaks = defaultdict(list), defaultdict(list), [], [], [], []
     transfer0 = None
     for k, view in enumerate(measured):
         renderer.set_camera_object(view.camera)
@@ -171,12 +179,13 @@ def _measure_renderer(renderer, views, material_name, material, settings, transf
         network_ms = renderer.timings.get("inference", renderer.timings.get("network", 0.0))
         if network_ms > 0:  # with interpolation only that share of the covered pixels ran (segments weighted alike)
             gflops.append(view.flops * fractions[-1] / (network_ms * 1e-3) / 1e9)
-        for name, value in image_metrics(tonemap(image), view.references[material_name], view.gbuffer.covered).items():
+        for name, value in image_metrics(view.tonemap(image, material_name), view.references[material_name], view.gbuffer.covered).items():
             metrics[name].append(value)
+        leaks.append(_leak(image, view, material_name))
         if k == 0:
             transfer0 = renderer.render_transfer()[view.gbuffer.covered]  # cached: no network runs
-            image0 = tonemap(image)
-    summary = _summarise(stages, metrics, gflops, frames)
+            image0 = view.tonemap(image, material_name)
+    summary = {**_summarise(stages, metrics, gflops, frames), **mean_leak(leaks)}
     summary["network_ms"] = summary["stages_ms"].get("inference", summary["stages_ms"].get("network", 0.0))
     summary["views"] = len(measured)
     summary["network_fraction"] = round(float(np.median(fractions)), 4)  # covered pixels that ran a network (< 1 with screen-space interpolation)
@@ -184,6 +193,13 @@ def _measure_renderer(renderer, views, material_name, material, settings, transf
     if transfer_fp32 is not None:
         summary["transfer_max_abs_diff"] = float(np.abs(transfer0 - transfer_fp32).max(initial=0.0))
     return summary, transfer0
+
+
+def _leak(image, view, material_name) -> dict:
+    """:func:`prt.bench.leak.leak_figures` of one linear image of ``view``."""
+    if view.luminance is None:
+        return {"leak": None, "leak_error": None}
+    return leak_figures(image, view.luminance[material_name], view.key_exposure[material_name], view.gbuffer.covered)
 
 
 def vertex_frame(vertex, gbuffer_pass, camera, material, lighting) -> tuple[np.ndarray, dict]:
@@ -213,19 +229,25 @@ def _measure_vertex(vertex, gbuffer_pass, views, material_name, material, lighti
     def frame(camera):
         return vertex_frame(vertex, gbuffer_pass, camera, material, lighting)
 
+    return _measure_frames(frame, views, material_name, settings)
+
+
+def _measure_frames(frame, views, material_name, settings) -> dict:
+    """The frames of a baseline drawn by ``frame(camera) -> (linear image, timings)`` and their errors."""
     for i in range(settings.warmup):
         frame(views[0].camera.orbit(0.01 * (i + 1)))
-    stages, metrics, frames = defaultdict(list), defaultdict(list), []
+    stages, metrics, frames, leaks = defaultdict(list), defaultdict(list), [], []
     image0 = None
     for view in views:
         image, timings = frame(view.camera)
-        image0 = tonemap(image) if image0 is None else image0
+        image0 = view.tonemap(image, material_name) if image0 is None else image0
         for name, ms in timings.items():
             stages[name].append(ms)
         frames.append(timings["frame"])
-        for name, value in image_metrics(tonemap(image), view.references[material_name], view.gbuffer.covered).items():
+        for name, value in image_metrics(view.tonemap(image, material_name), view.references[material_name], view.gbuffer.covered).items():
             metrics[name].append(value)
-    summary = _summarise(stages, metrics, [], frames)
+        leaks.append(_leak(image, view, material_name))
+    summary = {**_summarise(stages, metrics, [], frames), **mean_leak(leaks)}
     summary["network_ms"] = 0.0
     summary["_image0"] = image0
     return summary
@@ -258,7 +280,11 @@ class SceneBench:
         # Ray-traced transfer is keyed by its inputs (points, normals, rays, seed, geometry), so
         # scenes of one mesh (k = 64, k = 128, right-sized) share their references and vertices.
         self.transfer_cache = settings.cache / "transfer"
-        self.cameras = orbit_views(Camera.from_manifest(manifest.camera), settings.views)
+        if settings.cameras:  # --cameras: the views a file gives (bench/cameras.py), in the manifest camera's clip range
+            near_far = Camera.from_manifest(manifest.camera)
+            self.cameras = [Camera(eye, target, up, fov, near_far.near, near_far.far) for eye, target, up, fov in settings.cameras]
+        else:
+            self.cameras = orbit_views(Camera.from_manifest(manifest.camera), settings.views)
         self.materials = _materials(manifest)
         self.variants = {p: variant_manifest(manifest, p, self.cache / "models") for p in settings.precisions}
         self.weights = {p: model_weight_bytes(m) for p, m in self.variants.items()}
@@ -278,7 +304,9 @@ class SceneBench:
                           "rays_by_size": {}, "hit_rays_by_size": {}, "plan": {}, "convergence": {},
                           "rays_max": settings.ref_rays_max, "hit_rays_max": settings.ref_hit_rays_max, "budget_s": settings.ref_budget},
             "packing": [], "vertex_baseline": vertex_info, "texture_baseline": texture_info, "error_images": [],
+            "views_from": settings.cameras_file or "orbit", "exposure": settings.exposure,
         }  # fmt: skip
+        self.probe_grids = None  # baked at the first size (bench/probe_bench.py)
         self._interreflection()
         self.vertex_bounced = self._vertex_bounces()
         self.records: list[dict] = []
@@ -308,9 +336,13 @@ class SceneBench:
         for size in self.settings.sizes:
             # This renderer's G-buffer defines the pixels; every other renderer draws the same ones.
             with Renderer(self.scene, size, size, backend="onnx", ctx=self.ctx) as base:
+                for v, camera in enumerate(self.cameras if self.settings.cameras else []):  # before any ray is traced
+                    base.set_camera_object(camera)
+                    if not base.gbuffer_image().covered.any():
+                        raise InputError(f"{self.settings.cameras_file}: views[{v}] sees no part of the scene at {size}x{size}")
                 self._pilot_images = None  # view 0's configurations at this size (bench/quiet_reference.py's pilot)
                 views = reference_views(self.source, base, self.cameras, size, self.materials, self.settings,
-                                        lambda refs, covered: self._pilot(base, refs, covered, size), self.entry["reference"],
+                                        lambda refs, covered, exposure: self._pilot(base, refs, covered, exposure, size), self.entry["reference"],
                                         lambda segment: _segment_flops(self.manifest, segment), self.log)  # fmt: skip
                 if self.entry["networks"] and "onnx" in self.settings.backends:
                     cameras = spread(self.cameras, self.settings.packing_views)
@@ -319,6 +351,8 @@ class SceneBench:
                 if self.vertex_data is not None:
                     self._vertex_records(size, views, base.gbuffer, base.lighting)
                 self._texture_records(size, views)
+                if "probes" in self.settings.backends:
+                    self._probe_records(size, views, base.gbuffer, base.lighting)
                 self._check_convergence(size)
                 if self.settings.images is not None:
                     path = Path(self.settings.images) / f"{self.manifest.name}-{size}x{size}.png"
@@ -390,7 +424,7 @@ class SceneBench:
             self.entry["vertex_baseline"]["equal_bytes"] = self._equal[2]
         return self._equal
 
-    def _pilot(self, renderer, references: dict, covered, size: int) -> dict:
+    def _pilot(self, renderer, references: dict, covered, exposure: dict, size: int) -> dict:
         """{material: best PSNR} at view 0 (the renderer's view) against ``references``, over the fp32
         networks and every vertex and texture baseline (:mod:`prt.bench.quiet_reference`)."""
         if self._pilot_images is None:
@@ -398,7 +432,7 @@ class SceneBench:
         best = {}
         for images in self._pilot_images.values():
             for name, image in images.items():
-                psnr = image_metrics(tonemap(image), references[name], covered)["psnr"]
+                psnr = image_metrics(tonemap(image, exposure[name]), references[name], covered)["psnr"]
                 best[name] = max(best.get(name, -math.inf), psnr)
         return best
 
@@ -506,6 +540,19 @@ class SceneBench:
                                    network_ms=summary["stages_ms"].get("texture", 0.0))  # the transfer stage: the fetch pass
                     self._add(common, "texture", "fp16", name, summary, stats["bytes"])
 
+    def _probe_records(self, size: int, views: list, gbuffer_pass, lighting) -> None:
+        """The probe-grid baseline at both densities, diffuse only (:mod:`prt.bench.probe_bench`)."""
+        from prt.bench.probe_bench import probe_frame, scene_grids
+
+        if self.probe_grids is None:
+            self.probe_grids, self.entry["probe_grid"] = scene_grids(self, lighting)
+        common = {**self._common(size, views), "flops_per_fragment": 0.0}
+        material = self.materials["diffuse"]
+        for density, grid in self.probe_grids.items():
+            summary = _measure_frames(lambda camera: probe_frame(grid, gbuffer_pass, camera, material.albedo, size, size), views, "diffuse", self.settings)
+            summary.update(network_ms=summary["stages_ms"].get("probes", 0.0), achieved_gflops=0.0, transfer_max_abs_diff=None, probe_grid=grid.info)
+            self._add(common, "probes", "fp32", "diffuse", summary, grid.weight_bytes)
+
     def _vertex_records(self, size: int, views: list, gbuffer_pass, lighting) -> None:
         """The vertex baseline with both materials, and how well its pixels match the G-buffer's."""
         resolution = f"{size}x{size}"
@@ -555,11 +602,14 @@ def _record(common, backend, precision, material, summary, weight_bytes, noise_p
         record["label"] = f"vertex equal-bytes{carries} {material}"
     if "texture_size" in record:
         record["label"] = f"{backend} {record['texture_size']}{carries} {material}"
+    if "probe_grid" in record:  # the probe grid, at equal bytes or the engine density
+        record["label"] = f"probes {record['probe_grid']['density']} {material}"
     record.setdefault("transfer_max_abs_diff", None)
+    leak = "" if record.get("leak") is None else f", leak {100 * record['leak']:.1f} % ({record['leak_error']:.3f} key)"
     log(
         f"  {record['scene']} {record['resolution']} {record['label']}: {record['fps']:.1f} FPS "
         f"({record['frame_ms']:.1f} ms, network {record['network_ms']:.1f} ms), PSNR {record['psnr']:.2f} dB "
-        f"(whole {record['psnr_whole']:.2f}), SSIM {record['ssim']:.4f}, MAE {record['mae']:.4f}"
+        f"(whole {record['psnr_whole']:.2f}), SSIM {record['ssim']:.4f}, MAE {record['mae']:.4f}{leak}"
     )
     return record
 

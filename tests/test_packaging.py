@@ -130,3 +130,47 @@ def test_build_commands_without_the_train_extra_say_what_to_install(tmp_path, bl
     assert len(lines) == 1 and 'pip install "prt-runtime[train]"' in lines[0], lines
     assert any(f"module {name!r} is not installed" in lines[0] for name in blocked), lines[0]
     assert not (tmp_path / "out").exists()
+
+
+# What a runtime-only install (pip install prt-runtime) lacks: the [train] extra and the optional ones.
+NOT_IN_RUNTIME = ("torch", "onnx", "trimesh", "embreex", "scipy", "skimage", "matplotlib", "xatlas", "fast_simplification",
+                  "pygame", "imageio_ffmpeg", "ray", "mitsuba", "openvino")  # fmt: skip
+
+ENTRY_WITHOUT_EXTRAS = """
+import importlib, importlib.abc, sys
+BLOCKED = {blocked!r}
+class Block(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in BLOCKED:
+            raise ModuleNotFoundError("No module named " + repr(name), name=name)
+sys.meta_path.insert(0, Block())
+module, function = {target!r}.split(":")
+sys.exit(getattr(importlib.import_module(module), function)({argv!r}))
+"""
+
+
+def _console_scripts() -> dict:
+    import tomllib
+
+    return tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+
+
+def test_every_console_script_is_checked_below():
+    assert set(_console_scripts()) == {"prt-precompute", "prt-train", "prt-runtime", "prt-bench", "prt-web"}
+
+
+@pytest.mark.parametrize("command,argv", [(name, ["--help"]) for name in ("prt-precompute", "prt-train", "prt-runtime", "prt-bench", "prt-web")]
+                         + [("prt-bench", ["deform", "--help"])])  # fmt: skip
+def test_every_command_on_a_runtime_only_install_helps_or_says_what_to_install(tmp_path, command, argv):
+    """Issue 44: with every extra missing, ``COMMAND --help`` prints its help, or one line naming the
+    missing module and the ``pip install`` that brings it, and exit status 2; never a traceback."""
+    code = ENTRY_WITHOUT_EXTRAS.format(blocked=NOT_IN_RUNTIME, target=_console_scripts()[command], argv=argv)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)
+    assert "Traceback" not in out.stderr, out.stderr
+    if out.returncode == 0:
+        assert out.stdout.startswith("usage:") and not out.stderr.strip(), (out.stdout[:200], out.stderr)
+        return
+    lines = out.stderr.strip().splitlines()
+    assert out.returncode == 2 and len(lines) == 1, out.stderr
+    assert lines[0].startswith(f"{command}") and 'pip install "prt-runtime[train]"' in lines[0], lines[0]
+    assert any(f"module {name!r} is not installed" in lines[0] for name in NOT_IN_RUNTIME), lines[0]

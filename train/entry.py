@@ -1,4 +1,4 @@
-"""The console entry points of the build commands (``prt-train``, ``prt-precompute``).
+"""The console entry points of the build commands (``prt-train``, ``prt-precompute``); ``prt-bench`` uses :func:`load_command` alike.
 
 They import their command module only when run, so that a machine without the ``[train]``
 extra (torch, trimesh, embreex, ...: a runtime-only install) gets one line saying what to
@@ -15,8 +15,9 @@ __all__ = ["train_main", "precompute_main", "load_command"]
 INSTALL = 'pip install "prt-runtime[train]"'
 
 
-def load_command(module: str, command: str):
-    """``module`` imported, or None after one line on stderr when a dependency is missing."""
+def load_command(module: str, command: str, purpose: str = "building scenes"):
+    """``module`` imported, or None after one line on stderr when a dependency is missing
+    (``purpose``: what needs the [train] extra, e.g. "benchmarking")."""
     try:
         return importlib.import_module(module)
     except ImportError as exc:
@@ -24,7 +25,7 @@ def load_command(module: str, command: str):
         if name == "prt" or name.startswith("prt."):
             raise  # a bug of ours, not a missing extra
         what = f"module {name!r} is not installed" if name else str(exc)
-        print(f"{command}: error: {what}; building scenes needs the [train] extra: {INSTALL}", file=sys.stderr)
+        print(f"{command}: error: {what}; {purpose} needs the [train] extra: {INSTALL}", file=sys.stderr)
         return None
 
 
