@@ -1,0 +1,137 @@
+"""Many segments, one cost: the frame time of a scene with ~512 segments against the same mesh with 8,
+every network of one architecture, on the ONNX backend (one session per segment, the reference
+path, beside the stacked models of :mod:`prt.runtime.onnx_stack`) and the GLSL backend.
+
+usage: python studies/many_segments_bench.py SCENE8 SCENE512 [--size 512] [--glsl-size 512]
+                                             [--rounds 5] [--frames 4] [--json OUT] [--md OUT]
+
+The two scenes are built from one mesh with ``prt-train MESH --segments 8|512 --hidden 32 --layers 2
+--no-analytic --residual on ...`` (see ``docs/benchmarks/many_segments.md`` for the commands used).
+One process renders both scenes; round after round, each configuration (onnx per-segment, onnx
+stacked, glsl) renders ``--frames`` frames of each scene in turn, the camera moving a little every
+frame (so every frame runs the networks), the first frame after a switch not timed.  Reported: the
+median frame time per configuration and scene, the ratio 512 / 8, and the ONNX backend's stages.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from prt.bench.machine import busy_seconds, other_cpu_share
+from prt.bench.provenance import provenance
+from prt.runtime.files import atomic_write_bytes
+from prt.runtime.gl import create_context
+from prt.runtime.renderer import Renderer, Scene
+
+CONFIGS = ("onnx per-segment", "onnx stacked", "glsl")
+
+
+def _orbit(renderer: Renderer, k: int) -> None:
+    """A camera a little along the scene's orbit: a new view each frame (the transfer is recomputed)."""
+    cam = renderer.scene.manifest.camera
+    eye, target = np.asarray(cam.eye, float), np.asarray(cam.target, float)
+    a = 0.02 * k
+    d = eye - target
+    rot = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    renderer.set_camera(eye=(target + rot @ d).tolist(), target=target.tolist(), up=np.asarray(cam.up, float).tolist(), fov=float(cam.fov))
+
+
+def _frames(renderer: Renderer, frames: int, counter: list[int]) -> list[dict]:
+    out = []
+    for i in range(frames + 1):
+        counter[0] += 1
+        _orbit(renderer, counter[0])
+        t0 = time.perf_counter()
+        renderer.render()
+        ms = 1e3 * (time.perf_counter() - t0)
+        if i:  # the first frame after a switch is not timed
+            out.append({"wall": ms, **renderer.timings})
+    return out
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("scenes", nargs=2, type=Path, help="the 8-segment scene.json, then the ~512-segment one")
+    p.add_argument("--size", type=int, default=512, help="ONNX frames' size [512]")
+    p.add_argument("--glsl-size", type=int, default=512, help="GLSL frames' size [512]")
+    p.add_argument("--rounds", type=int, default=5)
+    p.add_argument("--frames", type=int, default=4)
+    p.add_argument("--glsl-frames", type=int, default=2)
+    p.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=CONFIGS)
+    p.add_argument("--block-rows", type=int, default=None, help="rows per block of the stacked models [the engine's default]")
+    p.add_argument("--json", type=Path, default=None)
+    p.add_argument("--md", type=Path, default=None)
+    args = p.parse_args(argv)
+    ctx = create_context()
+    scenes = [Scene.load(s) for s in args.scenes]
+    counts = [len(s.manifest.segments) for s in scenes]
+    renderers = {}
+    load_s = {}
+    for j, scene in enumerate(scenes):
+        t0 = time.perf_counter()
+        r = Renderer(scene, args.size, args.size, "onnx", ctx=ctx)
+        r.render()
+        load_s[f"onnx {counts[j]}"] = time.perf_counter() - t0
+        renderers[("onnx", j)] = r
+        if "glsl" in args.configs:
+            t0 = time.perf_counter()
+            g = Renderer(scene, args.glsl_size, args.glsl_size, "glsl", ctx=ctx)
+            g.render()
+            load_s[f"glsl {counts[j]}"] = time.perf_counter() - t0
+            renderers[("glsl", j)] = g
+    engines = [renderers[("onnx", j)]._backends["onnx"].engine for j in range(2)]
+    stacks = [[len(s.segments) for s in e.stacks] for e in engines]
+    for e in engines:
+        e.block_rows = args.block_rows or e.block_rows
+    load_start, wall_start = busy_seconds(), time.perf_counter()
+    runs: dict[str, list[list[dict]]] = {c: [[], []] for c in args.configs}
+    counter = [0]
+    for k in range(args.rounds):
+        for config in args.configs:
+            for j in range(2):
+                if config == "glsl":
+                    runs[config][j] += _frames(renderers[("glsl", j)], args.glsl_frames, counter)
+                    continue
+                engines[j].batched = config == "onnx stacked"
+                runs[config][j] += _frames(renderers[("onnx", j)], args.frames, counter)
+        print(f"round {k + 1}: " + ", ".join(f"{c} {np.median([f['wall'] for f in runs[c][0]]):.1f} / "
+                                             f"{np.median([f['wall'] for f in runs[c][1]]):.1f} ms" for c in args.configs), flush=True)  # fmt: skip
+    load = other_cpu_share(load_start, time.perf_counter() - wall_start)
+    for r in renderers.values():
+        r.close()
+    rows = {}
+    for config in args.configs:
+        per = []
+        for j in range(2):
+            frames = runs[config][j]
+            stages = {st: float(np.median([f[st] for f in frames if st in f])) for st in frames[0]}
+            per.append({"segments": counts[j], "frame_ms": stages["wall"], "stages_ms": stages, "frames": len(frames)})
+        size = args.glsl_size if config == "glsl" else args.size
+        rows[config] = {"size": size, "scenes": per, "ratio": per[1]["frame_ms"] / per[0]["frame_ms"]}
+    lines = [f"| configuration | size | {counts[0]} segments (ms) | {counts[1]} segments (ms) | ratio | stages at {counts[1]} (ms) |",
+             "|---|---:|---:|---:|---:|---|"]  # fmt: skip
+    for config, row in rows.items():
+        st = ", ".join(f"{k} {v:.1f}" for k, v in row["scenes"][1]["stages_ms"].items() if k not in ("wall", "frame"))
+        lines.append(f"| {config} | {row['size']} | {row['scenes'][0]['frame_ms']:.1f} | {row['scenes'][1]['frame_ms']:.1f} | "
+                     f"{row['ratio']:.2f} | {st} |")  # fmt: skip
+    lines += ["", f"Stacked models (segments each): {stacks[0]} / {stacks[1]}; first frame incl. load (s): "
+              + ", ".join(f"{k} {v:.2f}" for k, v in load_s.items()), f"Other processes' share of the CPUs during the run: {load}"]  # fmt: skip
+    text = "\n".join(lines)
+    print(text)
+    if args.json:
+        record = {"provenance": provenance(gl_renderer=ctx.info.get("GL_RENDERER"), other_cpu_share=load),
+                  "scenes": [str(s) for s in args.scenes], "rounds": args.rounds, "frames": args.frames,
+                  "glsl_frames": args.glsl_frames, "stacks": stacks, "block_rows": engines[0].block_rows, "first_frame_s": load_s, "rows": rows}  # fmt: skip
+        atomic_write_bytes(args.json, json.dumps(record, indent=1).encode())
+    if args.md:
+        atomic_write_bytes(args.md, (text + "\n").encode())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
