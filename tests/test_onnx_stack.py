@@ -8,6 +8,7 @@ Tolerance: stacked and per-segment transfer agree within 1e-5 absolute (relative
 
 from __future__ import annotations
 
+import json
 import types
 
 import numpy as np
@@ -200,3 +201,21 @@ def test_renderer_frames_match_with_and_without_stacks():
             r.set_camera_object(r.camera)  # a new view: the networks run again
             got = r.render()
             assert np.abs(ref - got).max() <= TOL * max(1.0, float(np.abs(ref).max()))
+
+
+def test_many_segments_study_records_both_paths(bench_module, tmp_path):
+    """studies/many_segments_bench.py on the demo as both scenes (tiny): each configuration's frame times,
+    the ratio, and the inference pairs, stacked against per-segment."""
+    from prt.runtime.renderer import demo_scene_path
+
+    study = bench_module("many_segments_bench")
+    out = tmp_path / "ms.json"
+    scene = str(demo_scene_path())
+    assert study.main([scene, scene, "--size", "32", "--glsl-size", "16", "--rounds", "1", "--frames", "1",
+                       "--glsl-frames", "1", "--pairs", "2", "--json", str(out)]) == 0  # fmt: skip
+    record = json.loads(out.read_text())
+    assert set(record["rows"]) == {"onnx per-segment", "onnx stacked", "glsl"}
+    for row in record["rows"].values():
+        assert row["ratio"] > 0 and all(s["frames"] == 1 and s["frame_ms"] > 0 for s in row["scenes"])
+    assert record["stacks"] == [[3], [3]] and record["provenance"]["date"]
+    assert all(r["per_segment_ms"] > 0 and r["stacked_ms"] > 0 for r in record["inference"]["scenes"]) and record["inference"]["ratio_stacked"] > 0

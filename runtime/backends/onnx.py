@@ -16,6 +16,15 @@ slice's output is copied into its block (no scatter: the transfer stays in packe
 renderer shades packed rows, then scatters the radiance once).  Analytic (unshadowed) segments
 skip the network: their transfer is :func:`prt.runtime.sh.unshadowed_transfer` (in float32).
 
+Many segments, one cost: the network segments that share an architecture are also loaded as one
+stacked model (:mod:`prt.runtime.onnx_stack`, built at load time from their files), which takes
+blocks of 64 rows and each block's segment; a frame's rows of all those segments go to it in calls
+of about ``slice_rows`` rows, so the number of calls follows the rows, not the segments (a segment
+with ``stack_below`` rows or more in the frame keeps its own session: there a call's fixed cost is
+small and the plain model a little faster per row).  Each stacked model is checked against its
+segments' own sessions on probe rows at load (:data:`STACK_TOLERANCE`); those sessions stay the
+reference path (``batched=False``) and run whatever does not stack.
+
 :class:`OnnxTransfer` is the engine (sessions and packed inference, no OpenGL); :class:`OnnxBackend`
 puts it behind :class:`prt.runtime.backends.TransferBackend`.  :meth:`OnnxTransfer.compute` keeps the
 pixel-ordered contract for callers with their own arrays (benchmarks); :meth:`OnnxTransfer.compute_reference`
