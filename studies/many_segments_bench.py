@@ -8,9 +8,11 @@ usage: python studies/many_segments_bench.py SCENE8 SCENE512 [--size 512] [--gls
 The two scenes are built from one mesh with ``prt-train MESH --segments 8|512 --hidden 32 --layers 2
 --no-analytic --residual on ...`` (see ``docs/benchmarks/many_segments.md`` for the commands used).
 One process renders both scenes; round after round, each configuration (onnx per-segment, onnx
-stacked, glsl) renders ``--frames`` frames of each scene in turn, the camera moving a little every
-frame (so every frame runs the networks), the first frame after a switch not timed.  Reported: the
-median frame time per configuration and scene, the ratio 512 / 8, and the ONNX backend's stages.
+stacked, glsl) renders ``--frames`` frames of each scene in turn (the order reversed every other
+round), the camera moving a little every frame (so every frame runs the networks), the first frame
+after a switch not timed.  Reported: the median frame time per configuration and scene, the ratio
+512 / 8 (of the medians, and the median of each round's ratio), the stages; then the inference stage
+alone on one frame's rows of each scene, per-segment and stacked, ratios taken within a round.
 """
 
 from __future__ import annotations
@@ -56,7 +58,7 @@ def _frames(renderer: Renderer, frames: int, counter: list[int]) -> list[dict]:
 
 def _inference_pairs(renderers, engines, pairs: int) -> dict:
     """The inference stage alone on one frame's rows of each scene (captured from the renderer): each
-    round calls the four (scene, path) pairs in turn -- per-segment sessions and stacked models, 8 and
+    round calls the four (scene, path) pairs in turn (in reverse every other round) -- per-segment sessions and stacked models, 8 and
     ~512 segments -- and the ratios are taken within a round (medians over ``pairs`` rounds), steadier
     than frames on a busy machine."""
     rows = []
@@ -70,8 +72,8 @@ def _inference_pairs(renderers, engines, pairs: int) -> dict:
             del engine.infer_sorted
         rows.append((captured["x"], captured["offsets"]))
     times = {(j, b): [] for j in range(2) for b in (False, True)}
-    for _ in range(pairs):
-        for (j, batched), out in times.items():
+    for k in range(pairs):
+        for (j, batched), out in list(times.items())[:: 1 if k % 2 else -1]:  # the order reversed every other round (caches)
             engines[j].batched = batched
             t0 = time.perf_counter()
             engines[j].infer_sorted(*rows[j])
@@ -127,8 +129,8 @@ def main(argv=None) -> int:
     runs: dict[str, list[list[dict]]] = {c: [[], []] for c in args.configs}
     counter = [0]
     for k in range(args.rounds):
-        for config in args.configs:
-            for j in range(2):
+        for config in args.configs[:: 1 if k % 2 else -1]:  # the order reversed every other round
+            for j in range(2)[:: 1 if k % 2 else -1]:
                 if config == "glsl":
                     frames = _frames(renderers[("glsl", j)], args.glsl_frames, counter)
                 else:
