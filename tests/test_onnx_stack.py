@@ -158,6 +158,15 @@ def test_mixed_architectures_stack_apart_and_the_rest_falls_back(tmp_path):
             assert _close(ref, engine.infer_sorted(x, offsets)) <= TOL
     finally:
         engine.close()
+    bound = OnnxTransfer(_manifest(tmp_path, models), threads=2, bound=True, block_rows=8, stack_below=1000)  # a GPU provider's path
+    try:
+        calls = []
+        for st in bound.stacks:
+            run = st.session.run
+            st.session = types.SimpleNamespace(run=lambda *a, run=run: calls.append(1) or run(*a))
+        assert _close(ref, bound.infer_sorted(x, offsets)) <= TOL and len(calls) == 2  # one call per stack
+    finally:
+        bound.close()
 
 
 def test_a_stacked_model_that_disagrees_is_not_used(tmp_path, monkeypatch):
