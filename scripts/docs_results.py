@@ -25,7 +25,7 @@ PAGES = [
     ("fidelity", "Independent reference", "Our reference and builds against Mitsuba 3; the bounce rule it led to.", ("mitsuba", "entering")),
     ("paper", "Paper table", "The paper's table: networks against vertex and texture PRT, per mesh.", ("paper",)),
     ("frame-rate", "Frame rate", "Frame times of the backends, screen-space interpolation, precision variants, shader compiles.",
-     ("demo_fps", "runtime", "interpolation", "glsl", "network_profile", "int8", "onnx_graph")),
+     ("demo_fps", "runtime", "interpolation", "glsl", "network_profile", "int8", "onnx_graph", "many_segments")),
     ("build-cost", "Build cost", "Precompute, training and cluster timings; quick builds.",
      ("precompute", "train_", "cluster", "spot_quick", "creature_steps")),
     ("networks", "Networks and sizing", "Network size, encodings, residual networks, losses, sampling and segment studies.",

@@ -93,6 +93,7 @@ def _old_frame(r: Renderer, engine: OnnxTransfer, material):
 def test_compute_equals_the_reference_path(gl_ctx, demo):
     with Renderer(demo, SIZE, SIZE, backend="onnx", ctx=gl_ctx) as r:
         engine = r._backend().engine
+        engine.batched = False  # the per-segment sessions, bit for bit (the stacked models: tests/test_onnx_stack.py)
         r.gbuffer.render(r.camera)
         packed = r.gbuffer.read_packed().copy()
         segment = packed[:, PACKED_SEGMENT].astype(np.int32)
@@ -109,6 +110,7 @@ def test_frames_equal_the_pre_issue_path(gl_ctx, demo, threads):
         r.set_background(False)  # the pre-issue frame drew no env-map background
         engine = r._backend().engine
         engine.slice_rows = 700  # several slices per segment, as at full size
+        engine.batched = False  # the per-segment sessions, bit for bit (the stacked models: tests/test_onnx_stack.py)
         for step, glossy in enumerate([False, True, False]):
             r.set_camera_object(r.camera.orbit(0.7 * step))
             if glossy:

@@ -16,6 +16,15 @@ slice's output is copied into its block (no scatter: the transfer stays in packe
 renderer shades packed rows, then scatters the radiance once).  Analytic (unshadowed) segments
 skip the network: their transfer is :func:`prt.runtime.sh.unshadowed_transfer` (in float32).
 
+Many segments, one cost: the network segments that share an architecture are also loaded as one
+stacked model (:mod:`prt.runtime.onnx_stack`, built at load time from their files), which takes
+blocks of 64 rows and each block's segment; a frame's rows of all those segments go to it in calls
+of about ``slice_rows`` rows, so the number of calls follows the rows, not the segments (a segment
+with ``stack_below`` rows or more in the frame keeps its own session: there a call's fixed cost is
+small and the plain model a little faster per row).  Each stacked model is checked against its
+segments' own sessions on probe rows at load (:data:`STACK_TOLERANCE`); those sessions stay the
+reference path (``batched=False``) and run whatever does not stack.
+
 :class:`OnnxTransfer` is the engine (sessions and packed inference, no OpenGL); :class:`OnnxBackend`
 puts it behind :class:`prt.runtime.backends.TransferBackend`.  :meth:`OnnxTransfer.compute` keeps the
 pixel-ordered contract for callers with their own arrays (benchmarks); :meth:`OnnxTransfer.compute_reference`
@@ -35,6 +44,7 @@ from ..checks import positive_int
 from ..errors import ArgumentTypeError, InputError
 from ..interpolation import TransferInterpolator, check_tolerance
 from ..onnxfile import read_model
+from ..onnx_stack import block_layout, read_network, stack_key, stacked_model
 from ..segmentation import segment_sort, segment_sort_reference
 from .base import CpuTransfer, TransferBackend
 
@@ -111,9 +121,19 @@ class OnnxTransfer:
         the transfer array; no slices, no pool).  None (default): where the first provider runs on a
         GPU (:data:`GPU_PROVIDERS`), whose calls cost a launch and a copy each.  True on the CPU tests
         the path against the sliced one.
+    batched : evaluate the segments of one architecture together, one stacked model per architecture
+        (:mod:`prt.runtime.onnx_stack`: rows in blocks of ``block_rows``, a grouped GEMM), so a frame
+        costs one call per architecture and slice, not per segment.  Default True; False (or a scene
+        whose networks do not stack: grid, shape-conditioned, other formats) runs one session per
+        segment, the reference path.  The attribute can be switched between frames.
+    block_rows : rows per block of the stacked models (a segment's last block is padded)
+    stack_below : a segment with at least this many rows in a frame runs its own session even when
+        stacked (a call's fixed cost is small beside its rows, and the plain Gemm model is a little
+        faster per row than the stacked one); the rest of its stack runs in the stacked calls
     """
 
-    def __init__(self, manifest, providers=None, threads: int | None = None, slice_rows: int = 4096, bound: bool | None = None):
+    def __init__(self, manifest, providers=None, threads: int | None = None, slice_rows: int = 4096, bound: bool | None = None,
+                 batched: bool = True, block_rows: int = 64, stack_below: int = 1024):  # fmt: skip
         self.bands = manifest.sh_bands
         # Outputs per row: bands^2, or 4 bands^2 with interreflection (direct, indirect R, G, B)
         self.n = getattr(manifest, "transfer_width", self.bands * self.bands)
@@ -127,6 +147,7 @@ class OnnxTransfer:
         self.models: dict[int, object] = {}  # segment id -> model path, for messages
         self.analytic: set[int] = set()
         self.segment_count = len(manifest.segments)
+        data: dict[int, bytes] = {}
         for seg in manifest.segments:
             if seg.kind == "analytic":
                 self.analytic.add(seg.id)
@@ -134,8 +155,17 @@ class OnnxTransfer:
             model = read_model(seg.model)  # refuses external data (files outside the scene folder)
             self.sessions[seg.id], self.input_names[seg.id] = self._open(model, seg.model)
             self.models[seg.id] = seg.model
+            data[seg.id] = model
             if len(self.sessions[seg.id].get_inputs()) == 2:
                 self._coded.add(seg.id)
+        self.block_rows = positive_int(block_rows, "block_rows")
+        self.stack_below = positive_int(stack_below, "stack_below")
+        self.stacks: list[_Stack] = []
+        self.stack_notes: list[str] = []  # why a group of segments did not stack (probe mismatch)
+        self._stack_of = np.full(self.segment_count, -1, np.intp)
+        self._stack_member = np.full(self.segment_count, -1, np.intp)
+        self._build_stacks(data)
+        self.batched = bool(batched)
         first = next(iter(self.sessions.values())).get_providers()[0] if self.sessions else "CPUExecutionProvider"
         self.bound = first in GPU_PROVIDERS if bound is None else bool(bound)
         self._pool = ThreadPoolExecutor(max_workers=self.threads, thread_name_prefix="ort") if self._concurrent_slices() else None
@@ -144,6 +174,17 @@ class OnnxTransfer:
 
     def _open(self, model: bytes, path):
         """(session, input name) of one checked ONNX model (``path`` for messages)."""
+        import onnxruntime as ort
+
+        try:
+            sess = ort.InferenceSession(model, self._session_options(), providers=self.providers)
+        except Exception as exc:  # onnxruntime raises its own Fail/InvalidGraph types
+            msg = " ".join(str(exc).split())[:200]
+            raise InputError(f"{path}: cannot load ONNX model ({msg})") from None
+        return sess, _check_signature(sess, path, self.n)
+
+    def _session_options(self):
+        """One intra-op thread per call, no spinning: parallelism comes from concurrent slices."""
         import onnxruntime as ort
 
         if not hasattr(self, "_options"):
@@ -155,12 +196,60 @@ class OnnxTransfer:
             opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
             opts.add_session_config_entry("session.inter_op.allow_spinning", "0")
             self._options = opts
+        return self._options
+
+    def _build_stacks(self, data: dict[int, bytes]) -> None:
+        """One stacked model per group of segments that share an architecture (two or more), each
+        checked against the segments' own sessions on probe rows before it is used."""
+        groups: dict[tuple, list[tuple[int, dict]]] = {}
+        for s, model in data.items():
+            if s in self._coded:
+                continue
+            read = read_network(model)
+            key = stack_key(*read) if read is not None else None
+            if key is not None:
+                groups.setdefault(key, []).append((s, read[0]))
+        for members in groups.values():
+            if len(members) < 2:
+                continue
+            segments = np.array([s for s, _ in members], np.intp)
+            try:
+                sess = self._stack_session(stacked_model([a for _, a in members]))
+            except InputError as exc:
+                self.stack_notes.append(f"segments {segments[0]}..{segments[-1]}: not stacked ({exc})")
+                continue
+            stack = _Stack(sess, segments)
+            worst = self._probe(stack, [a for _, a in members])
+            if worst > STACK_TOLERANCE:
+                self.stack_notes.append(f"segments {segments[0]}..{segments[-1]}: the stacked model differs from their "
+                                        f"own by {worst:.2g} on probe rows; one session each")  # fmt: skip
+                continue
+            self._stack_of[segments] = len(self.stacks)
+            self._stack_member[segments] = np.arange(len(segments))
+            self.stacks.append(stack)
+
+    def _stack_session(self, model: bytes):
+        import onnxruntime as ort
+
         try:
-            sess = ort.InferenceSession(model, self._options, providers=self.providers)
-        except Exception as exc:  # onnxruntime raises its own Fail/InvalidGraph types
-            msg = " ".join(str(exc).split())[:200]
-            raise InputError(f"{path}: cannot load ONNX model ({msg})") from None
-        return sess, _check_signature(sess, path, self.n)
+            return ort.InferenceSession(model, self._session_options(), providers=self.providers)
+        except Exception as exc:  # onnxruntime's own types
+            raise InputError(" ".join(str(exc).split())[:200]) from None
+
+    def _probe(self, stack, arrays: list[dict], rows: int = 4) -> float:
+        """Largest difference, relative to max(1, |output|), between the stacked model and each
+        member's own session on ``rows`` rows in and around the member's box."""
+        rng = np.random.default_rng(0)
+        x = np.empty((len(arrays), rows, 6), np.float32)
+        for j, a in enumerate(arrays):
+            x[j, :, :3] = a["enc_centre"] + rng.uniform(-1.2, 1.2, (rows, 3)) / a["enc_inv_half"]
+            x[j, :, 3:] = rng.normal(size=(rows, 3))
+        y = stack.session.run(None, {"x": x, "seg": np.arange(len(arrays), dtype=np.int64)})[0]
+        worst = 0.0
+        for j, s in enumerate(stack.segments):
+            ref = self._infer(int(s), x[j])
+            worst = max(worst, float(np.abs(y[j] - ref).max() / max(1.0, float(np.abs(ref).max()))))
+        return worst
 
     def _concurrent_slices(self) -> bool:
         """Whether slices run on a pool of threads (else one after another, the engine's own threads inside)."""
@@ -217,10 +306,17 @@ class OnnxTransfer:
         t0 = time.perf_counter()
         transfer = np.empty((len(x), self.n), dtype=np.float32)
         jobs, bound_calls = [], 0
-        for s in range(len(offsets) - 1):
+        offsets = np.asarray(offsets)
+        present = np.flatnonzero(offsets[1:] != offsets[:-1])
+        stacked = 0
+        if self.batched and self.stacks:
+            known = present[present < self.segment_count]
+            small = offsets[known + 1] - offsets[known] < self.stack_below
+            chosen = known[(self._stack_of[known] >= 0) & small]
+            stacked = self._infer_stacked(x, offsets, chosen, transfer)
+            present = np.setdiff1d(present, chosen, assume_unique=True)
+        for s in present.tolist():
             lo, hi = int(offsets[s]), int(offsets[s + 1])
-            if hi == lo:
-                continue
             if s in self.analytic:
                 self._analytic(transfer, slice(lo, hi), x[lo:hi, 3:6])
                 continue
@@ -232,12 +328,47 @@ class OnnxTransfer:
                 continue
             # The same slices as the pixel-ordered path: each segment's rows cut from its start.
             jobs += [(s, x[a : min(a + self.slice_rows, hi)], a) for a in range(lo, hi, self.slice_rows)]
-        self.calls += bound_calls > 0  # the bound path counts a frame's calls once, as _run does
+        self.calls += bound_calls > 0 or (stacked > 0 and not jobs)  # a frame's calls count once, as in _run
         results = self._run([(s, None, rows, 0) for s, rows, _ in jobs])
         for (_, rows, a), y in zip(jobs, results):
             transfer[a : a + len(rows)] = y
         self.timings = {"inference": 1e3 * (time.perf_counter() - t0)}
         return transfer
+
+    def _infer_stacked(self, x: np.ndarray, offsets: np.ndarray, segments: np.ndarray, transfer: np.ndarray) -> int:
+        """The stacked models on the rows of ``segments`` (ascending, each with rows, each in a stack),
+        written into ``transfer``: each stack's blocks cut into calls of about ``slice_rows`` rows
+        (one call per stack on a GPU provider), run on the pool.  Returns the number of calls."""
+        if not len(segments):
+            return 0
+        tasks = []
+        B = self.block_rows
+        per_call = len(x) if self.bound else max(1, self.slice_rows // B)
+        group = self._stack_of[segments]
+        for g in np.unique(group).tolist():
+            stack, segs = self.stacks[g], segments[group == g]
+            source, member, valid = block_layout(offsets[segs], offsets[segs + 1] - offsets[segs], B)
+            seg = self._stack_member[segs][member].astype(np.int64)
+            cuts = np.searchsorted(valid, np.arange(0, len(member) + per_call, per_call) * B)  # valid slots per call
+            for c, k0 in enumerate(range(0, len(member), per_call)):
+                k1 = min(k0 + per_call, len(member))
+                tasks.append((stack, source[k0:k1], seg[k0:k1], valid[cuts[c] : cuts[c + 1]] - k0 * B))
+
+        def run(task):
+            stack, src, seg, slots = task
+            try:
+                y = stack.session.run(None, {"x": x[src], "seg": seg})[0]
+            except Exception as exc:  # the engine's own error types
+                raise InputError(f"{self.models[int(stack.segments[seg[0]])]} (stacked with its architecture's segments): "
+                                 f"inference failed ({' '.join(str(exc).split())[:200]})") from None  # fmt: skip
+            transfer[src.reshape(-1)[slots]] = y.reshape(-1, self.n)[slots]
+
+        if self._pool is None:
+            for task in tasks:
+                run(task)
+        else:
+            list(self._pool.map(run, tasks))
+        return len(tasks)
 
     def compute(self, inputs: np.ndarray, segment: np.ndarray, columns=(0, 1, 2, 3, 4, 5)):
         """Transfer of every covered pixel, in pixel order (the counting sort, then one scatter).
@@ -329,6 +460,18 @@ class OnnxTransfer:
         if self._pool is None:
             return [run(j) for j in jobs]
         return list(self._pool.map(run, jobs))
+
+
+STACK_TOLERANCE = 1e-4
+"""Largest difference, relative to max(1, |transfer|), a stacked model may show against its segments'
+own sessions on the probe rows (float rounding of other GEMM kernels is ~1e-7)."""
+
+
+class _Stack:
+    """A stacked model (:mod:`prt.runtime.onnx_stack`) and the segment ids it holds, in stack order."""
+
+    def __init__(self, session, segments: np.ndarray):
+        self.session, self.segments = session, segments
 
 
 class OnnxBackend(TransferBackend):
