@@ -30,7 +30,7 @@ import numpy as np
 from .errors import InputError
 
 __all__ = ["KEY", "EPS", "EXPOSURE_RANGE", "TAU", "LUMINANCE", "log_average_luminance", "auto_exposure",
-           "exposure_from_log_mean", "ExposureAdapter", "parse_exposure"]
+           "exposure_from_log_mean", "ExposureAdapter", "parse_exposure", "default_exposure", "SCENE_OBJECTS"]
 
 KEY = 0.18
 EPS = 1.0e-4
@@ -135,3 +135,23 @@ def parse_exposure(value, name: str = "--exposure"):
     if not (math.isfinite(x) and x >= 0):
         raise InputError(f"{name}: expected a number >= 0 or 'auto', got {value!r}")
     return x
+
+
+SCENE_OBJECTS = 10
+"""Objects from which a build counts as a scene (buildings, assemblies, levels) for :func:`default_exposure`."""
+
+
+def default_exposure(manifest):
+    """The exposure a scene opens with: ``"auto"`` for a scene, 1.0 for an object.
+
+    The rule: ``"auto"`` when the manifest's camera stands inside the scene's bounds (an
+    interior; :func:`prt.runtime.camera.inside_bounds`) or the geometry has at least
+    :data:`SCENE_OBJECTS` objects; else 1.0, so single objects on a ground disc (the demo, the
+    bunny, scans, plants) keep the images they had.
+    """
+    from .camera import inside_bounds, scene_box
+
+    objects = getattr(manifest.geometry, "objects", None) or []
+    if len(objects) >= SCENE_OBJECTS or inside_bounds(manifest.camera.eye, scene_box(manifest)):
+        return "auto"
+    return 1.0

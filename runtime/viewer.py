@@ -62,7 +62,7 @@ class ViewerOptions:
     envmap: str | None = None
     material: str | None = None
     exponent: float = 16.0
-    exposure: float = 1.0
+    exposure: float | str | None = None  # a number or "auto"; None: the scene's (Renderer.exposure)
     providers: list[str] | None = None
     threads: int | None = None
     background: bool | None = None
@@ -95,6 +95,8 @@ class ViewerOptions:
             apply_object_albedo(r, name, albedo)
         if self.background is not None:
             r.set_background(self.background)
+        if self.exposure is not None:
+            r.set_exposure(self.exposure)
 
 
 # ---------------------------------------------------------------------------- pure parts
