@@ -72,3 +72,44 @@ def test_parse_exposure():
     for bad in ("-1", "nan", "bright"):
         with pytest.raises(InputError, match="--exposure"):
             parse_exposure(bad)
+
+
+# --------------------------------------------------------------------------- on a renderer's frame
+
+
+@pytest.mark.parametrize("background", [False, True])
+def test_gpu_log_average_matches_the_numpy_twin(gl_ctx, background):
+    """The glsl backend's frame stays on the GPU: its tiles' log-luminance sums (shaders/log_luminance.frag)
+    give the exposure numpy gives on the same frame read back, over the same covered pixels."""
+    from prt.runtime import Renderer, Scene
+    from prt.runtime.exposure_gl import LogLuminanceReduction
+
+    with Renderer(Scene.load(), 72, 56, backend="glsl", ctx=gl_ctx) as r:  # not a multiple of the 16-pixel tile
+        r.set_background(background)
+        image = r.render()
+        mask = r.covered_mask()
+        assert 0 < mask.sum() < mask.size and (image[~mask].sum() > 0) == background
+        gpu = r.frame_exposure()
+        assert gpu == pytest.approx(auto_exposure(image, mask), rel=1e-5)
+        assert gpu != pytest.approx(auto_exposure(image), rel=1e-3)  # the mask matters
+        s, n = LogLuminanceReduction(gl_ctx, 72, 56).sums(r.frame_texture, r.gbuffer.depth_texture)
+        lum = np.maximum(image[mask] @ np.array([0.2126, 0.7152, 0.0722]), 0)
+        assert n == mask.sum() and s == pytest.approx(np.log(EPS + lum).sum(), rel=1e-5)
+
+
+def test_renderer_exposure_api(gl_ctx):
+    from prt.runtime import Renderer, Scene
+    from prt.runtime.shading import to_srgb8
+
+    with Renderer(Scene.load(), 40, 32, ctx=gl_ctx) as r:
+        assert r.exposure == 1.0  # the demo is one object seen from outside: its images do not change
+        image = r.render()
+        cpu = r.frame_exposure()
+        assert cpu == auto_exposure(image, r.covered_mask())
+        np.testing.assert_array_equal(r.render_srgb(), to_srgb8(image, 1.0))
+        r.set_exposure("auto")
+        np.testing.assert_array_equal(r.render_srgb(), to_srgb8(image, cpu))
+        with pytest.raises(InputError, match="set_exposure"):
+            r.set_exposure(-2)
+    with Renderer(Scene.load(), 40, 32, ctx=gl_ctx, exposure="auto") as r:
+        assert r.exposure == "auto"
