@@ -22,7 +22,7 @@ from .checks import FLOAT32_MAX, check_finite, finite_array
 from .errors import InputError
 
 __all__ = ["Camera", "DEFAULT_CAMERA", "orbit_views", "walk", "walk_speed", "scene_box", "inside_bounds", "fit_near",
-           "WALK_NEAR", "MAX_PITCH"]
+           "WALK_NEAR", "MAX_PITCH", "walk_info"]
 
 # The camera of a scene whose manifest leaves fields out (scene space is [-1, 1]^3, +Y up).
 DEFAULT_CAMERA: dict[str, Any] = {
@@ -312,3 +312,11 @@ def walk(camera: Camera, move=(0.0, 0.0, 0.0), yaw: float = 0.0, pitch: float = 
     eye = camera.eye + step[0] * heading + step[1] * right + step[2] * up
     distance = float(np.linalg.norm(camera.target - camera.eye))
     return Camera(eye, eye + forward * distance, camera.up, camera.fov_y, camera.near, camera.far)
+
+
+def walk_info(manifest) -> dict:
+    """The walk's figures for the web page (``web.json``'s ``camera``): the scene box, the interior
+    near plane, the speed, the pitch limit, and the near plane of the manifest's camera (:func:`fit_near`)."""
+    box = scene_box(manifest)
+    return {"near": fit_near(Camera.from_manifest(manifest), box).near, "box": box.tolist(), "walk_near": WALK_NEAR,
+            "walk_speed": walk_speed(box), "max_pitch": MAX_PITCH}

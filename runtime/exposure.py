@@ -30,13 +30,16 @@ import numpy as np
 from .errors import InputError
 
 __all__ = ["KEY", "EPS", "EXPOSURE_RANGE", "TAU", "LUMINANCE", "log_average_luminance", "auto_exposure",
-           "exposure_from_log_mean", "ExposureAdapter", "parse_exposure", "default_exposure", "SCENE_OBJECTS"]
+           "exposure_from_log_mean", "ExposureAdapter", "parse_exposure", "default_exposure", "SCENE_OBJECTS", "BLOCK",
+           "exposure_defines", "exposure_info"]
 
 KEY = 0.18
 EPS = 1.0e-4
 EXPOSURE_RANGE = (2.0**-6, 2.0**10)
 TAU = 0.5
 LUMINANCE = (0.2126, 0.7152, 0.0722)
+BLOCK = 16
+"""Tile side of the GPU reduction (``shaders/log_luminance.frag``): each tile's sums are read back."""
 
 
 def _luminance(radiance_linear) -> np.ndarray:
@@ -155,3 +158,13 @@ def default_exposure(manifest):
     if len(objects) >= SCENE_OBJECTS or inside_bounds(manifest.camera.eye, scene_box(manifest)):
         return "auto"
     return 1.0
+
+
+def exposure_defines(block: int = BLOCK) -> dict:
+    """The ``#define`` values of ``shaders/log_luminance.frag`` (the one definition of each is here)."""
+    return {"PRT_BLOCK": block, "PRT_EPS": EPS, "PRT_LUM_R": LUMINANCE[0], "PRT_LUM_G": LUMINANCE[1], "PRT_LUM_B": LUMINANCE[2]}
+
+
+def exposure_info(manifest) -> dict:
+    """What the web page needs to compute the same auto exposure (``web.json``'s ``exposure``)."""
+    return {"default": default_exposure(manifest), "key": KEY, "eps": EPS, "range": list(EXPOSURE_RANGE), "tau": TAU, "block": BLOCK}

@@ -16,13 +16,11 @@ import moderngl
 import numpy as np
 
 from ..shaders import assemble
-from .exposure import EPS, LUMINANCE, auto_exposure, exposure_from_log_mean
+from .exposure import BLOCK, auto_exposure, exposure_defines, exposure_from_log_mean
 from .errors import RendererStateError
 from .gl import bind_framebuffer, compile_program
 
-__all__ = ["LogLuminanceReduction", "BLOCK", "frame_exposure", "covered_mask"]
-
-BLOCK = 16
+__all__ = ["LogLuminanceReduction", "frame_exposure", "covered_mask"]
 
 
 class LogLuminanceReduction:
@@ -30,9 +28,7 @@ class LogLuminanceReduction:
 
     def __init__(self, ctx: moderngl.Context, width: int, height: int, block: int = BLOCK) -> None:
         self.ctx, self.width, self.height, self.block = ctx, width, height, block
-        defines = {"PRT_BLOCK": block, "PRT_EPS": EPS, "PRT_LUM_R": LUMINANCE[0], "PRT_LUM_G": LUMINANCE[1],
-                   "PRT_LUM_B": LUMINANCE[2]}  # fmt: skip
-        self.program = compile_program(ctx, assemble("log_luminance.frag", defines=defines), "log_luminance.frag")
+        self.program = compile_program(ctx, assemble("log_luminance.frag", defines=exposure_defines(block)), "log_luminance.frag")
         self.vao = ctx.vertex_array(self.program, [])
         self.tiles = (-(-width // block), -(-height // block))
         self.target = ctx.texture(self.tiles, 2, dtype="f4")
