@@ -43,10 +43,12 @@ BLOCK = 16
 
 
 def _luminance(radiance_linear) -> np.ndarray:
-    rad = np.asarray(radiance_linear, dtype=np.float64)
+    rad = np.asarray(radiance_linear)
+    if rad.dtype != np.float32:
+        rad = rad.astype(np.float64)
     if rad.ndim < 1 or rad.shape[-1] != 3:
         raise InputError(f"auto_exposure(): radiance must end in 3 channels (RGB), got shape {rad.shape}")
-    lum = rad @ np.asarray(LUMINANCE)
+    lum = (rad @ np.asarray(LUMINANCE, dtype=rad.dtype)).astype(np.float64)  # a float32 frame: weighted in float32
     return np.where(np.isfinite(lum), np.maximum(lum, 0.0), 0.0)
 
 

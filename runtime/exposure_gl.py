@@ -82,7 +82,7 @@ def frame_exposure(r, image: np.ndarray | None = None) -> float:
         raise RendererStateError("Renderer.frame_exposure: no frame drawn yet; call draw() or render()")
     if r._transfer_on_cpu or (image is not None and r.frame_texture is None):
         frame = r._cpu_image if image is None else image
-        return auto_exposure(frame, covered_mask(r))
+        return auto_exposure(frame.reshape(-1, 3)[r._covered])  # the covered rows: no full-frame mask
     reduction = getattr(r, "_exposure_reduction", None)
     if reduction is None:
         reduction = r._resources.keep(LogLuminanceReduction(r.ctx, r.width, r.height))

@@ -105,7 +105,7 @@ def test_renderer_exposure_api(gl_ctx):
         assert r.exposure == 1.0  # the demo is one object seen from outside: its images do not change
         image = r.render()
         cpu = r.frame_exposure()
-        assert cpu == auto_exposure(image, r.covered_mask())
+        assert cpu == pytest.approx(auto_exposure(image, r.covered_mask()), rel=1e-12)
         np.testing.assert_array_equal(r.render_srgb(), to_srgb8(image, 1.0))
         r.set_exposure("auto")
         np.testing.assert_array_equal(r.render_srgb(), to_srgb8(image, cpu))
@@ -113,3 +113,14 @@ def test_renderer_exposure_api(gl_ctx):
             r.set_exposure(-2)
     with Renderer(Scene.load(), 40, 32, ctx=gl_ctx, exposure="auto") as r:
         assert r.exposure == "auto"
+
+
+def test_cost_study_runs(bench_module, tmp_path):
+    """studies/auto_exposure_cost.py (docs/benchmarks/runtime_auto_exposure.json) on a tiny frame."""
+    import json
+
+    study = bench_module("auto_exposure_cost")
+    assert study.main(["--size", "32", "--views", "2", "--json", str(tmp_path / "r.json")]) == 0
+    result = json.loads((tmp_path / "r.json").read_text())
+    glsl = result["backends"]["glsl"]
+    assert glsl["max_rel_diff"] < 1e-4 and glsl["exposure_ms"] > 0 and result["backends"]["onnx"]["exposure_share"] > 0
