@@ -281,9 +281,10 @@ class Renderer:
 
     def set_camera(self, eye=DEFAULT_CAMERA["eye"], target=DEFAULT_CAMERA["target"], up=DEFAULT_CAMERA["up"],
                    fov: float = DEFAULT_CAMERA["fov"]) -> None:
-        """Place the camera (scene units; ``fov`` is the vertical field of view in degrees)."""
+        """Place the camera (scene units; ``fov`` is the vertical field of view in degrees; an eye inside the
+        scene's box gets the interior near plane, :func:`~prt.runtime.camera.fit_near`)."""
         self._check_usable()
-        self.camera = Camera(eye=eye, target=target, up=up, fov_y=fov)  # InputError / ArgumentTypeError
+        self.camera = fit_near(Camera(eye=eye, target=target, up=up, fov_y=fov), scene_box(self.scene.manifest))
         self._transfer_valid = False
 
     def set_camera_object(self, camera: Camera) -> None:

@@ -209,3 +209,10 @@ def test_viewer_walks_and_records_the_walk(tmp_path):
     looks = [np.subtract(k["target"], k["eye"]) for k in keys[-3:]]  # the drag turned the view, not the eye
     assert np.allclose(eyes[-1], eyes[-3]) and not np.allclose(looks[0], looks[-1])
     assert np.cross(looks[0], looks[-1])[1] < 0  # the mouse moved right: the view turned right (clockwise from above)
+
+
+def test_set_camera_inside_gets_the_interior_near_plane(renderer):
+    renderer.set_camera(eye=(0.5, -0.6165 + 0.03, 0.5), target=(0.5, -0.7, 0.52))
+    assert renderer.camera.near == WALK_NEAR and (renderer.render().sum(axis=2) > 0).all()
+    renderer.set_camera(eye=(1.45, 0.55, -2.1), target=(0, -0.12, 0))
+    assert renderer.camera.near == 0.05  # outside: as before
