@@ -216,3 +216,23 @@ def test_set_camera_inside_gets_the_interior_near_plane(renderer):
     assert renderer.camera.near == WALK_NEAR and (renderer.render().sum(axis=2) > 0).all()
     renderer.set_camera(eye=(1.45, 0.55, -2.1), target=(0, -0.12, 0))
     assert renderer.camera.near == 0.05  # outside: as before
+
+
+def test_walkthrough_study_renders_a_walk_video(bench_module, tmp_path):
+    """studies/walkthrough.py: the generated walk stays inside the box, renders to MP4 with auto exposure."""
+    pytest.importorskip("imageio_ffmpeg", reason="the [video] extra (imageio-ffmpeg) is not installed")
+    study = bench_module("walkthrough")
+    manifest = Scene.load().manifest
+    path = study.straight_walk(manifest, 4)
+    box = scene_box(manifest)
+    assert all(inside_bounds(c.eye, box) and abs(c.forward[1]) < 1e-12 for c in path.cameras())
+    assert study.main([str(Scene.load().path), "--size", "32x24", "--frames", "4", "--json", str(tmp_path / "w.json"),
+                       "--out", str(tmp_path / "w.mp4"), "--figure", str(tmp_path / "f.png")]) == 0  # fmt: skip
+    result = json.loads((tmp_path / "w.json").read_text())
+    assert result["frames"] == 4 and result["exposure"].startswith("auto") and (tmp_path / "w.mp4").stat().st_size > 0
+    assert (tmp_path / "w.path.json").is_file()
+    import imageio.v3 as iio
+
+    figure = iio.imread(tmp_path / "f.png")
+    assert figure.shape == (24, 64, 3)
+    assert np.array_equal(figure[:, :32], figure[:, 32:]) == (result["figure_exposure"] == 1.0)  # exposure 1 | auto
