@@ -67,6 +67,9 @@ class LogLuminanceReduction:
 
 def covered_mask(r) -> np.ndarray:
     """(H, W) bool, row 0 at the top: the pixels the last frame of renderer ``r`` covers."""
+    r._check_usable()
+    if not r.stats["frames"]:
+        raise RendererStateError("Renderer.covered_mask: no frame drawn yet; call draw() or render()")
     if r._transfer_on_cpu:
         mask = np.zeros(r.height * r.width, dtype=bool)
         mask[r._covered] = True

@@ -124,3 +124,17 @@ def test_cost_study_runs(bench_module, tmp_path):
     result = json.loads((tmp_path / "r.json").read_text())
     glsl = result["backends"]["glsl"]
     assert glsl["max_rel_diff"] < 1e-4 and glsl["exposure_ms"] > 0 and result["backends"]["onnx"]["exposure_share"] > 0
+
+
+def test_before_a_frame_and_after_close_are_state_errors(gl_ctx):
+    from prt.runtime import Renderer, Scene
+    from prt.runtime.errors import RendererStateError
+
+    r = Renderer(Scene.load(), 16, 16, ctx=gl_ctx)
+    for call in (r.frame_exposure, r.covered_mask):
+        with pytest.raises(RendererStateError, match="no frame drawn yet"):
+            call()
+    r.render()
+    r.close()
+    with pytest.raises(RendererStateError):
+        r.frame_exposure()
