@@ -220,6 +220,16 @@ def _export_texture(out: Path, index: int, material):
     return dataclasses.replace(material, albedo_texture=Path("textures") / name)
 
 
+def _lighting(out: Path, lighting_sh, envmap) -> LightingInfo:
+    """The manifest's lighting: the SH, and the env map copied into the folder (the background) when given."""
+    if envmap is None:
+        return LightingInfo(sh=lighting_sh)
+    source = Path(envmap)
+    target = out / f"envmap{source.suffix.lower() or '.hdr'}"
+    atomic_write_bytes(target, source.read_bytes())
+    return LightingInfo(envmap=target, sh=lighting_sh, background=True)
+
+
 def export_scene(
     out: str | Path,
     *,
@@ -236,6 +246,7 @@ def export_scene(
     albedo_uv: np.ndarray | None = None,
     interreflection: dict | None = None,
     deformation: dict | None = None,
+    envmap: str | Path | None = None,
 ) -> Manifest:
     """Write a whole scene folder: segment files, geometry, then ``scene.json``.
 
@@ -267,6 +278,11 @@ def export_scene(
     interreflection : dict, optional
         ``bounces``, ``bounce_rays``, ``layout`` ("direct+rgb") and ``albedos`` (object -> RGB):
         the manifest's ``interreflection`` (the networks then output 4 ``sh_bands**2`` values).
+    envmap : str or Path, optional
+        The equirectangular map ``lighting_sh`` was projected from (a bundled map's file, or a
+        user's): copied into the folder as ``envmap<suffix>`` and recorded as the manifest's
+        ``lighting.envmap`` with ``background: true``, so the scene shows its environment behind
+        the geometry (without it the light is SH only and the background black).
     deformation : dict, optional
         A deformable object (:mod:`prt.train.deform.deform_build`): ``arrays`` (``rest``, ``frames``, ``theta``,
         ``mean``, ``basis``, written to ``deformation.npz``), ``source``, ``code`` and ``frames`` (the
@@ -302,7 +318,7 @@ def export_scene(
         geometry=geometry_info,
         segmentation=segmentation,
         segments=infos,
-        lighting=LightingInfo(sh=lighting_sh),
+        lighting=_lighting(out, lighting_sh, envmap),
         material=MaterialInfo(**material),
         camera=CameraInfo(**{**DEFAULT_CAMERA, **camera}),
         memory=MemoryInfo(

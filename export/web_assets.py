@@ -28,11 +28,13 @@ import numpy as np
 
 from ..runtime import sh
 from ..runtime.backends.glsl import _CompactNetworks  # the glsl backend's own stacking and dispatch
+from ..runtime.camera import walk_info
 from ..runtime.checks import read_text
 from ..runtime.deformation import code_bias, load_code_arrays
 from ..runtime.envmap import load_envmap_sh, read_envmap
 from ..runtime.envmaps import BUNDLED_ENVMAPS, DEFAULT_ENVMAP, bundled_envmap_path
 from ..runtime.errors import InputError
+from ..runtime.exposure import exposure_defines, exposure_info
 from ..runtime.gbuffer import _mesh_vertices, load_mesh, segment_tables
 from ..runtime.materials import MaterialTable, load_albedo_textures, object_materials
 from ..runtime.shading import GLSL_DEFINES, GLSL_FILES, MATERIAL_KINDS, Material
@@ -220,6 +222,7 @@ def _programs(tables: dict, blocks: int, transfer: dict, per_object: bool, defor
         "background.vert": assemble("fullscreen.vert", defines={"PRT_FULLSCREEN_Z": 1.0}, **es),
         "background.frag": assemble("background.frag", **es),
         "display.frag": assemble("tonemap.glsl", "viewer_blit.frag", defines=GLSL_DEFINES, **es),
+        "log_luminance.frag": assemble("log_luminance.frag", defines={**exposure_defines(), "PRT_COVERED_BY_ALPHA": 1}, **es),
     }
     for targets in (4, 8) if blocks > 4 else (4,):
         defines = {**transfer["defines"], **({"PRT_TRANSFER_TARGETS": targets} if blocks > 4 else {})}
@@ -287,7 +290,8 @@ def scene_assets(scene) -> WebAssets:
                   "networks": sum(s.is_network for s in manifest.segments), "objects": list(manifest.geometry.objects or []),
                   "interreflection": manifest.interreflection is not None},  # fmt: skip
         "camera": {**{k: list(map(float, getattr(manifest.camera, k))) for k in ("eye", "target", "up")}, "fov": float(manifest.camera.fov),
-                   "near": 0.05, "far": 50.0},  # fmt: skip  (Camera.from_manifest's clip distances)
+                   "near": 0.05, "far": 50.0, **walk_info(manifest)},  # fmt: skip  (Camera.from_manifest's clip distances)
+        "exposure": exposure_info(manifest),
         "geometry": geometry,
         "transfer": {"blocks": blocks},
         "uniforms": {

@@ -21,7 +21,8 @@ import numpy as np
 from .checks import FLOAT32_MAX, check_finite, finite_array
 from .errors import InputError
 
-__all__ = ["Camera", "DEFAULT_CAMERA", "orbit_views"]
+__all__ = ["Camera", "DEFAULT_CAMERA", "orbit_views", "walk", "walk_speed", "scene_box", "inside_bounds", "fit_near",
+           "WALK_NEAR", "MAX_PITCH", "walk_info"]
 
 # The camera of a scene whose manifest leaves fields out (scene space is [-1, 1]^3, +Y up).
 DEFAULT_CAMERA: dict[str, Any] = {
@@ -240,3 +241,82 @@ class Camera:
 def orbit_views(start: Camera, views: int) -> list[Camera]:
     """``views`` cameras evenly spaced on a full orbit of ``start`` about its target (view 0 is ``start``)."""
     return [start.orbit(2.0 * np.pi * i / views) for i in range(views)]
+
+
+# ----------------------------------------------------------------- walking (first person)
+
+WALK_NEAR = 0.005
+"""Near plane of a camera inside the scene (a walk, a path through an interior): in the normalised
+scene space ([-1, 1]^3, a house ~15 m wide makes this ~4 cm), so walls and furniture next to the
+eye are not clipped; the default 0.05 stays for views from outside (their pixels do not change)."""
+MAX_PITCH = math.radians(89.0)
+"""How far a walking camera looks up or down (just short of the vertical, where yaw is undefined)."""
+WALK_SPEED = 0.1
+"""Walking speed in scene-box diagonals per second (:func:`walk_speed`; the viewer's shift x4)."""
+
+
+def scene_box(manifest) -> np.ndarray:
+    """(2, 3) the box around all segments of a manifest (min, max), in scene units."""
+    bounds = np.asarray(manifest.bounds, dtype=np.float64).reshape(-1, 2, 3)
+    return np.stack([bounds[:, 0].min(axis=0), bounds[:, 1].max(axis=0)])
+
+
+def inside_bounds(point, box, margin: float = 0.0) -> bool:
+    """Whether ``point`` lies in ``box`` ((2, 3) min, max), grown by ``margin`` on every side."""
+    p, box = np.asarray(point, dtype=np.float64), np.asarray(box, dtype=np.float64)
+    return bool(np.all(p >= box[0] - margin) and np.all(p <= box[1] + margin))
+
+
+def fit_near(camera: Camera, box) -> Camera:
+    """``camera`` with the near plane :data:`WALK_NEAR` when its eye is inside ``box``; else itself."""
+    if box is None or camera.near <= WALK_NEAR or not inside_bounds(camera.eye, box):
+        return camera
+    return Camera(camera.eye, camera.target, camera.up, camera.fov_y, WALK_NEAR, camera.far)
+
+
+def walk_speed(box) -> float:
+    """Scene units per second of a walk through ``box`` ((2, 3)): :data:`WALK_SPEED` of its diagonal."""
+    box = np.asarray(box, dtype=np.float64)
+    diagonal = float(np.linalg.norm(box[1] - box[0]))
+    return WALK_SPEED * (diagonal if math.isfinite(diagonal) and diagonal > 0 else 2.0 * math.sqrt(3.0))
+
+
+def walk(camera: Camera, move=(0.0, 0.0, 0.0), yaw: float = 0.0, pitch: float = 0.0) -> Camera:
+    """One first-person step: turn, then move.
+
+    Parameters
+    ----------
+    camera : Camera
+        Its ``up`` is the world's up (kept); the eye-target distance is kept.
+    move : (forward, right, up) scene units
+        ``forward`` along the heading (the view direction flattened onto the ground plane, so
+        looking down does not walk into the floor), ``right`` across it, ``up`` along ``up``.
+    yaw : float
+        Radians about ``up``, positive to the left (right-handed); a mouse moving right turns right
+        with ``yaw = -dx * sensitivity``.
+    pitch : float
+        Radians up (positive) or down, the result clamped to +-:data:`MAX_PITCH`.
+    """
+    up = camera.up / np.linalg.norm(camera.up)
+    f = camera.forward
+    current = math.asin(float(np.clip(f @ up, -1.0, 1.0)))
+    heading = f - (f @ up) * up
+    if np.linalg.norm(heading) < 1e-9:  # looking straight along up: the image's up is the heading
+        heading = camera.true_up * (-1.0 if f @ up > 0 else 1.0)
+    heading = _rotation(up, float(yaw)) @ (heading / np.linalg.norm(heading))
+    heading /= np.linalg.norm(heading)
+    angle = float(np.clip(current + float(pitch), -MAX_PITCH, MAX_PITCH))
+    forward = math.cos(angle) * heading + math.sin(angle) * up
+    right = np.cross(heading, up)
+    step = np.asarray(move, dtype=np.float64)
+    eye = camera.eye + step[0] * heading + step[1] * right + step[2] * up
+    distance = float(np.linalg.norm(camera.target - camera.eye))
+    return Camera(eye, eye + forward * distance, camera.up, camera.fov_y, camera.near, camera.far)
+
+
+def walk_info(manifest) -> dict:
+    """The walk's figures for the web page (``web.json``'s ``camera``): the scene box, the interior
+    near plane, the speed, the pitch limit, and the near plane of the manifest's camera (:func:`fit_near`)."""
+    box = scene_box(manifest)
+    return {"near": fit_near(Camera.from_manifest(manifest), box).near, "box": box.tolist(), "walk_near": WALK_NEAR,
+            "walk_speed": walk_speed(box), "max_pitch": MAX_PITCH}

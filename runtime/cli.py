@@ -4,7 +4,7 @@ usage: prt-runtime [scene.json] [--backend onnx|glsl] [--size W[xH]] [--headless
                    [--out DIR] [--envmap NAME|PATH] [--material diffuse|glossy] [--exponent E]
                    [--camera-path PATH.json] [--format png|exr|mp4] [--fps F]
                    [--background envmap|black] [--target-fps F] [--interpolate TOL]
-                   [--object-albedo NAME=R,G,B ...] [--gl-device NAME|INDEX] [--onnx-providers LIST]
+                   [--exposure E|auto] [--object-albedo NAME=R,G,B ...] [--gl-device NAME|INDEX] [--onnx-providers LIST]
 
 Without a scene it opens the bundled demo scene (Spot).  With a display (and pygame installed:
 ``pip install "prt-runtime[viewer]"``) it opens a window; without one, or with --headless, it
@@ -29,6 +29,7 @@ from .gl import create_context
 from .envmaps import BUNDLED_ENVMAPS
 from .checks import finite_array, positive_int
 from .errors import InputError, PRTError
+from .exposure import parse_exposure
 from .materials import parse_object_albedo
 from .camera_path import CameraPath, load_camera_path
 from .orbit import FORMATS, render_camera_path, render_orbit
@@ -55,7 +56,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--exponent", type=float, default=16.0, help="Phong exponent of the glossy material")
     p.add_argument("--object-albedo", action="append", default=[], metavar="NAME=R,G,B",
                    help="albedo of one object of the scene (repeatable; after --material)")
-    p.add_argument("--exposure", type=float, default=1.0, help="exposure before tone mapping")
+    p.add_argument("--exposure", default=None, metavar="E|auto",
+                   help="exposure before tone mapping: a number, or auto (the frame's log-average luminance to middle grey, smoothed across frames); default: auto for a scene (camera inside its bounds, or >= 10 objects), else 1")
     p.add_argument("--onnx-providers", "--providers", dest="providers", default=None, metavar="LIST",
                    help="comma-separated ONNX Runtime providers, e.g. cuda,cpu or tensorrt,cuda,cpu (default: $PRT_ONNX_PROVIDERS, else CUDA if present, then CPU); one this onnxruntime lacks is an error")
     p.add_argument("--gl-device", default=None, metavar="NAME|INDEX",
@@ -90,7 +92,7 @@ def options_from_args(args: argparse.Namespace) -> ViewerOptions:
     positive_int(args.frames, "--frames")
     if args.threads is not None:
         positive_int(args.threads, "--threads")
-    finite_array(args.exposure, "--exposure", (), minimum=0.0)
+    exposure = None if args.exposure is None else parse_exposure(args.exposure, "--exposure")
     if not float(finite_array(args.exponent, "--exponent", ())) > 0:
         raise InputError(f"--exponent must be > 0, got {args.exponent}")
     target_fps = float(finite_array(args.target_fps, "--target-fps", (), minimum=0.0))
@@ -101,7 +103,7 @@ def options_from_args(args: argparse.Namespace) -> ViewerOptions:
     return ViewerOptions(
         object_albedo=object_albedo,
         width=width, height=height, backend=args.backend, envmap=args.envmap, material=args.material,
-        exponent=args.exponent, exposure=args.exposure,
+        exponent=args.exponent, exposure=exposure,
         providers=providers, threads=args.threads, gl_device=args.gl_device,
         interpolate=check_tolerance(args.interpolate, "--interpolate"),
         background=None if args.background is None else args.background == "envmap", target_fps=target_fps or None,

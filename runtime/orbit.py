@@ -23,9 +23,11 @@ import imageio.v3 as iio
 import numpy as np
 
 from .camera_path import CameraPath, orbit_path
+from .camera import fit_near, scene_box
 from .checks import finite_array, positive_int
 from .envmap import write_hdr
 from .errors import ArgumentTypeError, InputError, OutputError
+from .exposure import ExposureAdapter, parse_exposure
 from .files import atomic_write_bytes
 from .shading import to_srgb8
 
@@ -57,6 +59,7 @@ class OrbitSummary:
     wrote: str = ""  # what was written, for the report (default: the PNG frames in ``out``)
     write_s: float = 0.0  # seconds spent tone mapping, encoding and writing the frames (not in median_ms)
     renderer: str = ""  # the GL renderer that drew the frames (GL_RENDERER)
+    exposure: str = ""  # the exposure of the frames: a number, or "auto" with the range it took
 
     @property
     def fps(self) -> float:
@@ -71,11 +74,11 @@ class OrbitSummary:
         return (
             f"{self.scene}: {self.frames} frames {self.width}x{self.height}, backend {self.backend}{on}: median {self.fps:.1f} FPS "
             f"({med['frame']:.1f} ms/frame; {parts} ms{readback}); wrote {self.wrote or f'{self.out}/frame_000.png ...'}"
-            f" in {self.write_s:.1f} s"
+            f" in {self.write_s:.1f} s" + (f"; exposure {self.exposure}" if self.exposure else "")
         )
 
 
-def render_orbit(r, frames: int, out, *, exposure: float = 1.0, warmup: int = 2, fmt: str = "png", fps: float = 30.0) -> OrbitSummary:
+def render_orbit(r, frames: int, out, *, exposure=None, warmup: int = 2, fmt: str = "png", fps: float = 30.0) -> OrbitSummary:
     """Render ``frames`` views on a full orbit of the renderer's camera into ``out``.
 
     Parameters
@@ -95,7 +98,7 @@ def render_orbit(r, frames: int, out, *, exposure: float = 1.0, warmup: int = 2,
     return render_camera_path(r, orbit_path(r.camera, frames), out, exposure=exposure, warmup=warmup, fmt=fmt, fps=fps)
 
 
-def render_camera_path(r, path: CameraPath, out, *, exposure: float = 1.0, warmup: int = 2, fmt: str = "png",
+def render_camera_path(r, path: CameraPath, out, *, exposure=None, warmup: int = 2, fmt: str = "png",
                        fps: float = 30.0, poses: list[int] | None = None) -> OrbitSummary:  # fmt: skip
     """Render every frame of ``path``.
 
@@ -110,8 +113,11 @@ def render_camera_path(r, path: CameraPath, out, *, exposure: float = 1.0, warmu
         in ``.mp4``, else ``out/turntable.mp4``.  Folders are created when the first frame is
         ready (never for a failed first frame); if a later frame fails, what was written and
         the folders created are removed.
-    exposure : float
-        Exposure before tone mapping (PNG, MP4) or scale of the radiance (EXR).
+    exposure : float or "auto", optional
+        Exposure before tone mapping (PNG, MP4) or scale of the radiance (EXR); default the
+        renderer's (:attr:`Renderer.exposure`: "auto" for a scene).  ``"auto"``: each frame's
+        :meth:`Renderer.frame_exposure`, smoothed along the path at ``1 / fps`` seconds a frame
+        (:class:`prt.runtime.exposure.ExposureAdapter`, the first frame exact); stage ``exposure``.
     warmup : int
         Frames rendered first, each from a view just short of the start, and not timed.
     fmt : {"png", "exr", "mp4"}
@@ -128,11 +134,14 @@ def render_camera_path(r, path: CameraPath, out, *, exposure: float = 1.0, warmu
         raise ArgumentTypeError(f"render_camera_path: expected a CameraPath, got {type(path).__name__}")
     if fmt not in FORMATS:
         raise InputError(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
-    exposure = float(finite_array(exposure, "--exposure", (), minimum=0.0))
+    exposure = parse_exposure(r.exposure if exposure is None else exposure, "--exposure")
+    adapter = ExposureAdapter() if exposure == "auto" else None
     fps = float(finite_array(fps, "--fps", ()))
     if not 0 < fps <= 1000:
         raise InputError(f"--fps must be in (0, 1000], got {fps}")
-    cameras = path.cameras()  # every view checked before anything is written
+    box = scene_box(r.scene.manifest)
+    cameras = [fit_near(c, box) for c in path.cameras()]  # every view checked before anything is written; inside: near plane for interiors
+    exposures = [1.0] * len(cameras)
     out = Path(out)
     sink = _VideoSink(out, r.width, r.height, fps) if fmt == "mp4" else _FrameSink(out, fmt)
     start = r.camera
@@ -154,6 +163,12 @@ def render_camera_path(r, path: CameraPath, out, *, exposure: float = 1.0, warmu
             image = r.render()
             for k, v in r.timings.items():
                 stages.setdefault(k, []).append(v)
+            if adapter is not None:
+                t0 = time.perf_counter()
+                exposures[i] = adapter.update(r.frame_exposure(image), 1.0 / fps)
+                stages.setdefault("exposure", []).append(1e3 * (time.perf_counter() - t0))
+            else:
+                exposures[i] = exposure
             if i == 0:
                 sink.open()  # the folders, once the first frame is ready (a bad output path fails now)
             np.copyto(slots[len(held)], image)
@@ -161,7 +176,7 @@ def render_camera_path(r, path: CameraPath, out, *, exposure: float = 1.0, warmu
             if i == len(cameras) - 1 or len(held) == len(slots):
                 t0 = time.perf_counter()
                 for k, j in enumerate(held):
-                    sink.add(j, slots[k], exposure)
+                    sink.add(j, slots[k], exposures[j])
                 held.clear()
                 write_s += time.perf_counter() - t0
         t0 = time.perf_counter()
@@ -173,7 +188,8 @@ def render_camera_path(r, path: CameraPath, out, *, exposure: float = 1.0, warmu
     finally:
         r.set_camera_object(start)
     med = {k: float(np.median(v)) for k, v in stages.items()}
-    return OrbitSummary(r.scene.name, len(cameras), r.width, r.height, r.backend, med, out, sink.wrote(), write_s, r.gl_renderer)
+    used = f"auto {min(exposures):.3g}..{max(exposures):.3g}" if adapter is not None else f"{exposure:g}"
+    return OrbitSummary(r.scene.name, len(cameras), r.width, r.height, r.backend, med, out, sink.wrote(), write_s, r.gl_renderer, used)
 
 
 class _FrameSink:

@@ -48,7 +48,9 @@ from ..shaders import assemble
 from .backends import ALL_BACKENDS, BACKENDS, CpuTransfer, TransferBackend, create_backend
 from .backends.onnx import check_providers
 from .background import EnvmapBackground
-from .camera import DEFAULT_CAMERA, Camera
+from .camera import DEFAULT_CAMERA, Camera, fit_near, scene_box
+from . import exposure_gl
+from .exposure import default_exposure, parse_exposure
 from .envmap import load_envmap_sh
 from .envmaps import BUNDLED_ENVMAPS, DEFAULT_ENVMAP, bundled_envmap_path
 from .checks import count_nonfinite, positive_int
@@ -143,6 +145,8 @@ class Renderer:
         :mod:`prt.runtime.interpolation`): the networks run on every fourth pixel of every fourth row
         and where interpolating from neighbours is unsafe, the rest is interpolated.  None (the
         default) or 0: every covered pixel runs its network.
+    exposure : ``"auto"`` (:mod:`prt.runtime.exposure`) or a number, what :meth:`render_srgb` uses (default:
+        :func:`~prt.runtime.exposure.default_exposure`, "auto" for a scene, 1 for an object); :meth:`set_exposure`
 
     Notes
     -----
@@ -166,7 +170,7 @@ class Renderer:
 
     def __init__(self, scene: Scene, width: int = 512, height: int = 512, backend: str = BACKENDS[0], *,
                  providers=None, threads: int | None = None, ctx: moderngl.Context | None = None,
-                 interpolate: float | None = None, gl_device: str | int | None = None):
+                 interpolate: float | None = None, gl_device: str | int | None = None, exposure=None):
         self._owner = threading.get_ident()
         self._closed = True  # until the resources exist
         if not isinstance(scene, Scene):
@@ -227,7 +231,8 @@ class Renderer:
         self._geometry_cov: tuple[np.ndarray, np.ndarray] | None = None
         self._inputs: np.ndarray | None = None
 
-        self.camera = Camera.from_manifest(m.camera)
+        self.camera = fit_near(Camera.from_manifest(m.camera), scene_box(m))  # inside: a near plane for interiors
+        self.exposure = default_exposure(m) if exposure is None else parse_exposure(exposure, "Renderer: exposure")
         self._envmap_sh: dict[str, np.ndarray] = {}
         lighting = m.lighting
         if lighting.envmap is not None:
@@ -276,9 +281,10 @@ class Renderer:
 
     def set_camera(self, eye=DEFAULT_CAMERA["eye"], target=DEFAULT_CAMERA["target"], up=DEFAULT_CAMERA["up"],
                    fov: float = DEFAULT_CAMERA["fov"]) -> None:
-        """Place the camera (scene units; ``fov`` is the vertical field of view in degrees)."""
+        """Place the camera (scene units; ``fov`` is the vertical field of view in degrees; an eye inside the
+        scene's box gets the interior near plane, :func:`~prt.runtime.camera.fit_near`)."""
         self._check_usable()
-        self.camera = Camera(eye=eye, target=target, up=up, fov_y=fov)  # InputError / ArgumentTypeError
+        self.camera = fit_near(Camera(eye=eye, target=target, up=up, fov_y=fov), scene_box(self.scene.manifest))
         self._transfer_valid = False
 
     def set_camera_object(self, camera: Camera) -> None:
@@ -540,9 +546,27 @@ class Renderer:
         timings["background"] = 1e3 * (time.perf_counter() - t0)
         return image
 
-    def render_srgb(self, exposure: float = 1.0) -> np.ndarray:
-        """One frame tone-mapped for display: (H, W, 3) uint8 sRGB."""
-        return to_srgb8(self.render(), exposure)
+    def render_srgb(self, exposure=None) -> np.ndarray:
+        """One frame tone-mapped for display: (H, W, 3) uint8 sRGB, at ``exposure`` (default :attr:`exposure`;
+        ``"auto"``: this frame's :meth:`frame_exposure`, not smoothed)."""
+        exposure = self.exposure if exposure is None else parse_exposure(exposure, "render_srgb: exposure")
+        image = self.render()
+        return to_srgb8(image, self.frame_exposure(image) if exposure == "auto" else exposure)
+
+    def set_exposure(self, exposure) -> None:
+        """``"auto"`` or a number >= 0: the exposure :meth:`render_srgb` (and the viewer, the headless paths) use."""
+        self.exposure = parse_exposure(exposure, "Renderer.set_exposure")
+
+    @_in_context
+    def frame_exposure(self, image: np.ndarray | None = None) -> float:
+        """The auto exposure of the last frame over the pixels it covers (:mod:`prt.runtime.exposure_gl`;
+        a GPU frame reduced there). ``image``: that frame as :meth:`render` returned it."""
+        return exposure_gl.frame_exposure(self, image)
+
+    @_in_context
+    def covered_mask(self) -> np.ndarray:
+        """(H, W) bool, row 0 at the top: the pixels the last frame's geometry covers."""
+        return exposure_gl.covered_mask(self)
 
     @_in_context
     def render_transfer(self) -> np.ndarray:

@@ -4,13 +4,19 @@ Controls (also printed on ``h``):
   left drag        orbit the camera          wheel        zoom
   right drag / [ ] rotate the light          n / p        next / previous env map
   b                toggle backend onnx/glsl  g            diffuse / glossy
-  + / -            Phong exponent x2 / /2    e / E        exposure up / down
-  k                env-map background on/off s            screenshot (PNG)
+  + / -            Phong exponent x2 / /2    e / E        exposure (auto: its bias) up / down
+  x                auto exposure on / off    k            env-map background on/off
+  s / F12          screenshot (PNG; F12 also while walking)
+  v                walk (first person) / orbit
+    walking: W A S D or arrows move, left drag looks, space / ctrl up / down, shift x4 faster
   c                save the camera path (the moves so far; the orbit if none)
   o                save the orbit of the current view as a camera path
   h                help                      q / Esc      quit
   a                play / pause the recorded poses (deformable scenes)
   , / .            previous / next pose (deformable scenes)
+Walking moves at a tenth of the scene box's diagonal per second (prt.runtime.camera.walk_speed);
+the moves are recorded as the orbit's are (c saves them as a camera path).  Auto exposure (the
+default for scenes) follows each frame's log-average luminance, smoothed over about half a second.
 The title shows the FPS of frames that ran the networks (camera moves) and, apart, the time
 of re-shading the cached transfer (light, material: no network runs), labelled "relight";
 the stage times of network frames are printed here.
@@ -31,7 +37,9 @@ import numpy as np
 
 from ..shaders import assemble
 from .backends import BACKENDS
+from .camera import fit_near, scene_box, walk, walk_speed
 from .camera_path import PathRecorder, orbit_path, save_camera_path
+from .exposure import ExposureAdapter
 from .envmaps import BUNDLED_ENVMAPS, DEFAULT_ENVMAP, bundled_envmap_path
 from .errors import PRTError
 from .gl import compile_program
@@ -39,11 +47,17 @@ from .materials import apply_object_albedo
 from .renderer import Renderer
 from .shading import GLSL_DEFINES, to_srgb8
 
-__all__ = ["run_window", "ViewerOptions", "HELP", "DynamicResolution", "envmap_cycle", "title_text", "stage_text"]
+__all__ = ["run_window", "ViewerOptions", "HELP", "DynamicResolution", "envmap_cycle", "title_text", "stage_text",
+           "walk_move", "held_actions", "WALK_FAST", "LOOK_SENSITIVITY"]
 
 HELP = __doc__.split("Controls (also printed on ``h``):\n", 1)[1]
 ENVMAPS = tuple(BUNDLED_ENVMAPS)
 ORBIT_FRAMES = 120  # frames of a saved orbit (4 s at 30 FPS)
+WALK_FAST = 4.0  # shift's speed factor while walking
+LOOK_SENSITIVITY = 0.005  # radians of mouse look per pixel dragged
+WALK_KEYS = {"forward": ("K_w", "K_UP"), "back": ("K_s", "K_DOWN"), "left": ("K_a", "K_LEFT"), "right": ("K_d", "K_RIGHT"),
+             "up": ("K_SPACE",), "down": ("K_LCTRL", "K_RCTRL"), "fast": ("K_LSHIFT", "K_RSHIFT")}  # fmt: skip
+WALK_LETTERS = "wasd"  # keys that move while walking instead of their orbit meaning (a: poses, s: screenshot)
 
 
 @dataclass(frozen=True)
@@ -62,7 +76,7 @@ class ViewerOptions:
     envmap: str | None = None
     material: str | None = None
     exponent: float = 16.0
-    exposure: float = 1.0
+    exposure: float | str | None = None  # a number or "auto"; None: the scene's (Renderer.exposure)
     providers: list[str] | None = None
     threads: int | None = None
     background: bool | None = None
@@ -95,6 +109,8 @@ class ViewerOptions:
             apply_object_albedo(r, name, albedo)
         if self.background is not None:
             r.set_background(self.background)
+        if self.exposure is not None:
+            r.set_exposure(self.exposure)
 
 
 # ---------------------------------------------------------------------------- pure parts
@@ -200,6 +216,26 @@ def stage_text(fps: float, size: tuple[int, int], stages: dict, renderer: str = 
     return f"{fps:.1f} FPS at {size[0]}x{size[1]}{on}: " + ", ".join(f"{k} {v:.1f}" for k, v in stages.items() if k != "frame") + " ms"
 
 
+def held_actions(pressed) -> set[str]:
+    """The walk actions of the keys held (``pressed``: ``pygame.key.get_pressed()``, or a mapping of key codes)."""
+    import pygame
+
+    return {action for action, names in WALK_KEYS.items() if any(pressed[getattr(pygame, name)] for name in names)}
+
+
+def walk_move(actions: set[str], speed: float, dt: float) -> tuple[float, float, float] | None:
+    """(forward, right, up) scene units for ``dt`` seconds of the held ``actions`` at ``speed`` units a
+    second (x :data:`WALK_FAST` with "fast"); a diagonal is no faster than a straight step.  None: no move."""
+    f = ("forward" in actions) - ("back" in actions)
+    r = ("right" in actions) - ("left" in actions)
+    u = ("up" in actions) - ("down" in actions)
+    if not (f or r or u):
+        return None
+    step = speed * max(float(dt), 0.0) * (WALK_FAST if "fast" in actions else 1.0)
+    norm = float(np.sqrt(f * f + r * r + u * u))
+    return (f * step / norm, r * step / norm, u * step / norm)
+
+
 def _rotation_y(angle: float) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)
     return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
@@ -223,6 +259,9 @@ class _View:
         self.backend = r.backend
         self.background = r.background
         self.yaw, self.pitch, self.zoom = 0.0, 0.0, 1.0
+        self.walking = False  # first person (v) instead of the orbit
+        self.box = scene_box(r.scene.manifest)
+        self.speed = walk_speed(self.box)
         # Deformable scenes: the recorded frame shown, and whether the poses play.
         deformation = r.scene.deformation
         self.poses = 0 if deformation is None else deformation.frame_count
@@ -235,6 +274,17 @@ class _View:
             return False
         self.pose = (self.pose + step) % self.poses
         return True
+
+    def toggle_walk(self) -> bool:
+        """Orbit <-> walk; the orbit resumes about the view the walk ended at."""
+        self.walking = not self.walking
+        if not self.walking:
+            self.base_camera, self.yaw, self.pitch, self.zoom = self.camera, 0.0, 0.0, 1.0
+        return self.walking
+
+    def walk_step(self, move=(0.0, 0.0, 0.0), yaw: float = 0.0, pitch: float = 0.0) -> None:
+        """One first-person step (:func:`prt.runtime.camera.walk`), the near plane fitted for an interior."""
+        self.camera = fit_near(walk(self.camera, move, yaw, pitch), self.box)
 
     def update_camera(self) -> None:
         cam = self.base_camera.orbit(self.yaw)
@@ -285,7 +335,9 @@ def run_window(scene, options: ViewerOptions) -> int:
     view = _View(full, cycle, first)
     policy = DynamicResolution(1000.0 / options.target_fps if options.target_fps else None)
     recorder = PathRecorder()
-    exposure = options.exposure
+    exposure = full.exposure  # "auto" (a scene's default) or a number; e / E scale it (auto: a bias)
+    bias, adapter, shown_exposure = 1.0, ExposureAdapter(), 1.0
+    last_loop = last_adapt = time.perf_counter()
     dragging = None
     network_ms: dict[tuple[int, int], list[float]] = {}  # per frame size: FPS never mixes sizes
     fps = relight_ms = last_size = None
@@ -297,6 +349,8 @@ def run_window(scene, options: ViewerOptions) -> int:
     try:
         while running:
             camera_moved = shade_changed = False
+            now = time.perf_counter()
+            dt, last_loop = min(now - last_loop, 0.1), now  # seconds since the last loop (a stall moves no further)
             for event in pygame.event.get():
                 if event.type == pygame.QUIT:
                     running = False
@@ -304,6 +358,9 @@ def run_window(scene, options: ViewerOptions) -> int:
                     dragging = event.button
                 elif event.type == pygame.MOUSEBUTTONUP:
                     dragging = None
+                elif event.type == pygame.MOUSEMOTION and dragging == 1 and view.walking:
+                    view.walk_step(yaw=-event.rel[0] * LOOK_SENSITIVITY, pitch=-event.rel[1] * LOOK_SENSITIVITY)
+                    camera_moved = True
                 elif event.type == pygame.MOUSEMOTION and dragging == 1:
                     view.yaw -= event.rel[0] * 0.01
                     view.pitch = float(np.clip(view.pitch + event.rel[1] * 0.01, -1.4, 1.4))
@@ -311,13 +368,25 @@ def run_window(scene, options: ViewerOptions) -> int:
                 elif event.type == pygame.MOUSEMOTION and dragging == 3:
                     view.light_angle += event.rel[0] * 0.01
                     view.light_changed = shade_changed = True
-                elif event.type == pygame.MOUSEWHEEL:
+                elif event.type == pygame.MOUSEWHEEL and not view.walking:
                     view.zoom = float(np.clip(view.zoom * (0.9 if event.y > 0 else 1.1), 0.2, 5.0))
                     camera_moved = True
                 elif event.type == pygame.KEYDOWN:
                     key = event.unicode
+                    if view.walking and key and key.lower() in WALK_LETTERS:
+                        key = ""  # a move (held_actions below), not the orbit's key
+                    if event.key == pygame.K_F12:
+                        key = "s"
                     if event.key == pygame.K_ESCAPE or key == "q":
                         running = False
+                    elif key == "v":
+                        print("walk: W A S D / arrows, left drag looks, space / ctrl up / down, shift faster; v: orbit"
+                              if view.toggle_walk() else "orbit")
+                    elif key == "x":
+                        exposure = 1.0 if exposure == "auto" else "auto"
+                        bias, redraw = 1.0, True
+                        adapter.reset()
+                        print(f"exposure {exposure}")
                     elif key == "h":
                         print(HELP)
                     elif key and key in "[]":
@@ -343,7 +412,10 @@ def run_window(scene, options: ViewerOptions) -> int:
                         view.background = not view.background
                         shade_changed = True
                     elif key in ("e", "E"):
-                        exposure *= 1.25 if key == "e" else 0.8
+                        if exposure == "auto":
+                            bias *= 1.25 if key == "e" else 0.8
+                        else:
+                            exposure *= 1.25 if key == "e" else 0.8
                         redraw = True
                     elif key == "a":
                         view.playing = bool(view.poses) and not view.playing
@@ -351,7 +423,7 @@ def run_window(scene, options: ViewerOptions) -> int:
                         camera_moved = view.step_pose(1 if key == "." else -1) or camera_moved
                     elif key == "s" and shown is not None:
                         path = Path(f"prt_screenshot_{time.strftime('%Y%m%d_%H%M%S')}.png")
-                        iio.imwrite(path, to_srgb8(shown.render(), exposure))  # the cached transfer re-shaded: no network
+                        iio.imwrite(path, to_srgb8(shown.render(), shown_exposure))  # the cached transfer re-shaded: no network
                         print(f"screenshot: {path}")
                     elif key in ("c", "o"):
                         recorded = recorder.path() if key == "c" else None
@@ -361,12 +433,19 @@ def run_window(scene, options: ViewerOptions) -> int:
                         print(f"camera path: {path} ({what}; render it with prt-runtime --camera-path {path} --headless)")
             if view.playing:  # one recorded pose per drawn frame
                 camera_moved = view.step_pose(1)
-            if camera_moved:
+            if view.walking:
+                move = walk_move(held_actions(pygame.key.get_pressed()), view.speed, dt)
+                if move is not None:
+                    view.walk_step(move)
+                    camera_moved = True
+            elif camera_moved:
                 view.update_camera()
+            if camera_moved:
                 recorder.add(view.camera)
             moving = camera_moved or dragging == 1
             scale = policy.choose(moving)
-            if not (camera_moved or shade_changed or redraw or scale != shown_scale):
+            was_redraw, redraw = redraw, False
+            if not (camera_moved or shade_changed or was_redraw or scale != shown_scale):
                 pygame.time.wait(8)  # nothing changed: no frame, no busy loop
                 continue
             r = renderers.get(scale)
@@ -387,14 +466,21 @@ def run_window(scene, options: ViewerOptions) -> int:
             display.filter = (moderngl.LINEAR, moderngl.LINEAR)
             display.use(0)
             blit["u_image"].value = 0
-            blit["u_exposure"].value = exposure
+            if exposure == "auto":  # the frame's log-average (reduced on the GPU for a GPU frame), smoothed
+                target, now = r.frame_exposure(), time.perf_counter()
+                shown_exposure = adapter.update(target, now - last_adapt) * bias
+                last_adapt = now
+                redraw = redraw or abs(np.log(shown_exposure / (target * bias))) > 0.01  # still adapting: draw again
+            else:
+                shown_exposure = exposure
+            blit["u_exposure"].value = shown_exposure
             blit["u_window"].value = (float(width), float(height))
             screen.use()
             ctx.disable(moderngl.DEPTH_TEST | moderngl.BLEND)
             blit_vao.render(moderngl.TRIANGLES, vertices=3)
             pygame.display.flip()
             ms = 1e3 * (time.perf_counter() - t0)
-            shown_scale, redraw = scale, False
+            shown_scale = scale
             if r.stats["network_runs"] > runs:  # a frame that ran the networks: it counts for FPS
                 policy.record(scale, ms)
                 last_size = (r.width, r.height)

@@ -58,6 +58,29 @@ def test_build_writes_a_loadable_scene(spot_build):
     assert "k16-l2" in proc.stdout and "per-vertex" in proc.stdout
 
 
+def test_a_new_build_shows_its_environment_as_background(spot_build):
+    """The build records the map its light was projected from (a copy in the folder, background on):
+    the background draws it where no geometry is, and the shading's light is the stored SH."""
+    from prt.runtime import Renderer, Scene
+    from prt.runtime.envmap import load_envmap_sh
+    from prt.runtime.envmaps import bundled_envmap_path
+    from prt.train.networks.rightsize import SCENE_LIGHT
+
+    out, _ = spot_build
+    manifest = load_manifest(out / "scene.json")
+    lighting = manifest.lighting
+    assert lighting.background and lighting.envmap == (out / "envmap.hdr").resolve()
+    assert lighting.envmap.read_bytes() == bundled_envmap_path(SCENE_LIGHT).read_bytes()
+    assert json.loads((out / "scene.json").read_text())["lighting"]["envmap"] == "envmap.hdr"  # inside the folder: it travels with it
+    np.testing.assert_allclose(load_envmap_sh(lighting.envmap, 4), lighting.sh, rtol=1e-6, atol=1e-7)
+    with Renderer(Scene.load(out), 48, 48) as r:
+        image, covered = r.render(), r.covered_mask()
+        assert r.background and covered.any() and not covered.all()
+        assert (image[~covered].max(axis=-1) > 0).all()  # the sky, not black
+        r.set_background(False)
+        assert r.render()[~covered].max() == 0
+
+
 def test_rerun_reuses_every_stage(spot_build):
     out, _ = spot_build
     before = {p: p.stat().st_mtime_ns for p in (out / "train").glob("*.npz")}

@@ -309,3 +309,44 @@ def test_deformable_page_plays_the_recorded_poses(browser, tmp_path):
             assert covered_psnr(images[frame], reference, covered) >= 30.0
             assert covered_psnr(images[frame], reference, interior_pixels(covered, normal)) >= 40.0
     assert np.abs(images[0].astype(int) - images[6]).mean() > 1.0  # the pose changed the frame
+
+
+def test_page_walks_with_keys_and_exposes_automatically(browser, demo_web):
+    """Walking in the page (issue 44): W held moves the eye along the level heading at the scene's
+    speed, v switches back to the orbit; exposure=auto gives the first frame the exposure the
+    runtime computes for the same view (the page reduces its shaded frame on the GPU, as the
+    glsl backend does), and web.json carries the walk's figures from prt.runtime.camera."""
+    from selenium.webdriver.common.action_chains import ActionChains
+    from prt.runtime.camera import scene_box, walk_speed
+    from prt.runtime.renderer import Renderer
+
+    out, _ = demo_web
+    web = json.loads((out / "web.json").read_text())
+    scene = Scene.load(demo_scene_path())
+    box = scene_box(scene.manifest)
+    assert web["camera"]["walk_speed"] == pytest.approx(walk_speed(box)) and web["exposure"]["default"] == 1.0
+    cam = scene.manifest.camera
+    size = 64
+    query = page_query(cam.eye, cam.target, cam.fov, size, "potsdamer", mode="walk").replace("exposure=1.0", "exposure=auto")
+    with serve(out) as url:
+        page = load_page(browser, url + "index.html" + query)
+        assert page["state"] == "ready", page["error"]
+        shown = browser.execute_script("return window.prtWeb.view.shownExposure;")
+        with Renderer(scene, size, size, backend="glsl") as r:
+            r.set_camera(eye=cam.eye, target=cam.target, fov=cam.fov)
+            r.set_envmap("potsdamer")
+            r.render()
+            expected = r.frame_exposure()
+        assert expected != pytest.approx(1.0, abs=0.1) and shown == pytest.approx(expected, rel=0.03)  # silhouettes differ by a few pixels
+        before = np.array(browser.execute_script("return window.prtWeb.view.walk.eye;"))
+        ActionChains(browser).key_down("w").pause(1.5).key_up("w").perform()
+        after = np.array(browser.execute_script("return window.prtWeb.view.walk.eye;"))
+        step = after - before
+        heading = np.subtract(cam.target, cam.eye) * [1, 0, 1]
+        heading /= np.linalg.norm(heading)
+        assert np.linalg.norm(step) > 0.01 and abs(step[1]) < 1e-9 and step @ heading == pytest.approx(np.linalg.norm(step), rel=1e-6)
+        assert np.linalg.norm(step) <= walk_speed(box) * 4.0  # at most the speed for the time held (plus slack)
+        state = browser.execute_script("return [window.prtWeb.view.camera.eye, window.prtWeb.view.mode];")
+        np.testing.assert_allclose(state[0], after)  # the frame drawn is from the walked eye
+        ActionChains(browser).send_keys("v").perform()
+        assert browser.execute_script("return window.prtWeb.view.mode;") == "orbit"

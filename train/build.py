@@ -614,6 +614,7 @@ def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log
         materials=materials,
         albedo_uv=albedo_uv,
         interreflection=interreflection,
+        envmap=bundled_envmap_path(SCENE_LIGHT),  # the map lighting_sh came from: the new build's background
     )
     memory = manifest.memory
     display.add("export", len(segments) * EXPORT_SEGMENT)

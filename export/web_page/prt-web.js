@@ -5,8 +5,8 @@
 //   -> transfer pass (every fragment's network; the blocks are the layers of one array texture)
 //   -> shade pass (SH lighting, Phong lobe through the Gaunt light matrices)
 //   -> background (the env map where the depth is 1) -> tone mapping into the canvas.
-// Contract (docs/guides/web.md): query parameters eye, target, fov, size, envmap, exposure,
-// background (+ rotation, material, exponent, frame, capture); body data-prt-state
+// Contract (docs/guides/web.md): query parameters eye, target, fov, size, envmap, exposure (a number
+// or auto), background (+ rotation, material, exponent, frame, mode=orbit|walk, capture); body data-prt-state
 // loading|ready|error; the message of an error in #prt-error; with capture=1 the first frame as a
 // PNG data URL in #prt-capture.
 
@@ -108,6 +108,61 @@ function viewProjection(cam, aspect) {
   return out;
 }
 
+// ------------------------------------------------------------------ walking (runtime/camera.py: walk, fit_near)
+
+// One first-person step: turn (yaw about up, positive to the left; pitch clamped), then move
+// (forward along the level heading, right, up).  The twin of prt.runtime.camera.walk.
+function walkCamera(cam, move, yaw, pitch, maxPitch) {
+  const up = unit(cam.up);
+  const f = unit(sub(cam.target, cam.eye));
+  const current = Math.asin(Math.max(-1, Math.min(1, dot(f, up))));
+  let heading = sub(f, scale(up, dot(f, up)));
+  if (Math.hypot(...heading) < 1e-9) heading = scale(cameraBasis(cam).up, dot(f, up) > 0 ? -1 : 1);
+  heading = unit(rotateAbout(up, yaw, unit(heading)));
+  const angle = Math.max(-maxPitch, Math.min(maxPitch, current + pitch));
+  const forward = add(scale(heading, Math.cos(angle)), scale(up, Math.sin(angle)));
+  const right = cross(heading, up);
+  const eye = add(add(add(cam.eye, scale(heading, move[0])), scale(right, move[1])), scale(up, move[2]));
+  const distance = Math.hypot(...sub(cam.target, cam.eye));
+  return { ...cam, eye, target: add(eye, scale(forward, distance)) };
+}
+
+function fitNear(cam, c) {  // an eye inside the scene's box: the interior near plane
+  const inside = [0, 1, 2].every((i) => cam.eye[i] >= c.box[0][i] && cam.eye[i] <= c.box[1][i]);
+  return inside && cam.near > c.walk_near ? { ...cam, near: c.walk_near } : cam;
+}
+
+const WALK_KEYS = {
+  forward: ["KeyW", "ArrowUp"], back: ["KeyS", "ArrowDown"], left: ["KeyA", "ArrowLeft"], right: ["KeyD", "ArrowRight"],
+  up: ["Space", "KeyE"], down: ["ControlLeft", "ControlRight", "KeyQ"], fast: ["ShiftLeft", "ShiftRight"],
+};
+const WALK_FAST = 4;  // runtime/viewer.py: WALK_FAST
+const LOOK_SENSITIVITY = 0.005;  // radians per pixel (runtime/viewer.py)
+
+function walkMove(held, speed, dt) {  // runtime/viewer.py: walk_move
+  const has = (a) => WALK_KEYS[a].some((k) => held.has(k));
+  const f = has("forward") - has("back"), r = has("right") - has("left"), u = has("up") - has("down");
+  if (!(f || r || u)) return null;
+  const step = (speed * Math.max(dt, 0) * (has("fast") ? WALK_FAST : 1)) / Math.hypot(f, r, u);
+  return [f * step, r * step, u * step];
+}
+
+// Auto exposure (runtime/exposure.py): the key over the log-average luminance of the covered pixels,
+// smoothed in log space over tau seconds, the first frame exact.
+function exposureFromLogMean(e, logMean) {
+  if (logMean === null || !Number.isFinite(logMean) || logMean <= Math.log(e.eps) + 1e-9) return 1;
+  return Math.min(Math.max(e.key / Math.exp(logMean), e.range[0]), e.range[1]);
+}
+
+function adaptExposure(view, target, now) {
+  const a = view.adapt;
+  if (a.value === null || a.tau === 0) a.value = target;
+  else a.value = Math.exp(Math.log(a.value) + (Math.log(target) - Math.log(a.value)) * (1 - Math.exp(-Math.max(now - a.time, 0) / 1000 / a.tau)));
+  a.time = now;
+  a.target = target;
+  return a.value;
+}
+
 // ------------------------------------------------------------------ lighting (SH)
 
 // SH rotation about +Y by theta: D = C0 + sum_k Ck cos(k theta) + Sk sin(k theta) (web_assets.rotation_fourier).
@@ -202,6 +257,7 @@ class Program {
       case gl.FLOAT_VEC4: gl.uniform4fv(u.location, v); break;
       case gl.FLOAT_MAT3: gl.uniformMatrix3fv(u.location, false, v); break;
       case gl.FLOAT_MAT4: gl.uniformMatrix4fv(u.location, false, v); break;
+      case gl.INT_VEC2: gl.uniform2iv(u.location, Int32Array.from(v)); break;
       default: gl.uniform1iv(u.location, Int32Array.from(v));  // int, bool and sampler uniforms
     }
     return this;
@@ -286,6 +342,7 @@ class WebRenderer {
       shade: new Program(gl, sources, "fullscreen.vert", "shade.frag"),
       background: new Program(gl, sources, "background.vert", "background.frag"),
       display: new Program(gl, sources, "fullscreen.vert", "display.frag"),
+      exposure: new Program(gl, sources, "fullscreen.vert", "log_luminance.frag"),
     };
     if (sources["shade_materials.frag"]) this.programs.shadeMaterials = new Program(gl, sources, "fullscreen.vert", "shade_materials.frag");
     this.emptyVao = gl.createVertexArray();
@@ -372,6 +429,7 @@ class WebRenderer {
     }
     this.programs.background.use().set("u_envmap", 0);
     this.programs.display.use().set("u_image", 0);
+    this.programs.exposure.use().set("u_frame", 0);
   }
 
   // The render targets of an n x n frame (kept per size: the page draws smaller while the view moves).
@@ -399,6 +457,9 @@ class WebRenderer {
       }
       t.out = texture2D(gl, gl.RGBA32F, n, n);
       t.outFbo = framebuffer(gl, [{ texture: t.out }], t.depth);
+      t.tileSize = Math.ceil(n / this.web.exposure.block);  // auto exposure: per-tile log-luminance sums
+      t.tiles = texture2D(gl, gl.RGBA32F, t.tileSize, t.tileSize);
+      t.tilesFbo = framebuffer(gl, [{ texture: t.tiles }]);
       gl.bindFramebuffer(gl.FRAMEBUFFER, null);
       this.sets.set(n, t);
     }
@@ -517,11 +578,28 @@ class WebRenderer {
     gl.disable(gl.DEPTH_TEST);
   }
 
-  displayPass(view) {  // the frame (maybe smaller than the canvas while the view moves) tone-mapped into the canvas
+  // The mean of log(EPS + L) over the covered pixels of the shaded frame (before the background; alpha
+  // marks them), or null: shaders/log_luminance.frag sums tiles, their few texels are read back.
+  exposurePass() {
+    const gl = this.gl, n = this.size, m = this.tileSize;
+    this.programs.exposure.use().set("u_size", [n, n]);
+    bindTextures(gl, [[this.out, 0]]);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, this.tilesFbo);
+    gl.viewport(0, 0, m, m);
+    gl.bindVertexArray(this.emptyVao);
+    gl.drawArrays(gl.TRIANGLES, 0, 3);
+    const data = new Float32Array(4 * m * m);
+    gl.readPixels(0, 0, m, m, gl.RGBA, gl.FLOAT, data);
+    let sum = 0, count = 0;
+    for (let i = 0; i < m * m; ++i) { sum += data[4 * i]; count += data[4 * i + 1]; }
+    return count > 0.5 ? sum / Math.round(count) : null;
+  }
+
+  displayPass(view, exposure) {  // the frame (maybe smaller than the canvas while the view moves) tone-mapped into the canvas
     const gl = this.gl, w = gl.drawingBufferWidth, h = gl.drawingBufferHeight;
     gl.bindFramebuffer(gl.FRAMEBUFFER, null);
     gl.viewport(0, 0, w, h);
-    this.programs.display.use().set("u_window", [w, h]).set("u_exposure", view.exposure);
+    this.programs.display.use().set("u_window", [w, h]).set("u_exposure", exposure);
     bindTextures(gl, [[this.out, 0]]);
     gl.bindVertexArray(this.emptyVao);
     gl.drawArrays(gl.TRIANGLES, 0, 3);
@@ -541,8 +619,14 @@ class WebRenderer {
       this.targets.valid = true;
     }
     this.shadePass(view);
+    let exposure = view.exposure;
+    if (exposure === "auto") {
+      view.logMean = this.exposurePass();
+      exposure = adaptExposure(view, exposureFromLogMean(this.web.exposure, view.logMean), performance.now()) * view.bias;
+    }
+    view.shownExposure = exposure;
     if (view.background && this.web.lighting.envmaps[view.envmap].image) this.backgroundPass(view);
-    this.displayPass(view);
+    this.displayPass(view, exposure);
     gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(4));
     const ms = performance.now() - t0;
     const error = gl.getError();
@@ -571,7 +655,8 @@ function parseQuery(web, search) {
   const envmaps = Object.keys(web.lighting.envmaps);
   const view = {
     base: { eye: c.eye, target: c.target, up: c.up, fov: c.fov, near: c.near, far: c.far },
-    size: 512, envmap: web.lighting.default, exposure: 1, background: web.lighting.background,
+    size: 512, envmap: web.lighting.default, exposure: web.exposure.default, bias: 1, background: web.lighting.background,
+    mode: "orbit", adapt: { value: null, time: 0, target: null, tau: web.exposure.tau },
     rotation: 0, material: "scene", exponent: web.material.glossy.exponent, frame: 0, capture: q.get("capture") === "1",
   };
   if (q.has("eye")) view.base.eye = parseVector(q.get("eye"), "eye");
@@ -585,7 +670,11 @@ function parseQuery(web, search) {
     view.envmap = q.get("envmap");
     if (!envmaps.includes(view.envmap)) throw new PageError(`query: envmap must be one of ${envmaps.join(", ")}, got "${view.envmap}"`);
   }
-  if (q.has("exposure")) view.exposure = parseNumber(q.get("exposure"), "exposure", 0, 1e6);
+  if (q.has("exposure")) view.exposure = q.get("exposure") === "auto" ? "auto" : parseNumber(q.get("exposure"), "exposure", 0, 1e6);
+  if (q.has("mode")) {
+    view.mode = q.get("mode");
+    if (!["orbit", "walk"].includes(view.mode)) throw new PageError(`query: mode must be orbit or walk, got "${view.mode}"`);
+  }
   if (q.has("background")) {
     const b = q.get("background");
     if (b !== "black" && b !== "envmap") throw new PageError(`query: background must be black or envmap, got "${b}"`);
@@ -610,6 +699,7 @@ function parseQuery(web, search) {
     throw new PageError("query: eye and target must differ, and the view must not be parallel to up");
   }
   view.orbit = { yaw: 0, pitch: 0, zoom: 1 };
+  view.walk = { ...view.base };  // the walking camera (mode walk)
   return view;
 }
 
@@ -636,7 +726,7 @@ function prepare(web, view) {  // what the passes read from the view
   const theta = (view.rotation * Math.PI) / 180;
   const d = shRotationY(web.lighting.rotation_fourier, theta);
   const light = d.map((row) => [0, 1, 2].map((c) => row.reduce((s, v, j) => s + v * env.sh[j][c], 0)));
-  view.camera = orbitCamera(view);
+  view.camera = fitNear(view.mode === "walk" ? view.walk : orbitCamera(view), web.camera);
   view.light = light;
   view.toMap = matmul3(rotationY(theta), env.rotation);
   view.shading = shadingUniforms(web, light, materialOf(web, view));
@@ -656,13 +746,19 @@ function setupControls(page) {
   for (const e of web.material.exponents) exponent.add(new Option(String(e), String(e)));
   exponent.value = String(view.exponent);
   $("prt-rotation").value = String(view.rotation);
-  $("prt-exposure").value = String(Math.log2(Math.max(view.exposure, 1e-9)));
+  $("prt-exposure").value = view.exposure === "auto" ? "0" : String(Math.log2(Math.max(view.exposure, 1e-9)));
+  $("prt-exposure-auto").checked = view.exposure === "auto";
   $("prt-background").value = view.background ? "envmap" : "black";
   $("prt-material").value = view.material;
   const on = (id, event, f) => $(id).addEventListener(event, (e) => { f(e.target); page.request(); });
   on("prt-envmap", "change", (t) => { view.envmap = t.value; });
   on("prt-rotation", "input", (t) => { view.rotation = Number(t.value); });
-  on("prt-exposure", "input", (t) => { view.exposure = Math.pow(2, Number(t.value)); });
+  on("prt-exposure", "input", (t) => { if (view.exposure === "auto") view.bias = Math.pow(2, Number(t.value)); else view.exposure = Math.pow(2, Number(t.value)); });
+  on("prt-exposure-auto", "change", (t) => {  // auto: the slider is a bias on the auto exposure
+    view.exposure = t.checked ? "auto" : Math.pow(2, Number($("prt-exposure").value));
+    view.bias = t.checked ? Math.pow(2, Number($("prt-exposure").value)) : 1;
+    view.adapt.value = null;
+  });
   on("prt-background", "change", (t) => { view.background = t.value === "envmap"; });
   on("prt-material", "change", (t) => { view.material = t.value; });
   on("prt-exponent", "change", (t) => { view.exponent = Number(t.value); });
@@ -678,7 +774,9 @@ function setupControls(page) {
       if (e.target.checked) timer = setInterval(() => { page.pose((view.frame + 1) % web.deformation.frames); frame.value = String(view.frame); }, 100);
     });
   }
-  // Orbit and zoom: one pointer (mouse or finger) orbits, two pinch, the wheel zooms.
+  setupWalk(page);
+  // Orbit and zoom: one pointer (mouse or finger) orbits, two pinch, the wheel zooms; walking, one
+  // pointer looks around and two move forward or back (a finger drag up walks forward).
   const pointers = new Map();
   let pinch = 0;
   const spread = () => { const [a, b] = [...pointers.values()]; return Math.hypot(a.x - b.x, a.y - b.y); };
@@ -688,7 +786,11 @@ function setupControls(page) {
     if (!last) return;
     const dx = e.clientX - last.x, dy = e.clientY - last.y;
     pointers.set(e.pointerId, { x: e.clientX, y: e.clientY });
-    if (pointers.size === 1) {
+    if (view.mode === "walk") {
+      if (document.pointerLockElement === canvas) return;  // mouse look through movementX/Y (setupWalk)
+      if (pointers.size === 1) view.walk = walkCamera(view.walk, [0, 0, 0], -dx * LOOK_SENSITIVITY, -dy * LOOK_SENSITIVITY, web.camera.max_pitch);
+      else view.walk = walkCamera(view.walk, [(-dy / pointers.size) * web.camera.walk_speed * 0.01, 0, 0], 0, 0, web.camera.max_pitch);
+    } else if (pointers.size === 1) {
       view.orbit.yaw -= dx * 0.01;
       view.orbit.pitch = Math.max(-1.4, Math.min(1.4, view.orbit.pitch + dy * 0.01));
     } else if (pointers.size === 2) {
@@ -701,8 +803,54 @@ function setupControls(page) {
   const release = (e) => { pointers.delete(e.pointerId); pinch = pointers.size === 2 ? spread() : 0; };
   canvas.addEventListener("pointerup", release);
   canvas.addEventListener("pointercancel", release);
-  canvas.addEventListener("wheel", (e) => { e.preventDefault(); view.orbit.zoom = Math.max(0.2, Math.min(5, view.orbit.zoom * Math.exp(e.deltaY * 0.001))); page.request(true, true); }, { passive: false });
-  canvas.addEventListener("dblclick", () => { view.orbit = { yaw: 0, pitch: 0, zoom: 1 }; page.request(true); });
+  canvas.addEventListener("wheel", (e) => { e.preventDefault(); if (view.mode === "walk") return; view.orbit.zoom = Math.max(0.2, Math.min(5, view.orbit.zoom * Math.exp(e.deltaY * 0.001))); page.request(true, true); }, { passive: false });
+  canvas.addEventListener("dblclick", () => { view.orbit = { yaw: 0, pitch: 0, zoom: 1 }; view.walk = { ...view.base }; page.request(true); });
+}
+
+// Walking: v switches orbit <-> walk; W A S D / arrows move, space / E up, ctrl / Q down, shift x4, at
+// the scene's walking speed (web.json camera.walk_speed, prt.runtime.camera.walk_speed); a click
+// locks the pointer for mouse look (Esc releases it), else a drag looks.
+function setupWalk(page) {
+  const { web, view, canvas } = page;
+  const held = new Set();
+  let last = null;
+  const mode = $("prt-mode");
+  const setMode = (m) => {
+    if (m === view.mode) return;
+    if (m === "walk") view.walk = { ...view.camera };  // walk on from the view on screen
+    else { view.base = { ...view.walk }; view.orbit = { yaw: 0, pitch: 0, zoom: 1 }; }
+    view.mode = m;
+    mode.value = m;
+    page.request(true);
+  };
+  mode.value = view.mode;
+  mode.addEventListener("change", (e) => setMode(e.target.value));
+  const typing = (e) => e.target && ["INPUT", "SELECT", "TEXTAREA"].includes(e.target.tagName) && e.target.type !== "range";
+  const tick = (now) => {
+    if (!held.size || view.mode !== "walk") { last = null; return; }
+    const dt = last === null ? 1 / 60 : Math.min((now - last) / 1000, 0.1);
+    last = now;
+    const move = walkMove(held, web.camera.walk_speed, dt);
+    if (move) { view.walk = walkCamera(view.walk, move, 0, 0, web.camera.max_pitch); page.request(true, true); }
+    requestAnimationFrame(tick);
+  };
+  window.addEventListener("keydown", (e) => {
+    if (typing(e)) return;
+    if (e.code === "KeyV" && !e.repeat) { setMode(view.mode === "walk" ? "orbit" : "walk"); return; }
+    if (view.mode !== "walk" || !Object.values(WALK_KEYS).some((keys) => keys.includes(e.code))) return;
+    e.preventDefault();
+    const start = !held.size;
+    held.add(e.code);
+    if (start) requestAnimationFrame(tick);
+  });
+  window.addEventListener("keyup", (e) => held.delete(e.code));
+  window.addEventListener("blur", () => held.clear());
+  canvas.addEventListener("click", () => { if (view.mode === "walk" && canvas.requestPointerLock) { try { const p = canvas.requestPointerLock(); if (p && p.catch) p.catch(() => {}); } catch (err) { /* no lock: drag looks */ } } });
+  document.addEventListener("mousemove", (e) => {
+    if (view.mode !== "walk" || document.pointerLockElement !== canvas) return;
+    view.walk = walkCamera(view.walk, [0, 0, 0], -e.movementX * LOOK_SENSITIVITY, -e.movementY * LOOK_SENSITIVITY, web.camera.max_pitch);
+    page.request(true, true);
+  });
 }
 
 // ------------------------------------------------------------------ the page
@@ -776,6 +924,8 @@ async function main() {
     draw(moving = false, networks = false) {
       const r = renderer.frame(prepare(web, view), networks, moving ? this.movingSize() : view.size);
       this.frames += 1;
+      const a = view.adapt;  // auto exposure still on its way to this view's: another (re-shaded) frame
+      if (view.exposure === "auto" && a.target !== null && Math.abs(Math.log(a.value / a.target)) > 0.01) this.request();
       if (r.size !== view.size) return r;  // a reduced frame while moving: the figures stay those of full frames
       if (r.networks) this.networkMs = r.ms; else this.relightMs = r.ms;
       const ms = this.networkMs;
