@@ -2,6 +2,9 @@
 // (gbuffer_mesh.vert) inside a THREE.ShaderMaterial.  three.js prepends its prefix (#version 300 es,
 // precision, projectionMatrix, modelViewMatrix, the attributes position and normal): position is
 // the scene-space corner (the networks' input), normal its smooth shading normal.
+// The depth pre-pass (prt-three.js) draws the same positions: invariant, so that the material's
+// fragments meet its depth exactly (LessEqual) and the networks run once per pixel.
+invariant gl_Position;
 in vec3 prt_face_normal;  // the face's unit normal (zero for a degenerate face)
 in ivec2 prt_info;        // (object id, two-sided ? 1 : 0)
 out vec3 v_position;

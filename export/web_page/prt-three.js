@@ -213,12 +213,13 @@ function dataTexture(data, width, height) {
 }
 
 const identity3 = [[1, 0, 0], [0, 1, 0], [0, 0, 1]];
+const PREPASS_VERTEX = "invariant gl_Position;\nvoid main() { gl_Position = projectionMatrix * modelViewMatrix * vec4(position, 1.0); }";
 
 // A built scene in three.js: `object` (a THREE.Group holding one mesh) to add to a THREE.Scene;
 // the light (setEnvmap, setLightProbe, rotation in degrees about +Y, exposure) and the material
 // (setMaterial) change uniforms only.
 export class PRTScene {
-  constructor(web, files, sources) {
+  constructor(web, files, sources, options = {}) {
     this.web = web;
     this.envmaps = Object.keys(web.lighting.envmaps);
     this._envmap = web.lighting.default;
@@ -289,6 +290,18 @@ export class PRTScene {
     this.object = new THREE.Group();
     this.object.name = `prt: ${web.scene.name}`;
     this.object.add(this.mesh);
+    // Depth first (options.depthPrepass, default on): a forward material runs its networks for every
+    // fragment that passes the depth test, so without it hidden surfaces drawn first cost networks
+    // too; with it, one network per pixel, as the page's deferred transfer pass.
+    if (options.depthPrepass !== false) {
+      const depth = (side) => new THREE.ShaderMaterial({
+        name: "prt depth pre-pass", side, colorWrite: false, vertexShader: PREPASS_VERTEX, fragmentShader: "void main() { gl_FragColor = vec4(0.0); }",
+      });
+      this.prepass = new THREE.Mesh(geometry, [depth(THREE.FrontSide), depth(THREE.DoubleSide)]);
+      this.prepass.name = `${web.scene.name} (depth pre-pass)`;
+      this.prepass.renderOrder = -1;  // before the opaque meshes of the same render order (the app's default 0)
+      this.object.add(this.prepass);
+    }
     this.object.userData.prt = this;
   }
 
@@ -401,15 +414,16 @@ export class PRTScene {
 
   dispose() {
     this.geometry.dispose();
-    for (const list of Object.values(this.programs)) for (const m of list) m.dispose();
+    for (const list of [...Object.values(this.programs), this.prepass ? this.prepass.material : []]) for (const m of list) m.dispose();
     for (const t of this._backgrounds.values()) t.dispose();
     for (const name of ["prt_weights", "u_material_table", "u_albedo_textures"]) if (this.uniforms[name]) this.uniforms[name].value.dispose();
   }
 }
 
 // Load the scene prt-web wrote into the folder at `url` (relative to the document).  Options:
-// envmap (a name of web.json's lighting.envmaps), rotation (degrees), exposure, material, renderer
-// (a THREE.WebGLRenderer: its limits are checked before the weights are fetched).
+// envmap (a name of web.json's lighting.envmaps), rotation (degrees), exposure, material, exponent,
+// renderer (a THREE.WebGLRenderer: its limits are checked before the weights are fetched),
+// depthPrepass (default true: a depth-only draw first, so the networks run once per pixel).
 export async function loadPRT(url, options = {}) {
   const base = new URL(url.endsWith("/") ? url : `${url}/`, document.baseURI);
   const web = await fetchWeb(base);
@@ -428,7 +442,8 @@ export async function loadPRT(url, options = {}) {
     Promise.all(names.map((n) => fetchBytes(base, web, n))),
     Promise.all(programs.map((n) => fetchText(base, web, web.three.programs[n]))),
   ]);
-  const prt = new PRTScene(web, Object.fromEntries(names.map((n, i) => [n, binaries[i]])), Object.fromEntries(programs.map((n, i) => [n, texts[i]])));
+  const prt = new PRTScene(web, Object.fromEntries(names.map((n, i) => [n, binaries[i]])), Object.fromEntries(programs.map((n, i) => [n, texts[i]])),
+    options);
   if (options.envmap !== undefined) prt.setEnvmap(options.envmap);
   if (options.rotation !== undefined) prt.rotation = options.rotation;
   if (options.exposure !== undefined) prt.exposure = options.exposure;
