@@ -6,7 +6,9 @@ Everything here is the desktop runtime's own data, laid out for WebGL2:
   3.00 dialect (:data:`prt.shaders.GLSL_ES_VERSION`), with the scene's generated network GLSL
   and dispatch (the ``glsl`` backend's :class:`~prt.runtime.backends.glsl._CompactNetworks`), so
   the page runs the same G-buffer, transfer, shading, background and tone-mapping code as
-  ``Renderer(backend="glsl")``; nothing is ported by hand.
+  ``Renderer(backend="glsl")``; nothing is ported by hand.  The three.js material's stages
+  (``three_programs``, ``shaders/three_prt.*``: the same files and fills in one forward fragment
+  stage, without ``#version``, which three.js's ShaderMaterial prepends) for ``prt-three.js``.
 - **Binary arrays** (little-endian): the G-buffer's vertex records (``runtime/gbuffer.py``: closed
   faces first, then the two-sided ones), the scene's weight texture (``(H, 1024, 4)`` float32),
   env maps as RGBE texels, per-object material tables and albedo textures, a deformable scene's
