@@ -50,7 +50,7 @@ THREE_FILES = ("three.html", "prt-three.js")
 """The three.js module and its example page (package data under ``export/web_page/``)."""
 THREE_VERSION = "0.185.1"
 """The three.js shipped in ``vendor/three/`` (``npm pack three@0.185.1``; ``VERSION.json`` there)."""
-VENDOR_FILES = ("three.module.min.js", "three.core.min.js", "OrbitControls.js", "LICENSE", "VERSION.json")
+VENDOR_FILES = ("three.module.min.js", "three.core.min.js", "OrbitControls.js", "LightProbeGrid.js", "LICENSE", "VERSION.json")
 """three.js's files in ``export/web_page/vendor/three/``, written to ``vendor/three/`` of the output."""
 GENERATOR = "prt-web 0.1.0"
 
@@ -120,7 +120,8 @@ def write_web(scene_path, out, *, force: bool = False) -> dict:
                      "programs": {name: f"shaders/{name}" for name in assets.three_programs}}}  # fmt: skip
     shared = sum(len(v) for v in assets.arrays.values())
     index_bytes = sum(len(v) for v in files.values())
-    three_bytes = shared + sum(len(v) for k, v in three.items() if k not in ("vendor/three/LICENSE", "vendor/three/VERSION.json"))
+    unloaded = ("vendor/three/LICENSE", "vendor/three/VERSION.json", "vendor/three/LightProbeGrid.js")  # (the last with grid=1 only)
+    three_bytes = shared + sum(len(v) for k, v in three.items() if k not in unloaded)
     web["scene"]["payload_bytes"] = web["three"]["payload_bytes"] = 0
     while True:  # each payload counts web.json itself, which holds the figures: their fixed point (two rounds)
         text = json.dumps(web, separators=(",", ":")).encode()

@@ -11,8 +11,10 @@ Measures, on this machine (Debian's chromium with software WebGL2, SwiftShader, 
 - sizes: ``prt-three.js``, ``three.html``, the vendored three.js (minified module + core +
   OrbitControls) and everything three.html loads;
 - first frame: each page in a fresh browser (cold caches), the page's clock from navigation start
-  when its files are fetched and when its first frame is drawn (three.js compiles the material's
-  program at its first frame; index.html links its programs before);
+  when its files are fetched, how long three.html's ``renderer.compile`` takes (the material's
+  program, with the networks) and when its first frame is drawn;
+- against the ray-traced reference (the demo, ``--ref-size``): the page, three.html, and three.js's
+  own LightProbeGrid baked on the same scene (three.html?grid=...);
 - frame time: full frames (every network runs) of index.html, of three.html and of three.html
   without the depth pre-pass, interleaved in ``--rounds`` rounds (three tabs of one browser),
   medians and ratios.
@@ -62,6 +64,51 @@ def same_pixels(driver, url: str, size: int, eye, target, fov: float, envmap: st
             "max_abs_diff_8bit": int(diff[covered].max()), "pixels_off_by_more_than_2": int((diff[covered] > 2).sum())}  # fmt: skip
 
 
+def against_reference(driver, url: str, size: int, camera: dict, grids: list[str], rays: int, strip: Path | None = None) -> dict:
+    """The demo against the ray-traced reference (``prt.bench.reference``'s: transfer traced at every
+    covered pixel of the renderer's G-buffer, shaded with the same SH light, tone-mapped): the page,
+    three.html, and three.js's own LightProbeGrid (three.html?grid=...: a MeshLambertMaterial of
+    the scene's albedo lit by L2 irradiance probes baked from the env map over the scene's box)."""
+    from prt.bench.reference import load_scene_geometry, shade_image
+    from prt.runtime.envmaps import bundled_envmap_path
+    from prt.runtime.renderer import Renderer, Scene
+    from prt.runtime.shading import Lighting, Material, to_srgb8
+    from prt.train import compute_transfer
+    from prt.train.transport.transfer import make_tracer
+
+    scene = Scene.load(demo_scene_path())
+    eye, target, fov = camera["eye"], camera["target"], camera["fov"]
+    with Renderer(scene, size, size, backend="glsl") as r:
+        r.set_camera(eye=eye, target=target, fov=fov)
+        gbuffer = r.gbuffer_image()
+    covered = gbuffer.covered
+    geometry, _ = load_scene_geometry(scene.manifest)
+    tracer = make_tracer(geometry)
+    lighting = Lighting.from_envmap(bundled_envmap_path("potsdamer"))
+    material = Material("diffuse", albedo=scene.manifest.material.albedo)
+    refs = []
+    for seed in (0, 1):  # the reference's own noise: a second seed
+        transfer = compute_transfer(geometry, gbuffer.position[covered], gbuffer.normal[covered], rays=rays, seed=seed, tracer=tracer)
+        refs.append(to_srgb8(shade_image(transfer, gbuffer, eye, lighting, material)))
+    query = page_query(eye, target, fov, size, "potsdamer")
+    rows = {"reference, second seed": refs[1]}
+    rows["index.html (prt-web page)"] = decode_png_data_url(_ready(load_page(driver, url + "index.html" + query, timeout=600), "index.html")["capture"])
+    rows["three.html (prt-three.js)"] = decode_png_data_url(_ready(load_page(driver, url + "three.html" + query, timeout=600), "three.html")["capture"])
+    bake_ms = {}
+    for grid in grids:
+        page = _ready(load_page(driver, url + "three.html" + query + f"&grid={grid}", timeout=600), "three.html?grid")
+        rows[f"three.js LightProbeGrid {grid.replace(',', ' x ')} (three.html?grid={grid})"] = decode_png_data_url(page["capture"])
+        bake_ms[grid] = float(driver.execute_script("return document.body.dataset.bakeMs"))
+    if strip is not None:  # reference | page | three.html | LightProbeGrid, side by side
+        import imageio.v3 as iio
+
+        iio.imwrite(strip, np.concatenate([refs[0], *(rows[k] for k in list(rows)[1:])], axis=1))
+    out = {"size": size, "rays": rays, "covered_pixels": int(covered.sum()), "grids": grids, "grid_bake_ms": bake_ms,
+           "psnr_db": {name: round(covered_psnr(image, refs[0], covered), 2) for name, image in rows.items()},
+           "mean_signed_error_8bit": {name: round(float((image.astype(float) - refs[0])[covered].mean()), 2) for name, image in rows.items()}}  # fmt: skip
+    return out
+
+
 def frame_times(driver, url: str, size: int, rounds: int, camera: dict) -> dict:
     query = page_query(camera["eye"], camera["target"], camera["fov"], size, "potsdamer", capture=False)
     tabs = {}
@@ -107,6 +154,15 @@ def markdown(fig: dict) -> str:
     for r in fig["first_frame"]:
         lines.append(f"| {r['page']} | {r['size']} | {r['load_ms']} | {r['three_compile_call_ms'] if r['three_compile_call_ms'] is not None else '-'} "
                      f"| {r['first_frame_ms']} |")  # fmt: skip
+    ref = fig["reference"]
+    lines += ["", f"The demo against the ray-traced reference ({ref['rays']} rays per pixel, shaded with the same SH light, tone-mapped; "
+              f"{ref['size']} x {ref['size']}, {ref['covered_pixels']} covered pixels). three.js's LightProbeGrid: the same triangles with a "
+              "MeshLambertMaterial of the scene's albedo, lit by L2 irradiance probes baked from the env map over the scene's box "
+              f"(cube maps of 32 px; baked in {', '.join(f'{v:.0f} ms ({k})' for k, v in ref['grid_bake_ms'].items())}).  "
+              f"Side by side in [`three_reference.png`](three_reference.png): reference, page, three.html, the grids.", "",
+              "| image | PSNR dB against the reference (covered) | mean signed error (8 bit) |", "|---|---|---|"]  # fmt: skip
+    for name, value in ref["psnr_db"].items():
+        lines.append(f"| {name} | {value} | {ref['mean_signed_error_8bit'][name]:+.2f} |")
     m = t["median_ms"]
     lines += ["", f"Full frames at {t['size']} x {t['size']} (demo, every network runs; medians of {t['rounds']} interleaved rounds): "
               f"index.html {m['index']} ms, three.html {m['three']} ms ({t['three_over_index']}x), three.html without the depth "
@@ -121,6 +177,9 @@ def main(argv=None) -> int:
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--grid", nargs="+", default=["8,4,8", "16,8,16"], help="probes of three.js's LightProbeGrid along X, Y, Z (reference rows)")
+    ap.add_argument("--ref-rays", type=int, default=1024, help="rays per pixel of the ray-traced reference")
+    ap.add_argument("--ref-size", type=int, default=128)
     args = ap.parse_args(argv)
     reason = missing_browser()
     if reason:
@@ -135,7 +194,8 @@ def main(argv=None) -> int:
         write_web(cornell, cornell_out)
         files = report["files"]
         figures["sizes"] = {"prt_three_js_bytes": files["prt-three.js"], "three_html_bytes": files["three.html"],
-                            "vendored_three_bytes": sum(files[f"vendor/three/{n}"] for n in VENDOR_FILES if n.endswith(".js")),
+                            "vendored_three_bytes": sum(files[f"vendor/three/{n}"] for n in VENDOR_FILES if n.endswith(".js") and n != "LightProbeGrid.js"),
+                            "vendored_light_probe_grid_bytes": files["vendor/three/LightProbeGrid.js"],
                             "three_payload_bytes": report["three_payload_bytes"], "index_payload_bytes": report["payload_bytes"]}  # fmt: skip
         web = json.loads((demo_out / "web.json").read_text())
         cam = web["camera"]
@@ -155,6 +215,8 @@ def main(argv=None) -> int:
             with serve(demo_out) as url:
                 figures["same_pixels"] = {"demo, manifest camera": same_pixels(driver, url, args.size, cam["eye"], cam["target"], cam["fov"], "potsdamer")}
                 figures["frame_time"] = frame_times(driver, url, args.size, args.rounds, cam)
+                strip = None if args.json is None else args.json.with_name(args.json.stem + "_reference.png")
+                figures["reference"] = against_reference(driver, url, args.ref_size, cam, args.grid, args.ref_rays, strip)
             with serve(cornell_out) as url:
                 eye, target = CORNELL_VIEWS["into the box"]
                 figures["same_pixels"]["Cornell, 2 bounces, into the box"] = same_pixels(driver, url, args.size, eye, target, 40.0, "interior")

@@ -98,7 +98,8 @@ def test_wheel_holds_only_the_prt_package_with_shaders(wheel):
     for data in ("prt/runtime/schemas/scene.schema.json", "prt/runtime/data/demo/scene.json", "prt/export/web_page/index.html",
                  "prt/export/web_page/prt-web.js", "prt/export/web_page/prt-three.js", "prt/export/web_page/three.html",
                  "prt/export/web_page/vendor/three/three.module.min.js", "prt/export/web_page/vendor/three/three.core.min.js",
-                 "prt/export/web_page/vendor/three/OrbitControls.js", "prt/export/web_page/vendor/three/LICENSE",
+                 "prt/export/web_page/vendor/three/OrbitControls.js", "prt/export/web_page/vendor/three/LightProbeGrid.js",
+                 "prt/export/web_page/vendor/three/LICENSE",
                  "prt/export/web_page/vendor/three/VERSION.json", "prt/shaders/three_prt.frag", "prt/shaders/three_prt.vert",
                  "prt/runtime/data/demo/geometry.npz", "prt/runtime/data/envmaps/studio_small_03_256.hdr"):
         assert data in names, data

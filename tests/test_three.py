@@ -75,7 +75,8 @@ def test_prt_web_writes_the_three_module_and_a_pinned_three(demo_web):
     assert frag.count("#define PRT_SEGMENTS ") == 1
     # The payload three.html loads: the shared arrays, its own files, web.json.
     shared = [web["geometry"]["file"], web["weights"]["file"], *(e["image"]["file"] for e in web["lighting"]["envmaps"].values() if e["image"])]
-    own = [*THREE_FILES, *(f"vendor/three/{n}" for n in VENDOR_FILES if n not in ("LICENSE", "VERSION.json")), *three["programs"].values()]
+    own = [*THREE_FILES, *(f"vendor/three/{n}" for n in VENDOR_FILES if n not in ("LICENSE", "VERSION.json", "LightProbeGrid.js")),
+           *three["programs"].values()]  # fmt: skip
     assert three["payload_bytes"] == sum((out / n).stat().st_size for n in [*shared, *own, "web.json"])
     # The page's tone curve in three.js has the runtime's ceiling.
     assert float(re.search(r"export const TONEMAP_MAX = ([0-9.e+]+);", module).group(1)) == TONEMAP_MAX
@@ -155,6 +156,21 @@ def test_a_plain_three_mesh_beside_the_prt_object(browser, demo_web):
     assert prt_pixels.sum() > 3000 and covered_psnr(both, alone, prt_pixels) >= 40.0
 
 
+def test_three_js_light_probe_grid_on_the_same_scene(browser, demo_web):
+    """three.html?grid=...: three.js's own baked light (a LightProbeGrid over the scene's box, the
+    same triangles with a MeshLambertMaterial) in place of the prt material; the study compares it
+    with the ray-traced reference (docs/benchmarks/three.md)."""
+    query = page_query(*_demo_view(demo_web), 64, "potsdamer")
+    with serve(demo_web) as url:
+        prt, _ = _three_frame(browser, url, query)
+        grid, _ = _three_frame(browser, url, query + "&grid=4,2,4")
+        kinds = browser.execute_script("return window.prtThree.scene.children.map((o) => o.isLightProbeGrid ? 'grid' : o.name)")
+        bake_ms = float(browser.execute_script("return document.body.dataset.bakeMs"))
+    assert "grid" in kinds and "lambert" in kinds and bake_ms > 0, kinds
+    covered = prt.max(axis=2) > 10
+    assert grid[covered].mean() > 60 and np.abs(grid.astype(int) - prt)[covered].mean() > 3  # lit by the probes, and not the prt frame
+
+
 def _demo_view(out: Path):
     cam = json.loads((out / "web.json").read_text())["camera"]
     return cam["eye"], cam["target"], cam["fov"]
@@ -203,6 +219,7 @@ def test_bad_folders_show_one_line_in_the_three_page(browser, demo_web, tmp_path
         "old_web": (lambda f: edit_web(f, lambda w: w.pop("three")), "", 'web.json: no "three"'),
         "shader": (bad_shader, "", "shaders/three.frag: does not compile in this browser's WebGL2"),
         "query": (lambda f: None, "?envmap=nowhere", "query: envmap must be one of"),
+        "grid": (lambda f: None, "?grid=1,2", "query: grid must be three whole numbers"),
     }  # fmt: skip
     for name, (change, query, words) in cases.items():
         folder = tmp_path / name
