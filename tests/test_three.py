@@ -20,6 +20,7 @@ import json
 import math
 import re
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -231,3 +232,26 @@ def test_bad_folders_show_one_line_in_the_three_page(browser, demo_web, tmp_path
         assert browser.execute_script("return document.getElementById('prt-canvas').offsetParent") is None
     page = load_page(browser, (demo_web / "three.html").as_uri(), timeout=30)
     assert page["state"] == "error" and "python3 -m http.server" in page["error"]
+
+
+def test_the_guides_ten_lines_draw_the_scene(browser, demo_web, tmp_path):
+    """docs/guides/three.md's snippet, as it is, in an app page beside the folder (prt/)."""
+    guide = (Path(__file__).resolve().parents[1] / "docs" / "guides" / "three.md").read_text()
+    snippet = re.search(r"## The ten lines an app needs\n\n```html\n(.*?)```", guide, re.S).group(1)
+    assert len([line for line in snippet.splitlines() if line.strip() and not line.startswith("<")]) <= 10
+    app = tmp_path / "app"
+    shutil.copytree(demo_web, app / "prt")
+    shim = ("<script>const getContext = HTMLCanvasElement.prototype.getContext;"  # keep the frame readable after it is drawn
+            "HTMLCanvasElement.prototype.getContext = function (kind, options) {"
+            " return getContext.call(this, kind, Object.assign({}, options, { preserveDrawingBuffer: true })); };</script>")  # fmt: skip
+    (app / "index.html").write_text(f"<!doctype html><html><body><canvas width='96' height='96'></canvas>{shim}\n{snippet}</body></html>")
+    with serve(app) as url:
+        browser.get(url + "index.html")
+        image = None
+        for _ in range(600):
+            text = browser.execute_script("const c = document.querySelector('canvas'); return c.toDataURL('image/png');")
+            image = decode_png_data_url(text)
+            if image.max() > 0:
+                break
+            time.sleep(0.1)
+    assert image is not None and (image.max(axis=2) > 40).sum() > 500  # the cow and its floor, lit
