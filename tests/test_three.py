@@ -221,6 +221,7 @@ def test_bad_folders_show_one_line_in_the_three_page(browser, demo_web, tmp_path
         "shader": (bad_shader, "", "shaders/three.frag: does not compile in this browser's WebGL2"),
         "query": (lambda f: None, "?envmap=nowhere", "query: envmap must be one of"),
         "grid": (lambda f: None, "?grid=1,2", "query: grid must be three whole numbers"),
+        "deformable": (lambda f: edit_web(f, lambda w: w.update(deformation={"frames": 2})), "", "a deformable scene; prt-three.js draws rigid"),
     }  # fmt: skip
     for name, (change, query, words) in cases.items():
         folder = tmp_path / name
