@@ -4,13 +4,17 @@ The folder it writes opens from any static file server (``python3 -m http.server
 no build step, no CDN and no network access beyond that server:
 
 - ``index.html`` and ``prt-web.js`` (one ES module; package data in ``export/web_page/``);
+- ``three.html``, ``prt-three.js`` (an ES module: the scene as three.js meshes with a material
+  that runs its networks, ``docs/guides/three.md``) and ``vendor/three/`` (three.js
+  :data:`THREE_VERSION` from npm, minified, with its MIT licence: nothing comes from a CDN);
 - ``web.json``: what the page reads (format :data:`WEB_FORMAT`, version :data:`WEB_VERSION`): the
   scene's name and size, camera, segment tables, uniforms, lighting data, the file table (each
   file's size, which the page checks);
 - ``geometry.bin``, ``weights.bin`` (and ``albedo.bin``, ``poses.bin``, ``envmaps/*.rgbe``):
   little-endian arrays (:mod:`prt.export.web_assets`);
 - ``shaders/*``: GLSL ES 3.00 assembled from the runtime's own shader files and the scene's
-  generated network GLSL (the ``glsl`` backend's program, in the WebGL2 dialect).
+  generated network GLSL (the ``glsl`` backend's program, in the WebGL2 dialect); ``three*.vert``,
+  ``three*.frag``: the three.js material's stages (``web.json``'s ``three.programs``).
 
 The page runs the ``glsl`` backend's frame: G-buffer, transfer pass (the networks), shading,
 background, tone mapping; its contract (query parameters, ``#prt-capture``, ``data-prt-state``)
@@ -33,7 +37,8 @@ from pathlib import Path
 from ..runtime.errors import PRTError
 from ..runtime.files import atomic_write_bytes, atomic_write_json
 
-__all__ = ["WEB_FORMAT", "WEB_VERSION", "MARKER", "PAGE_FILES", "build_parser", "main", "write_web"]
+__all__ = ["WEB_FORMAT", "WEB_VERSION", "MARKER", "PAGE_FILES", "THREE_FILES", "THREE_VERSION", "VENDOR_FILES", "build_parser", "main",
+           "write_web"]  # fmt: skip
 
 WEB_FORMAT = "prt-web"
 WEB_VERSION = 1
@@ -41,6 +46,12 @@ WEB_VERSION = 1
 MARKER = ".prt-web"
 PAGE_FILES = ("index.html", "prt-web.js")
 """The page's own static files (package data under ``export/web_page/``)."""
+THREE_FILES = ("three.html", "prt-three.js")
+"""The three.js module and its example page (package data under ``export/web_page/``)."""
+THREE_VERSION = "0.185.1"
+"""The three.js shipped in ``vendor/three/`` (``npm pack three@0.185.1``; ``VERSION.json`` there)."""
+VENDOR_FILES = ("three.module.min.js", "three.core.min.js", "OrbitControls.js", "LightProbeGrid.js", "LICENSE", "VERSION.json")
+"""three.js's files in ``export/web_page/vendor/three/``, written to ``vendor/three/`` of the output."""
 GENERATOR = "prt-web 0.1.0"
 
 
@@ -70,8 +81,8 @@ def check_output(out: Path, force: bool = False) -> None:
 
 
 def page_file(name: str) -> bytes:
-    """A static file of the page (``index.html``, ``prt-web.js``)."""
-    return resources.files(__package__).joinpath("web_page", name).read_bytes()
+    """A static file of the page (``index.html``, ``prt-web.js``, ``vendor/three/...``)."""
+    return resources.files(__package__).joinpath("web_page", *name.split("/")).read_bytes()
 
 
 def write_web(scene_path, out, *, force: bool = False) -> dict:
@@ -98,16 +109,27 @@ def write_web(scene_path, out, *, force: bool = False) -> dict:
     files: dict[str, bytes] = {name: page_file(name) for name in PAGE_FILES}
     files.update(assets.arrays)
     files.update({f"shaders/{name}": text.encode() for name, text in assets.programs.items()})
-    table = {name: len(data) for name, data in files.items()}
+    three: dict[str, bytes] = {name: page_file(name) for name in THREE_FILES}  # what only three.html loads
+    three.update({f"vendor/three/{name}": page_file(f"vendor/three/{name}") for name in VENDOR_FILES})
+    three.update({f"shaders/{name}": text.encode() for name, text in assets.three_programs.items()})
+    table = {name: len(data) for name, data in {**files, **three}.items()}
     web = {"format": WEB_FORMAT, "version": WEB_VERSION, "generator": GENERATOR, **assets.info, "files": table,
-           "programs": {name: f"shaders/{name}" for name in assets.programs}}  # fmt: skip
-    web["scene"]["payload_bytes"] = 0
-    while True:  # the payload counts web.json itself, which holds the figure: its fixed point (two rounds)
+           "programs": {name: f"shaders/{name}" for name in assets.programs},
+           "three": {"version": THREE_VERSION, "module": "prt-three.js", "page": "three.html",
+                     "vendor": {name: f"vendor/three/{name}" for name in VENDOR_FILES},
+                     "programs": {name: f"shaders/{name}" for name in assets.three_programs}}}  # fmt: skip
+    shared = sum(len(v) for v in assets.arrays.values())
+    index_bytes = sum(len(v) for v in files.values())
+    unloaded = ("vendor/three/LICENSE", "vendor/three/VERSION.json", "vendor/three/LightProbeGrid.js")  # (the last with grid=1 only)
+    three_bytes = shared + sum(len(v) for k, v in three.items() if k not in unloaded)
+    web["scene"]["payload_bytes"] = web["three"]["payload_bytes"] = 0
+    while True:  # each payload counts web.json itself, which holds the figures: their fixed point (two rounds)
         text = json.dumps(web, separators=(",", ":")).encode()
-        total = sum(table.values()) + len(text)
-        if total == web["scene"]["payload_bytes"]:
+        totals = (index_bytes + len(text), three_bytes + len(text))
+        if totals == (web["scene"]["payload_bytes"], web["three"]["payload_bytes"]):
             break
-        web["scene"]["payload_bytes"] = total
+        web["scene"]["payload_bytes"], web["three"]["payload_bytes"] = totals
+    files.update(three)
     try:
         out.mkdir(parents=True, exist_ok=True)
         atomic_write_json(out / MARKER, {"format": WEB_FORMAT, "version": WEB_VERSION})
@@ -118,7 +140,8 @@ def write_web(scene_path, out, *, force: bool = False) -> dict:
     except OSError as exc:
         raise WebOutputError(f"{out}: cannot write the page ({exc.strerror or exc})") from None
     files["web.json"] = text
-    return {"files": {k: len(v) for k, v in files.items()}, "payload_bytes": web["scene"]["payload_bytes"], "out": out}
+    return {"files": {k: len(v) for k, v in files.items()}, "payload_bytes": web["scene"]["payload_bytes"],
+            "three_payload_bytes": web["three"]["payload_bytes"], "out": out}  # fmt: skip
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -143,6 +166,7 @@ def main(argv=None) -> int:
     out = report["out"]
     print(f"prt-web: wrote {out} ({len(report['files'])} files, {report['payload_bytes'] / 1e6:.2f} MB the page loads)")
     print(f"serve it with:  python3 -m http.server -d {out} 8000   then open http://127.0.0.1:8000/")
+    print(f"the scene in three.js {THREE_VERSION}: http://127.0.0.1:8000/three.html ({report['three_payload_bytes'] / 1e6:.2f} MB; docs/guides/three.md)")
     return 0
 
 

@@ -6,7 +6,9 @@ Everything here is the desktop runtime's own data, laid out for WebGL2:
   3.00 dialect (:data:`prt.shaders.GLSL_ES_VERSION`), with the scene's generated network GLSL
   and dispatch (the ``glsl`` backend's :class:`~prt.runtime.backends.glsl._CompactNetworks`), so
   the page runs the same G-buffer, transfer, shading, background and tone-mapping code as
-  ``Renderer(backend="glsl")``; nothing is ported by hand.
+  ``Renderer(backend="glsl")``; nothing is ported by hand.  The three.js material's stages
+  (``three_programs``, ``shaders/three_prt.*``: the same files and fills in one forward fragment
+  stage, without ``#version``, which three.js's ShaderMaterial prepends) for ``prt-three.js``.
 - **Binary arrays** (little-endian): the G-buffer's vertex records (``runtime/gbuffer.py``: closed
   faces first, then the two-sided ones), the scene's weight texture (``(H, 1024, 4)`` float32),
   env maps as RGBE texels, per-object material tables and albedo textures, a deformable scene's
@@ -59,6 +61,9 @@ class WebAssets:
     info: dict
     arrays: dict[str, bytes] = field(default_factory=dict)
     programs: dict[str, str] = field(default_factory=dict)
+    three_programs: dict[str, str] = field(default_factory=dict)
+    """The three.js material's stages (``prt-three.js``), by file name: GLSL ES 3.00 bodies
+    without ``#version`` (three.js prepends its own prefix)."""
 
 
 # --------------------------------------------------------------------------- lighting data
@@ -234,6 +239,22 @@ def _programs(tables: dict, blocks: int, transfer: dict, per_object: bool, defor
     return out
 
 
+def _three_programs(tables: dict, transfer: dict, per_object: bool) -> dict[str, str]:
+    """The three.js material's stages (``shaders/three_prt.*``): the G-buffer's segment rule, the
+    networks (the transfer pass's fills) and the shading in one forward fragment stage; without
+    ``#version`` and precision lines, which three.js's ShaderMaterial prepends."""
+    segments = len(tables["segment_min"])
+    if transfer["defines"].get("PRT_SEGMENTS", segments) != segments:  # one #define serves both files
+        raise InputError(f"the networks' dispatch has {transfer['defines']['PRT_SEGMENTS']} segments, the segment tables {segments}")
+    defines = {"PRT_KD_NODES": len(tables["nodes"]), "PRT_KD_OBJECTS": len(tables["roots"]), **transfer["defines"], "PRT_SEGMENTS": segments}
+    out = {}
+    for suffix, extra in (("", {}), ("_materials", {"PRT_OBJECT_MATERIALS": 1})) if per_object else (("", {}),):
+        out[f"three{suffix}.vert"] = assemble("three_prt.vert", defines=extra, version=None)
+        out[f"three{suffix}.frag"] = assemble("sh_basis.glsl", "segment_lookup.glsl", "shading.glsl", "three_prt.frag",
+                                              defines={**defines, **extra}, fills=transfer["fills"], version=None)  # fmt: skip
+    return out
+
+
 # --------------------------------------------------------------------------- the scene
 
 
@@ -327,7 +348,8 @@ def scene_assets(scene) -> WebAssets:
     if deformation is not None:
         arrays["poses.bin"], info["deformation"] = _poses(deformation, mesh, order, codes)
     programs = _programs(tables, blocks, transfer, per_object, deformation is not None)
-    return WebAssets(info=info, arrays=arrays, programs=programs)
+    three = _three_programs(tables, transfer, per_object) if deformation is None else {}  # prt-three.js draws rigid scenes
+    return WebAssets(info=info, arrays=arrays, programs=programs, three_programs=three)
 
 
 def _key(exponent: float) -> str:

@@ -19,7 +19,7 @@ __all__ = ["result_pages", "readme_with_table", "mkdocs_with_nav", "provenance_o
 # page slug -> (title, what it holds, file-name prefixes); the first page whose prefix matches wins
 PAGES = [
     ("gpu", "GPU", "Frame times and fits on a GPU (the prepared GPU check).", ("gpu",)),
-    ("web", "Web page", "The WebGL2 page against the Python GLSL backend.", ("web",)),
+    ("web", "Web page", "The WebGL2 page against the Python GLSL backend; the scene in three.js against the page.", ("web", "three")),
     ("presets", "Build presets and defaults", "Build time and error of the `--quality` presets and of the default build on unseen meshes.",
      ("presets", "defaults", "vertex_estimate")),
     ("fidelity", "Independent reference", "Our reference and builds against Mitsuba 3; the bounce rule it led to.", ("mitsuba", "entering")),

@@ -96,7 +96,11 @@ def test_wheel_holds_only_the_prt_package_with_shaders(wheel):
     assert "prt/shaders/tonemap.glsl" in shaders and "prt/shaders/viewer_blit.frag" in shaders, shaders
     assert not any(n.startswith("prt/tests/") for n in names)
     for data in ("prt/runtime/schemas/scene.schema.json", "prt/runtime/data/demo/scene.json", "prt/export/web_page/index.html",
-                 "prt/export/web_page/prt-web.js",
+                 "prt/export/web_page/prt-web.js", "prt/export/web_page/prt-three.js", "prt/export/web_page/three.html",
+                 "prt/export/web_page/vendor/three/three.module.min.js", "prt/export/web_page/vendor/three/three.core.min.js",
+                 "prt/export/web_page/vendor/three/OrbitControls.js", "prt/export/web_page/vendor/three/LightProbeGrid.js",
+                 "prt/export/web_page/vendor/three/LICENSE",
+                 "prt/export/web_page/vendor/three/VERSION.json", "prt/shaders/three_prt.frag", "prt/shaders/three_prt.vert",
                  "prt/runtime/data/demo/geometry.npz", "prt/runtime/data/envmaps/studio_small_03_256.hdr"):
         assert data in names, data
     assert any(n.startswith("prt/runtime/data/demo/segments/") and n.endswith(".onnx") for n in names)
