@@ -16,6 +16,7 @@ import math
 import numpy as np
 
 from prt.runtime.errors import InputError
+from prt.runtime.exposure import auto_exposure as _runtime_auto_exposure
 
 __all__ = ["KEY", "EPS", "EXPOSURE_RANGE", "LUMINANCE", "auto_exposure", "luminance", "parse_exposure"]
 
@@ -50,18 +51,9 @@ def auto_exposure(radiance_linear, covered_mask) -> float:
         In :data:`EXPOSURE_RANGE`; 1.0 when no pixel is covered or every covered pixel is black.
     """
     lum = luminance(radiance_linear)
-    if covered_mask is not None:
-        mask = np.asarray(covered_mask, dtype=bool)
-        if mask.shape != lum.shape:
-            raise InputError(f"auto_exposure(): covered_mask has shape {mask.shape}, the radiance {lum.shape}")
-        lum = lum[mask]
-    if lum.size == 0:
-        return 1.0
-    log_mean = float(np.mean(np.log(EPS + lum.ravel())))
-    if not math.isfinite(log_mean) or log_mean <= math.log(EPS) + 1e-9:
-        return 1.0
-    lo, hi = EXPOSURE_RANGE
-    return float(min(max(KEY / math.exp(log_mean), lo), hi))
+    if covered_mask is not None and np.asarray(covered_mask).shape != lum.shape:
+        raise InputError(f"auto_exposure(): covered_mask has shape {np.asarray(covered_mask).shape}, the radiance {lum.shape}")
+    return _runtime_auto_exposure(radiance_linear, covered_mask)  # one rule: the runtime's (prt.runtime.exposure)
 
 
 def parse_exposure(text: str):

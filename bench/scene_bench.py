@@ -52,7 +52,7 @@ from prt.bench.texture_prt import texture_variants
 from prt.bench.vertex_prt import VertexPRT, vertex_bounce_transfer, vertex_transfer
 from prt.export.precision import PRECISIONS, model_weight_bytes, variant_manifest
 from prt.runtime.backends.onnx import OnnxTransfer
-from prt.runtime.camera import Camera, orbit_views
+from prt.runtime.camera import Camera, fit_near, orbit_views, scene_box
 from prt.runtime.checks import read_text
 from prt.runtime.errors import InputError, PRTError
 from prt.runtime.files import atomic_write_json
@@ -282,7 +282,9 @@ class SceneBench:
         self.transfer_cache = settings.cache / "transfer"
         if settings.cameras:  # --cameras: the views a file gives (bench/cameras.py), in the manifest camera's clip range
             near_far = Camera.from_manifest(manifest.camera)
-            self.cameras = [Camera(eye, target, up, fov, near_far.near, near_far.far) for eye, target, up, fov in settings.cameras]
+            box = scene_box(manifest)  # views inside the scene get the interior near plane, as the viewer's walk does
+            self.cameras = [fit_near(Camera(eye, target, up, fov, near_far.near, near_far.far), box)
+                            for eye, target, up, fov in settings.cameras]  # fmt: skip
         else:
             self.cameras = orbit_views(Camera.from_manifest(manifest.camera), settings.views)
         self.materials = _materials(manifest)
