@@ -18,7 +18,8 @@ from prt.train.build import run_build, spec_from_dict
 from prt.train.networks.segments import segment_samples, split_segment
 from prt.train.presets import LEAF_CAP, PRESETS, SAMPLES_PER_LEAF, leaf_budget, resolve
 
-TINY = {"samples": 3000, "validation": 1000, "rays": 24, "steps": 60, "batch": 512, "bounces": 0, "quality": "draft"}
+TINY = {"samples": 3000, "validation": 1000, "rays": 24, "steps": 60, "batch": 512, "bounces": 0, "quality": "draft", "segments": 2}
+ONE_SIZE = [{"hidden": 8, "layers": 1, "pos_freqs": 2}]  # a one-size ladder: fits in a second
 
 
 @pytest.fixture(scope="module")
@@ -143,10 +144,10 @@ def test_split_segment_gives_back_half_of_a_merged_segments_leaves():
 
 def test_an_unreachable_floor_stops_short_and_says_where(two_objects, tmp_path):
     out = tmp_path / "short"
-    proc = subprocess.run([sys.executable, "-m", "prt.train.train_cli", str(two_objects), "-o", str(out), "--quality", "draft",
-                           "--samples", "4000", "--validation", "1200", "--rays", "32", "--steps", "60", "--batch", "512", "--bounces", "0",
-                           "--floor", "90", "--build-budget", "1", "--no-progress", "--threads", "2"],
-                          capture_output=True, text=True)  # fmt: skip
+    spec = tmp_path / "spec.json"
+    spec.write_text(json.dumps({"geometry": str(two_objects), **TINY, "vertex_margin": 1.0, "ladder": ONE_SIZE}))
+    proc = subprocess.run([sys.executable, "-m", "prt.train.train_cli", str(spec), "-o", str(out), "--floor", "90", "--build-budget", "1",
+                           "--no-progress", "--threads", "2"], capture_output=True, text=True)  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     report = json.loads((out / "build.json").read_text())
     r = report["refinement"]
@@ -168,7 +169,7 @@ def test_an_unreachable_floor_stops_short_and_says_where(two_objects, tmp_path):
 def refined(two_objects, tmp_path_factory, request):
     """A build of a one-size ladder under a floor it cannot reach: one round (the later ones planned away) splits."""
     out = tmp_path_factory.mktemp("refined") / "scene"
-    spec = spec_from_dict({"geometry": str(two_objects), **TINY, "vertex_margin": 1.0, "ladder": [{"hidden": 8, "layers": 1, "pos_freqs": 2}],
+    spec = spec_from_dict({"geometry": str(two_objects), **TINY, "steps": 200, "analytic": False, "vertex_margin": 1.0, "ladder": ONE_SIZE,
                            "floor_db": 80.0, "build_budget": 600.0})  # fmt: skip
 
     def build():
@@ -195,12 +196,15 @@ def test_refinement_splits_where_the_error_is_and_raises_the_psnr(refined, two_o
     report, lines = build()
     r = report["refinement"]
     assert r["rounds"] == 1 and r["ended"] == "ladder" and not r["met"]
-    splits = [a for a in r["actions"] if a["action"] == "split"]
-    assert splits and all(a["size"] == "k8-l1-f2" for a in splits)  # the ladder's top: split, not grown
+    splits = [a for a in r["actions"] if a["action"] == "split" and a["kept"]]
+    assert splits and all(a["size"] == "k8-l1-f2" for a in r["actions"])  # the ladder's top: split, not grown
     assert r["psnr_db"] > r["start_psnr_db"], r
-    assert r["segments"] == len(report["segments"]) == len(report["spec"] and report["segments"])
-    first = sorted(refine.error_shares([{**s, "sizing": s["sizing"]} for s in report["segments"]]), key=lambda x: x["segment"])
-    assert len(first) == r["segments"]
+    for a in splits:  # a split is kept where its halves together are more accurate than the whole
+        halves = [s for s in report["segments"] if s["id"] in a["into"]]
+        assert refine.scene_psnr(halves) > a["psnr_db"][0]
+        assert all(s["refined"]["action"] == "split" for s in halves)
+    assert r["segments"] == len(report["segments"]) == 2 + len(splits)
+    assert [s["id"] for s in report["segments"]] == list(range(r["segments"]))
     # the scene exports and the runtime's segment rule covers the new segments
     manifest = load_manifest(out / "scene.json")
     assert len(manifest.segments) == r["segments"]

@@ -15,7 +15,10 @@ segments) that are under the floor themselves, and for each (:func:`plan_round`)
 - **splits** it (:func:`prt.train.networks.segments.split_segment`) once growing stalls (the last
   size gained under :data:`MIN_GAIN_DB`) or the ladder's top is reached, while the build has fewer
   segments than its preset's cap (:data:`prt.train.presets.LEAF_CAP`); both halves are fitted at
-  the parent's size.
+  the parent's size, and the split is kept where the halves' pooled held-out PSNR is above the
+  whole's (else the segment stays whole and is not cut again).
+
+Neither action is kept unless it is more accurate, so refinement does not lower a segment's PSNR.
 
 It ends at the floor (``"floor"``), when the time is spent (``"time"``), or when no segment under
 the floor can grow or be cut (``"ladder"``).  Stopping short, the report names the absolute PSNR,
@@ -240,6 +243,7 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
                 actions.append({"round": rounds, "segment": s, "action": "grow", "to": archs[j].label(), "kept": gain > 0,
                                 "psnr_db": [round(light_psnr(before), 3), round(light_psnr(record), 3)]})  # fmt: skip
                 continue
+            saved = (tree, samples["segment"], valid["segment"].copy(), members[s])
             cut = split_segment(tree, samples["points"], samples["object_ids"], samples["segment"], s, min_samples=MIN_SAMPLES)
             if cut is None:
                 unsplittable.add(s)
@@ -253,11 +257,19 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
                 tree["segments"][g]["margin_samples"] = int(len(members[g]) - tree["segments"][g]["samples"])
             arch = archs[st["index"]] if st["index"] >= 0 else archs[(len(archs) - 1) // 2]
             records.append(None)  # the new segment's place
-            for g in (s, new):
-                records[g] = store(fit(g, arch, before, True, rounds, "split"))
+            halves = [fit(g, arch, before, True, rounds, "split") for g in (s, new)]
+            kept = scene_psnr(halves) > light_psnr(before)  # the two halves' pooled held-out PSNR against the whole's
+            actions.append({"round": rounds, "segment": s, "action": "split", "into": [s, new], "size": arch.label(), "kept": kept,
+                            "psnr_db": [round(light_psnr(before), 3), *(round(light_psnr(h), 3) for h in halves)]})  # fmt: skip
+            if not kept:  # no better in two: the segment stays whole, and is not cut again
+                tree, samples["segment"], valid["segment"], members[s] = saved
+                members.pop()
+                records.pop()
+                unsplittable.add(s)
+                continue
+            for g, half in zip((s, new), halves):
+                records[g] = store(half)
                 state[g] = {**_fresh(st["index"], len(archs)), "changed": True}
-            actions.append({"round": rounds, "segment": s, "action": "split", "into": [s, new], "size": arch.label(),
-                            "psnr_db": [round(light_psnr(before), 3), round(light_psnr(records[s]), 3), round(light_psnr(records[new]), 3)]})  # fmt: skip
     psnr = scene_psnr(records)
     refinement = {"floor_db": floor, "light": SCENE_LIGHT, "psnr_db": psnr, "start_psnr_db": start_psnr, "met": psnr >= floor,
                   "ended": ended, "rounds": rounds, "budget_s": budget, "elapsed_s": round(elapsed(), 1), "segments": len(records),
