@@ -115,7 +115,8 @@ def differences(spec: dict) -> dict:
     """The fields of a resolved spec (flat, :meth:`prt.train.build.BuildSpec.to_dict`) whose values
     differ from its preset's: what flags or the spec file set by hand.  ``{field: [preset, value]}``."""
     preset = PRESETS.get(spec.get("quality") or DEFAULT_QUALITY, {})
-    return {k: [v, spec[k]] for k, v in preset.items() if k in spec and spec[k] != v}
+    # a floor left out (with a rule of the spec's own, or fewer samples) follows from those fields: not listed again
+    return {k: [v, spec[k]] for k, v in preset.items() if k in spec and spec[k] != v and not (k in FLOOR_FIELDS and spec[k] is None)}
 
 
 def describe(quality: str) -> str:
