@@ -212,7 +212,7 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
         return record
 
     ended = "floor"
-    while True:
+    while archs:  # (a grid build has no frequency ladder to grow or refit on: it reports where it stands)
         psnr = scene_psnr(records)
         if psnr >= floor:
             break
@@ -270,6 +270,8 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
             for g, half in zip((s, new), halves):
                 records[g] = store(half)
                 state[g] = {**_fresh(st["index"], len(archs)), "changed": True}
+    else:
+        ended = "floor" if start_psnr >= floor else "ladder"
     psnr = scene_psnr(records)
     refinement = {"floor_db": floor, "light": SCENE_LIGHT, "psnr_db": psnr, "start_psnr_db": start_psnr, "met": psnr >= floor,
                   "ended": ended, "rounds": rounds, "budget_s": budget, "elapsed_s": round(elapsed(), 1), "segments": len(records),
