@@ -5,7 +5,8 @@ margin over per-vertex PRT; where per-vertex PRT fails too (a building, a CAD as
 says nothing.  So a build also has a floor: its **pooled held-out PSNR** (:func:`scene_psnr`: the
 diffuse, tone-mapped radiance under the scene's lighting, :data:`prt.train.networks.rightsize.SCENE_LIGHT`,
 of every segment's held-out samples together, :func:`prt.train.networks.rightsize.pooled_psnr`).
-While it is under ``floor_db`` and the build's wall time (from its start) is under ``build_budget``,
+While it is under ``floor_db`` and the build's wall time (from its start) leaves room under
+``build_budget`` for the next refit (as long as the mean one so far),
 each round takes the segments holding most of the error (:func:`error_shares`: own samples, which
 are area-uniform, times held-out MSE; the worst first, until half the error or :data:`PER_ROUND`
 segments) that are under the floor themselves, and for each (:func:`plan_round`):
@@ -180,8 +181,14 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
     unsplittable: set[int] = set()
     actions, rounds, start_psnr = [], 0, scene_psnr(records)
 
+    spent: list[float] = []  # seconds of each refit so far: a grow is one, a split two
+
     def elapsed() -> float:
         return job.clock() - job.t_start
+
+    def left(fits: int) -> bool:
+        """Time is left for ``fits`` more refits (as long as the mean one so far): none is started that would end past the budget."""
+        return elapsed() + fits * (sum(spent) / len(spent) if spent else 0.0) < budget
 
     def can_split(s: int) -> bool:
         return len(records) < cap and s not in unsplittable and records[s]["samples"] >= 2 * MIN_SAMPLES
@@ -194,8 +201,10 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
             sub = dataclasses.replace(sub, fixed=keep, match=None, target_db=None, vertex_margin=None)
         own = np.flatnonzero(samples["segment"] == s)
         pre_key = fit_hash(job.data_key, REFINE_VERSION, _digest(members[s], own, np.flatnonzero(valid["segment"] == s))) if changed else job.data_key
+        t0 = job.clock()
         record = train_segment(sub, s, samples, valid, members[s], [arch], job.fit_settings, job.lights, False, log, job.fit_cache(pre_key, s),
                                vertex=job.vertex if spec.vertex_rule() else None)  # fmt: skip
+        spent.append(job.clock() - t0)
         record["refined"] = {"round": round_, "action": action, "from": like.get("arch_label", like["kind"]),
                              "from_psnr_db": round(light_psnr(like), 3), "psnr_db": round(light_psnr(record), 3)}  # fmt: skip
         record["sizing"]["reason"] += f"; refined ({action}, round {round_}) toward the floor {floor:g} dB"
@@ -216,7 +225,7 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
         psnr = scene_psnr(records)
         if psnr >= floor:
             break
-        if elapsed() >= budget:
+        if not left(1):
             ended = "time"
             break
         todo = plan_round(records, state, floor, len(archs), can_split)
@@ -226,8 +235,10 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
         rounds += 1
         log(f"refine round {rounds}: held-out {psnr:.2f} dB < floor {floor:g} dB ({elapsed():.0f} of {budget:.0f} s); "
             + ", ".join(f"{a} segment {s}" for s, a in todo))  # fmt: skip
+        out_of_time = False
         for s, action in todo:
-            if elapsed() >= budget:
+            if not left(1 if action == "grow" else 2):
+                out_of_time = True
                 break
             before = records[s]
             st = state[s]
@@ -270,6 +281,9 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
             for g, half in zip((s, new), halves):
                 records[g] = store(half)
                 state[g] = {**_fresh(st["index"], len(archs)), "changed": True}
+        if out_of_time:
+            ended = "time"
+            break
     else:
         ended = "floor" if start_psnr >= floor else "ladder"
     psnr = scene_psnr(records)
