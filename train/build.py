@@ -31,15 +31,17 @@ from ..runtime.envmaps import BUNDLED_ENVMAPS, bundled_envmap_path
 from ..runtime.errors import SpecError
 from ..runtime.files import atomic_save_npz, atomic_write_json
 from ..runtime.manifest import validate_manifest_field
-from .networks.fit import DEFAULT_LADDER, DEFAULT_STEPS, LOSSES, FitResult, FitSettings
+from .networks.fit import DEFAULT_LADDER, DEFAULT_STEPS, LOSSES, FitSettings
 from .inputs.geometry import load_geometry
 from .inputs.materials import mesh_materials, textured_geometry
 from .inputs.mixed import load_scene_geometry, parse_objects, resolve_objects
 from .executor import LocalExecutor
+from .fit_cache import FIT_FORMAT, _FitCache, _FitMemo, _StoredModel  # noqa: F401  (FIT_FORMAT, _FitCache: re-exported)
 from .networks.grid_encoding import DEFAULT_GRID, GridArchitecture, parse_grid
 from .networks.network import Architecture
 from .outdir import check_output_folder, mark_output_folder
-from .presets import QUALITIES
+from .presets import PRESETS, QUALITIES, leaf_budget
+from .refine import RefineJob, refine_build, scene_psnr
 from .presets import differences as preset_differences
 from .progress import BOUNCE_RAY, EXPORT_SEGMENT, RAY, BuildProgress, step_cost
 from .transport.vertex_estimate import estimate_vertex_prt
@@ -54,7 +56,6 @@ __all__ = ["BuildSpec", "SpecLimits", "SPEC_LIMITS", "load_spec", "spec_from_dic
 ENV_LIGHTS = tuple(BUNDLED_ENVMAPS)  # the shaded-error lightings, in the bundled order
 TRAIN_FORMAT = 2  # 2: a fixed-size build keeps a segment analytic only where as accurate as its network
 VERTEX_RULE_VERSION = "vertex-v2"  # v2: the estimate's indirect part by the bounce estimator on the vertices  # the "vertex" rule's part of a segment's cache key: raise it when the estimate changes
-FIT_FORMAT = 2  # layout of the fit cache (precompute/fits/); 2: trained by steps
 
 # The precompute settings a build spec sets, by their flat names (chunk_size is not a spec field).
 PRECOMPUTE_FIELDS = tuple(f.name for f in dataclasses.fields(PrecomputeSettings) if f.name != "chunk_size")
@@ -116,6 +117,10 @@ class BuildSpec:
     glsl_layout: str = "auto"
     material: dict = field(default_factory=lambda: {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]})
     camera: dict = field(default_factory=lambda: {k: list(v) if isinstance(v, tuple) else v for k, v in DEFAULT_CAMERA.items()})
+    # the absolute floor of the held-out PSNR (dB, diffuse under the scene's lighting) and the build's wall-clock seconds
+    # to reach it: while under it, segments are split and networks grown (prt.train.refine); None: no floor
+    floor_db: float | None = None
+    build_budget: float | None = None
     objects: list[dict] | None = None  # a mixed scene (prt.train.inputs.mixed): meshes, SDFs, neural SDFs; ``geometry`` is then its label
 
     @property
@@ -318,9 +323,9 @@ def spec_from_dict(data: dict) -> BuildSpec:
         raise SpecError(f"bounces: expected 0 .. {SPEC_LIMITS.bounces} (0: direct light only) or 'auto', got {spec.bounces!r}")
     if spec.target is None:
         spec.target = flat["target"] = DEFAULT_TARGET
-    for key, positive in (("lr", True), ("target", False), ("time_budget", True)):
+    for key, positive in (("lr", True), ("target", False), ("time_budget", True), ("build_budget", True), ("floor_db", True)):
         value = flat[key]
-        if value is None and key == "time_budget":
+        if value is None and key in ("time_budget", "build_budget", "floor_db"):
             continue
         if not math.isfinite(value) or value < 0 or (positive and value == 0):
             raise SpecError(f"{key}: expected a finite {'positive' if positive else 'non-negative'} number, got {value!r}")
@@ -340,6 +345,8 @@ def spec_from_dict(data: dict) -> BuildSpec:
             if getattr(spec, key) is not None:
                 raise SpecError(f"{key}: not with encoding 'auto' (it right-sizes over the frequency ladder and the grid ladder; "
                                 f"choose encoding 'freq' or 'grid' to set sizes)")  # fmt: skip
+    if spec.floor_db is not None and spec.floor_db > 100:
+        raise SpecError(f"floor_db: expected a PSNR in dB, 0 < dB <= 100, got {spec.floor_db!r}")
     if spec.vertex_margin is not None:
         if not (isinstance(spec.vertex_margin, (int, float)) and math.isfinite(spec.vertex_margin) and -20 <= spec.vertex_margin <= 20):
             raise SpecError(f"vertex_margin: expected dB above the vertex PRT estimate, -20 .. 20, got {spec.vertex_margin!r}")
@@ -472,6 +479,8 @@ def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log
     if spec.bounces and geometry.kind != "mesh":
         raise SpecError(f"bounces: interreflection needs a triangle mesh; {spec.geometry!r} is {'an SDF' if geometry.kind == 'sdf' else 'a mixed'} scene (use --bounces 0)")
     mark_output_folder(out, "scene")
+    differs = preset_differences(spec.to_dict())  # what was set by hand (before the leaf budget follows the scene)
+    spec, leaves = _scene_leaves(spec, geometry, log)
 
     # -- stage 1: precompute
     t0 = time.perf_counter()
@@ -592,6 +601,17 @@ def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log
     segments = [records[seg["id"]] for seg in seg_json["segments"]]
     train_s = time.perf_counter() - t0
 
+    # -- stage 2b: refinement while under the floor (prt.train.refine), within the build's time
+    t0, refinement = time.perf_counter(), None
+    if spec.floor_db is not None and geometry.kind == "mesh":
+        fit_cache = lambda pre_key, s: _FitCache(fits_folder, pre_key, s, fit_settings)  # noqa: E731
+        job = RefineJob(spec, out, seg_json, samples, valid, members, archs, fit_settings, lights, vertex, data_key, fit_cache,
+                        list(geometry.object_names), t_start, log)  # fmt: skip
+        segments, seg_json, refinement = refine_build(job, segments)
+    refine_s = time.perf_counter() - t0
+    held_out = {"light": SCENE_LIGHT, "psnr_db": scene_psnr(segments), "floor_db": spec.floor_db}
+    exported = [_with_scene_psnr(r, held_out) for r in segments]
+
     # -- stage 3: export
     t0 = time.perf_counter()
     display.expect("export", len(segments) * EXPORT_SEGMENT)
@@ -605,7 +625,7 @@ def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log
             "nodes": seg_json["nodes"],
             "leaf_segment": np.asarray(seg_json["leaf_segment"], dtype=np.int64),
         },
-        segments=[_trained_segment(record, out) for record in segments],
+        segments=[_trained_segment(record, out) for record in exported],
         sh_bands=spec.bands,
         lighting_sh=lights[SCENE_LIGHT],
         material=spec.material,
@@ -632,13 +652,17 @@ def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log
             "vertices": int(len(geometry.mesh.vertices)),
         },
         **({"interreflection": interreflection or {"bounces": 0, "auto": auto}} if auto else {}),
-        "preset": {"quality": spec.quality, "differs": preset_differences(spec.to_dict())},
-        **({"sizing": scene_sizing(segments, vertex.weight_bytes, spec.vertex_margin)} if vertex is not None else {}),
+        "preset": {"quality": spec.quality, "differs": differs},
+        "leaf_budget": leaves,
+        "held_out": held_out,
+        **({"refinement": refinement} if refinement is not None else {}),
+        **({"sizing": {**scene_sizing(segments, vertex.weight_bytes, spec.vertex_margin), **held_out}} if vertex is not None else {}),
         "timings": {
             "precompute_s": precompute_s,
             **({"bounce_s": bounce_s} if spec.bounces or auto else {}),
             **({"vertex_s": vertex_s} if vertex is not None else {}),
             "train_s": train_s,
+            **({"refine_s": refine_s} if refinement is not None else {}),
             "export_s": export_s,
             "total_s": time.perf_counter() - t_start,
             "transfer_rays_per_s": pre_summary["timings"]["rays_per_s"],
@@ -658,6 +682,29 @@ def _expected_fit_work(spec: BuildSpec, archs, fit_settings, samples: int) -> fl
     batch, steps, _, _ = fit_settings.plan(max(int(samples), 1))
     middle = spec.reference_architecture() or archs[(len(archs) - 1) // 2]
     return fits * steps * step_cost(middle.flops_per_fragment(), batch)
+
+
+def _scene_leaves(spec: BuildSpec, geometry, log) -> tuple[BuildSpec, dict]:
+    """A preset build's leaf budget, grown with the scene (:func:`prt.train.presets.leaf_budget`); a
+    ``segments`` other than the preset's is the spec's own and stays.  (spec, build.json's ``leaf_budget``)"""
+    pre, objects = spec.precompute, len(geometry.object_names)
+    preset = PRESETS.get(spec.quality or "", {})
+    if preset.get("segments") != pre.segments:
+        return spec, {"rule": "given", "leaves": pre.segments, "objects": objects}
+    leaves = leaf_budget(spec.quality, pre.segments, objects, pre.samples)
+    if leaves != pre.segments:
+        log(f"segments: leaf budget {leaves} for {objects} objects and {pre.samples:,} samples (preset {pre.segments})")
+        spec = dataclasses.replace(spec, precompute=dataclasses.replace(pre, segments=leaves))
+    return spec, {"rule": "scene", "leaves": leaves, "preset": preset["segments"], "objects": objects, "samples": pre.samples}
+
+
+def _with_scene_psnr(record: dict, held_out: dict) -> dict:
+    """A segment's record for export: its manifest ``sizing`` also gives the scene's pooled held-out PSNR and the floor."""
+    sizing = record.get("sizing")
+    if sizing is None:
+        return record
+    extra = {"scene_psnr_db": held_out["psnr_db"], **({"floor_db": held_out["floor_db"]} if held_out["floor_db"] is not None else {})}
+    return {**record, "sizing": {**sizing, **extra, **({"refined": record["refined"]} if "refined" in record else {})}}
 
 
 def _object_albedos(geometry, materials, default: dict) -> dict[str, list[float]]:
@@ -693,81 +740,13 @@ def _loadable(path: Path) -> bool:
         return False
 
 
-class _StoredModel:
-    """A fitted network read back from the fit cache: just its arrays (all export needs)."""
-
-    def __init__(self, arrays: dict):
-        self._arrays = arrays
-
-    def arrays(self) -> dict:
-        return dict(self._arrays)
-
-
-class _FitCache:
-    """Every network fitted on a precompute's segment, keyed by size and fit settings.
-
-    It lives inside the precompute folder, so builds that share one ground truth (the paper
-    table links one precompute into its k = 64, k = 128 and right-sized builds) also share
-    fits: ``--match 64x4`` reuses the k = 64 build's networks as its references.
-    """
-
-    def __init__(self, folder: Path, pre_key: str, segment: int, fit_settings):
-        self.folder, self.base = Path(folder), (pre_key, segment, fit_settings.cache_key(), FIT_FORMAT)
-
-    def _paths(self, arch):
-        key = _hash(*self.base, arch.as_dict())
-        return self.folder / f"{key}.json", self.folder / f"{key}.npz"
-
-    def get(self, arch):
-        meta_path, weights_path = self._paths(arch)
-        if not (meta_path.is_file() and weights_path.is_file()):
-            return None
-        try:
-            meta = json.loads(meta_path.read_bytes())
-            with np.load(weights_path, allow_pickle=False) as data:
-                arrays = {k: data[k] for k in data.files}
-            return FitResult(_StoredModel(arrays), arch, meta["val_mae"], meta["shaded"], meta["epochs"], meta["seconds"], meta["history"],
-                             meta.get("steps", 0))  # fmt: skip
-        except MemoryError:
-            raise
-        except Exception:  # json, zipfile, zlib and a foreign record's missing keys each raise their own kind
-            return None  # a damaged entry is refitted
-
-    def memo(self, archs) -> "_FitMemo":
-        """The entries of ``archs`` fitted before, to travel with a task that runs elsewhere."""
-        return _FitMemo({_hash(arch.as_dict()): fit for arch in archs if (fit := self.get(arch)) is not None})
-
-    def put(self, result) -> None:
-        meta_path, weights_path = self._paths(result.arch)
-        self.folder.mkdir(parents=True, exist_ok=True)
-        atomic_save_npz(weights_path, **result.model.arrays())  # weights first: the json marks the entry complete
-        atomic_write_json(meta_path, {"arch": result.arch.as_dict(), "val_mae": result.val_mae, "shaded": result.shaded,
-                                      "epochs": result.epochs, "seconds": result.seconds, "history": result.history,
-                                      "steps": result.steps})  # fmt: skip
-
-
-class _FitMemo:
-    """A :class:`_FitCache` in memory, for a task on another machine: the new fits go back to the driver."""
-
-    def __init__(self, known: dict):
-        self.known, self.new = known, []
-
-    def get(self, arch):
-        return self.known.get(_hash(arch.as_dict()))
-
-    def put(self, result) -> None:
-        stored = dataclasses.replace(result, model=_StoredModel(result.model.arrays()))
-        self.known[_hash(result.arch.as_dict())] = stored
-        self.new.append(stored)
-
-
 def _trained_segment(record: dict, out: Path) -> TrainedSegment:
     """What export needs of a segment's training record (weights from ``train/segNNN.npz``)."""
     s = record["id"]
     segment = TrainedSegment(id=s, bounds=record["bounds"], samples=record["samples"],
                              coeff_mae=record["val_mae"], shaded_mae=record["shaded"], sizing=record.get("sizing"))  # fmt: skip
     if record["kind"] == "network":
-        with np.load(out / "train" / f"seg{s:03d}.npz") as f:
+        with np.load(out / record.get("weights", f"train/seg{s:03d}.npz")) as f:
             segment.arrays = dict(f)
         segment.architecture = record["arch"]
         segment.flops_per_fragment = record["flops_per_fragment"]

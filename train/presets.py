@@ -3,7 +3,16 @@
 A preset bundles the settings that trade build time for fidelity: samples and rays of the
 ground truth, the k-d split's leaf budget, the fit's steps and batch, the bounce rays, and the
 capacity the default sizing rule may grow to (its ladder of network sizes) with the margin it
-aims for over per-vertex PRT (:mod:`prt.train.networks.rightsize`, rule ``"vertex"``).
+aims for over per-vertex PRT (:mod:`prt.train.networks.rightsize`, rule ``"vertex"``), and the
+absolute floor of the build's held-out PSNR (``floor_db``, diffuse under the scene's lighting) with
+the wall-clock seconds of the whole build (``build_budget``) it may spend reaching it: a build under
+its floor keeps splitting segments and growing networks until it is over it or the time is spent
+(:mod:`prt.train.refine`).  The leaf budget grows with the scene (:func:`leaf_budget`).
+
+A margin over per-vertex PRT alone is no bar where per-vertex PRT fails too (a building, a CAD
+assembly: issue 43), hence the floor.  The floors sit under what the presets reach on single
+objects (standard: bunny 42.3, Spot 41.8, a 15k-vertex scan 39.0 dB; draft 36.1, 36.2, 33.0 dB;
+``docs/benchmarks/presets*.json``), so those builds never refine and keep their bytes.
 
 A spec's own fields and ``prt-train``'s flags win over the preset: :func:`resolve` fills only
 the fields a spec leaves out, and the build records the preset, the values it resolved to and
@@ -15,8 +24,10 @@ which of them differ (``build.json``'s ``spec`` and ``preset``).  ``standard`` i
 from __future__ import annotations
 
 import copy
+import math
 
-__all__ = ["QUALITIES", "DEFAULT_QUALITY", "PRESETS", "RULE_FIELDS", "resolve", "differences", "describe"]
+__all__ = ["QUALITIES", "DEFAULT_QUALITY", "PRESETS", "RULE_FIELDS", "FLOOR_FIELDS", "LEAF_CAP", "SAMPLES_PER_LEAF",
+           "LEAVES_PER_OBJECT", "leaf_budget", "resolve", "differences", "describe"]
 
 QUALITIES = ("draft", "standard", "high")
 DEFAULT_QUALITY = "standard"
@@ -39,20 +50,40 @@ _HIGH_LADDER = [*_SMALL_LADDER, {"hidden": 64, "layers": 4, "pos_freqs": 6}, {"h
 PRESETS: dict[str, dict] = {
     # A first look at a new mesh in minutes: a tenth of the samples, half the rays, short fits, networks up to k64-l3.
     "draft": {"samples": 100_000, "rays": 256, "segments": 8, "steps": 400, "batch": 4096, "bounce_rays": 16,
-              "vertex_margin": 1.0, "ladder": _SMALL_LADDER},
+              "vertex_margin": 1.0, "ladder": _SMALL_LADDER, "floor_db": 30.0, "build_budget": 300.0},
     # The default.  The paper's rays; half its samples and steps, half the batch: the fits of the old default
     # (1M samples, 2000 steps of 8192, --match 64x4) took 1,633 of a 15k-vertex scan's 1,881 s (issue 35).
     "standard": {"samples": 500_000, "rays": 512, "segments": 8, "steps": 1000, "batch": 4096, "bounce_rays": 32,
-                 "vertex_margin": 1.0, "ladder": None},
+                 "vertex_margin": 1.0, "ladder": None, "floor_db": 35.0, "build_budget": 1200.0},
     # The paper's samples and steps, twice its rays and leaves, twice the bounce rays, a 2 dB margin.
     "high": {"samples": 1_000_000, "rays": 1024, "segments": 16, "steps": 2000, "batch": 8192, "bounce_rays": 64,
-             "vertex_margin": 2.0, "ladder": _HIGH_LADDER},
+             "vertex_margin": 2.0, "ladder": _HIGH_LADDER, "floor_db": 38.0, "build_budget": 3600.0},
 }
 """Quality name -> the flat build-spec fields it sets (:meth:`prt.train.build.BuildSpec.to_dict`)."""
 
 # Fields that name a sizing rule: a spec that names one keeps it, and the preset's own rule
 # (``vertex_margin``, with its ``ladder``) is left out.
 RULE_FIELDS = ("fixed", "ladder", "match", "target", "target_db", "vertex_margin")
+
+# The preset's floor and its time: left out, as the rule, where a spec names a rule of its own, and
+# where it asks for fewer samples than its preset (a quick look, not the preset's promise); a spec
+# naming them (``--floor``, ``--build-budget``) keeps them.
+FLOOR_FIELDS = ("floor_db", "build_budget")
+
+# The leaf budget (``segments``) of a preset build grows with the scene (:func:`leaf_budget`).
+SAMPLES_PER_LEAF = 62_500  # the presets' own ratio: standard 500k / 8 leaves, high 1M / 16
+LEAVES_PER_OBJECT = 2  # a multi-object scene: room for one cut in every object beyond its own leaf
+LEAF_CAP = {"draft": 32, "standard": 64, "high": 128}  # and the most segments refinement may make
+
+
+def leaf_budget(quality: str | None, leaves: int, objects: int, samples: int) -> int:
+    """The k-d split's leaf budget of a preset build: ``min(cap, max(preset leaves, 2 x objects,
+    ceil(samples / 62,500)))`` (:data:`LEAVES_PER_OBJECT`, :data:`SAMPLES_PER_LEAF`, the cap
+    :data:`LEAF_CAP`); a single object at the preset's samples keeps the preset's leaves.  The
+    split still gives every object a leaf of its own (:func:`prt.train.networks.segments.segment_samples`)."""
+    cap = LEAF_CAP.get(quality or DEFAULT_QUALITY, LEAF_CAP[DEFAULT_QUALITY])
+    wanted = max(int(leaves), LEAVES_PER_OBJECT * int(objects), math.ceil(int(samples) / SAMPLES_PER_LEAF))
+    return max(int(leaves), min(cap, wanted))
 
 
 def resolve(data: dict) -> dict:
@@ -69,6 +100,10 @@ def resolve(data: dict) -> dict:
     if names_rule:  # (a margin of its own keeps the preset's ladder)
         preset.pop("vertex_margin", None)
         preset.pop("ladder", None)
+    fewer = data.get("samples") is not None and data["samples"] < preset.get("samples", 0)
+    if names_rule or fewer:  # the floor's own fields given keep it
+        for key in FLOOR_FIELDS:
+            preset.pop(key, None)
     if data.get("epochs") is not None and data.get("steps") is None:
         preset.pop("steps", None)  # epochs alone: the old epoch-based run (prt.train.networks.fit.FitSettings)
     # absent fields only: a field given as null keeps its meaning (an old build.json's "steps": null, DEFAULT_STEPS)
@@ -80,7 +115,8 @@ def differences(spec: dict) -> dict:
     """The fields of a resolved spec (flat, :meth:`prt.train.build.BuildSpec.to_dict`) whose values
     differ from its preset's: what flags or the spec file set by hand.  ``{field: [preset, value]}``."""
     preset = PRESETS.get(spec.get("quality") or DEFAULT_QUALITY, {})
-    return {k: [v, spec[k]] for k, v in preset.items() if k in spec and spec[k] != v}
+    # a floor left out (with a rule of the spec's own, or fewer samples) follows from those fields: not listed again
+    return {k: [v, spec[k]] for k, v in preset.items() if k in spec and spec[k] != v and not (k in FLOOR_FIELDS and spec[k] is None)}
 
 
 def describe(quality: str) -> str:
@@ -89,4 +125,4 @@ def describe(quality: str) -> str:
     top = (p["ladder"] or [{"hidden": 128, "layers": 4}])[-1]  # None: the default ladder (prt.train.networks.fit.DEFAULT_LADDER)
     return (f"{p['samples'] // 1000:,}k samples x {p['rays']} rays, {p['segments']} leaves, {p['steps']} steps of {p['batch']}, "
             f"{p['bounce_rays']} bounce rays, networks up to k{top['hidden']}-l{top['layers']} sized to beat vertex PRT by "
-            f"{p['vertex_margin']:g} dB")
+            f"{p['vertex_margin']:g} dB, refined while under {p['floor_db']:g} dB for up to {p['build_budget'] / 60:g} min")

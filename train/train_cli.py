@@ -23,6 +23,7 @@ from ..runtime.errors import InputError, PRTError, SpecError
 from .build import DEFAULT_TARGET, BuildSpec, load_spec, run_build, spec_from_dict
 from .presets import DEFAULT_QUALITY, PRESETS, QUALITIES, describe
 from .progress import BuildProgress
+from .refine import stop_lines
 from .networks.fit import DEVICES, resolve_device
 from .cluster import open_executor
 from .executor import add_cluster_argument
@@ -128,6 +129,12 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--vertex-margin", type=float, default=None, metavar="DB",
                    help="the default rule's margin: dB of held-out shaded PSNR above the per-vertex PRT estimate each segment's network "
                         f"must reach [preset; standard {PRESETS['standard']['vertex_margin']:g}]")
+    g.add_argument("--floor", type=float, default=None, metavar="DB",
+                   help="the absolute floor of the held-out PSNR (diffuse under the scene's lighting): while under it, the build splits the "
+                        "segments holding most of the error and grows their networks, within --build-budget; 0: no floor "
+                        f"[preset; standard {PRESETS['standard']['floor_db']:g}]")
+    g.add_argument("--build-budget", type=float, default=None, metavar="SECONDS",
+                   help=f"wall-clock seconds of the whole build that refinement toward --floor may use [preset; standard {PRESETS['standard']['build_budget']:g}]")
     g.add_argument("--hidden", type=int, default=None, help="force k neurons per layer for every network (with --layers)")
     g.add_argument("--layers", type=int, default=None, help="force l hidden layers for every network (with --hidden)")
     g.add_argument("--pos-freqs", type=int, default=None, help="with --hidden/--layers: position encoding frequencies [6]")
@@ -202,8 +209,12 @@ def _spec_from_args(args):
         "grid": args.grid,
         "loss": args.loss,
         "residual": args.residual,
+        "floor_db": args.floor,
+        "build_budget": args.build_budget,
     }
     data.update({k: v for k, v in overrides.items() if v is not None})
+    if args.floor == 0:  # no floor
+        data["floor_db"] = None
     if args.no_analytic:
         data["analytic"] = False
     if args.bf16:
@@ -353,6 +364,17 @@ def print_report(report: dict, out: Path) -> None:
         print(f"sizing: networks {z['gain_db']:+.2f} dB over the per-vertex PRT estimate on {z['held_out_samples']:,} held-out samples "
               f"(worst light {light}: {z['network_psnr_db'].get(light, 0):.2f} vs {z['vertex_psnr_db'].get(light, 0):.2f} dB), "
               f"{z['network_bytes']:,} vs {z['vertex_bytes']:,} bytes of per-vertex transfer with its back sides; ended: {ended}")  # fmt: skip
+    held = report.get("held_out")
+    if held:
+        vertex_db = report.get("sizing", {}).get("vertex_psnr_db", {}).get(held["light"])
+        floor = (f"; floor {held['floor_db']:g} dB {'met' if held['psnr_db'] >= held['floor_db'] else 'NOT MET'}"
+                 if held.get("floor_db") is not None else "")
+        refined = report.get("refinement") or {}
+        rounds = f" after {refined['rounds']} refinement round(s) from {refined['start_psnr_db']:.2f} dB" if refined.get("rounds") else ""
+        print(f"held-out PSNR: {held['psnr_db']:.2f} dB (diffuse, under {held['light']})"
+              + (f" vs per-vertex PRT's {vertex_db:.2f} dB" if vertex_db is not None else "") + rounds + floor)  # fmt: skip
+        for line in stop_lines(refined):
+            print(line)
     preset = report.get("preset") or {}
     if preset.get("quality"):
         changed = ", ".join(f"{k} {v[1]}" for k, v in preset.get("differs", {}).items())
@@ -365,6 +387,7 @@ def print_report(report: dict, out: Path) -> None:
     t = report["timings"]
     bounce = f", bounces {t['bounce_s']:.1f} s" if "bounce_s" in t else ""
     bounce += f", vertex estimate {t['vertex_s']:.1f} s" if "vertex_s" in t else ""
+    bounce += f", refinement {t['refine_s']:.1f} s" if "refine_s" in t else ""
     print(f"time: precompute {t['precompute_s']:.1f} s{bounce}, train {t['train_s']:.1f} s, export {t['export_s']:.1f} s "
           f"(total {t['total_s']:.1f} s)")  # fmt: skip
     print(f"wrote {out}/scene.json")

@@ -17,6 +17,10 @@
 3. Margin: each segment also trains on the samples of its neighbours lying within ``delta``
    of its box, so two networks agree where they meet.
 
+4. Refinement (:func:`split_segment`): a build under its floor (:mod:`prt.train.refine`) cuts the
+   segments where the held-out error concentrates in two after the fact: a segment of several
+   merged leaves gives back half of them, a segment of one leaf has it cut as in 1.
+
 The tree is kept, so ``assign(points, object_ids)`` tells the segment of any surface point
 by the rule of :mod:`prt.runtime.segmentation` (the runtime applies it to fragments).  Every sample knows its segment.
 """
@@ -29,7 +33,7 @@ import numpy as np
 
 from ...runtime.segmentation import assign_segments, kd_arrays
 
-__all__ = ["Segmentation", "segment_samples", "split_value", "SPLIT_RULE", "SPLIT_BY"]
+__all__ = ["Segmentation", "segment_samples", "split_segment", "with_margin", "split_value", "SPLIT_RULE", "SPLIT_BY"]
 
 SPLIT_RULE = "off-plane-v1"
 """How cuts are placed (part of the precompute's cache key): the median, moved off planes of samples."""
@@ -288,6 +292,85 @@ def segment_samples(
         notes=notes,
         moved_cuts=int(moved),
     )
+
+
+def split_segment(tree: dict, points: np.ndarray, object_ids: np.ndarray, home: np.ndarray, s: int, *,
+                  min_samples: int = 256) -> tuple[dict, np.ndarray] | None:
+    """Segment ``s`` cut in two: ``(tree, home)`` with the new segment's id ``len(tree["segments"])``,
+    or None when it cannot be cut (too few samples, all on one plane).
+
+    ``tree``: ``segments.json``'s ``nodes``, ``roots``, ``leaf_segment`` and ``segments`` (not
+    changed: a new dict comes back); ``home``: the segment of each training sample (a new array
+    comes back).  A segment of several leaves (merged) keeps the leaves of the lower half of its
+    samples along its longest side and gives the others to the new segment; a segment of one leaf
+    (or one leaf holding 3/4 of its samples) has that leaf cut by :func:`split_value` along the
+    leaf's longest side.  The new segment's ``bounds`` and ``samples`` are set; its
+    ``margin_samples`` and ``residual_rms`` are left to the caller.
+    """
+    nodes = [dict(n) for n in tree["nodes"]]
+    leaf_segment = [int(v) for v in tree["leaf_segment"]]
+    roots = {int(k): int(v) for k, v in tree["roots"].items()}
+    own = np.flatnonzero(np.asarray(home) == s)
+    if len(own) < 2 * min_samples:
+        return None
+    points = np.asarray(points, dtype=np.float64)
+    leaves = [i for i, g in enumerate(leaf_segment) if g == s]
+    leaf_of = assign_segments(kd_arrays(nodes), roots, np.arange(len(leaf_segment)), np.zeros((len(leaf_segment), 2, 3)),
+                              points[own], np.asarray(object_ids)[own])  # fmt: skip
+    counts = {i: int(np.count_nonzero(leaf_of == i)) for i in leaves}
+    new = len(tree["segments"])
+    largest = max(leaves, key=lambda i: counts[i])
+    if len(leaves) > 1 and counts[largest] < 0.75 * len(own):
+        p = points[own]
+        axis = int(np.argmax(p.max(axis=0) - p.min(axis=0)))
+        order = sorted((i for i in leaves if counts[i]), key=lambda i: float(np.mean(p[leaf_of == i, axis])))
+        kept, total = [], 0
+        for i in order:
+            if total >= 0.5 * len(own):
+                break
+            kept.append(i)
+            total += counts[i]
+        moved = [i for i in leaves if i not in kept]
+        if not moved or not kept:
+            return None
+        for i in moved:
+            leaf_segment[i] = new
+        goes = np.isin(leaf_of, moved)
+    else:
+        sel = leaf_of == largest
+        if sel.sum() < 2 * min_samples:
+            return None
+        p = points[own[sel]]
+        axis = int(np.argmax(p.max(axis=0) - p.min(axis=0)))
+        cut = split_value(p[:, axis])
+        left = p[:, axis] <= cut
+        if left.all() or not left.any():
+            return None
+        node = next(k for k, n in enumerate(nodes) if n.get("leaf") == largest)
+        nodes.append({"leaf": largest})
+        nodes.append({"leaf": len(leaf_segment)})
+        nodes[node] = {"axis": axis, "split": float(cut), "left": len(nodes) - 2, "right": len(nodes) - 1}
+        leaf_segment.append(new)
+        goes = np.zeros(len(own), dtype=bool)
+        goes[np.flatnonzero(sel)[~left]] = True
+    home = np.array(home, dtype=np.int64, copy=True)
+    home[own[goes]] = new
+    segments = [dict(g) for g in tree["segments"]]
+    for g, idx in ((s, own[~goes]), (new, own[goes])):
+        entry = {"id": g, "bounds": [points[idx].min(axis=0).tolist(), points[idx].max(axis=0).tolist()], "samples": int(len(idx))}
+        if g < len(segments):
+            segments[g] = {**segments[g], **entry}
+        else:
+            segments.append({**entry, "margin_samples": 0, "residual_rms": 0.0})
+    return {**tree, "nodes": nodes, "roots": {str(k): v for k, v in roots.items()}, "leaf_segment": leaf_segment, "segments": segments,
+            "count": len(segments)}, home  # fmt: skip
+
+
+def with_margin(points: np.ndarray, home: np.ndarray, segment: int, delta: float) -> np.ndarray:
+    """A segment's members (own samples and its neighbours' within ``delta``), its box from its own samples."""
+    own = np.asarray(points)[np.asarray(home) == segment]
+    box = np.array([own.min(axis=0), own.max(axis=0)])
+    return _with_margin(np.asarray(points, dtype=np.float64), np.asarray(home), segment, box, delta)
 
 
 def split_value(values: np.ndarray) -> float:

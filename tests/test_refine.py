@@ -1,0 +1,227 @@
+"""Sizing that knows when it is bad (issue 43): the absolute floor, refinement under it, the leaf budget, stop-short reports."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+import prt.train.refine as refine
+from prt.runtime.manifest import load_manifest
+from prt.runtime.segmentation import assign_segments, kd_arrays, segment_of
+from prt.train.build import run_build, spec_from_dict
+from prt.train.networks.segments import segment_samples, split_segment
+from prt.train.presets import LEAF_CAP, PRESETS, SAMPLES_PER_LEAF, leaf_budget, resolve
+
+TINY = {"samples": 3000, "validation": 1000, "rays": 24, "steps": 60, "batch": 512, "bounces": 0, "quality": "draft", "segments": 2}
+ONE_SIZE = [{"hidden": 8, "layers": 1, "pos_freqs": 2}]  # a one-size ladder: fits in a second
+
+
+@pytest.fixture(scope="module")
+def two_objects(tmp_path_factory) -> Path:
+    """A ball resting on a ground square: two objects (OBJ ``o`` groups), a contact shadow between them."""
+    folder = tmp_path_factory.mktemp("two")
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.35)
+    ball.apply_translation([0.0, 0.0, 0.35])
+    ground = trimesh.creation.box(extents=[2.0, 2.0, 0.05])
+    ground.apply_translation([0.0, 0.0, -0.025])
+    lines, base = [], 1
+    for name, mesh in (("ground", ground), ("ball", ball)):
+        lines.append(f"o {name}")
+        lines += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in mesh.vertices]
+        lines += [f"f {a + base} {b + base} {c + base}" for a, b, c in mesh.faces]
+        base += len(mesh.vertices)
+    path = folder / "two.obj"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+# -- the leaf budget --------------------------------------------------------------------------------
+
+
+def test_leaf_budget_keeps_a_single_object_at_the_presets_leaves_and_grows_with_objects_and_samples():
+    for quality, preset in PRESETS.items():
+        # one object (the bunny, Spot, a scan) at the preset's samples: the preset's own leaves, so those builds are unchanged
+        assert leaf_budget(quality, preset["segments"], 1, preset["samples"]) == preset["segments"]
+        # objects: two leaves each, up to the cap
+        assert leaf_budget(quality, preset["segments"], 20, preset["samples"]) == min(LEAF_CAP[quality], max(preset["segments"], 40))
+        assert leaf_budget(quality, preset["segments"], 294, preset["samples"]) == LEAF_CAP[quality]
+        # samples: one leaf per SAMPLES_PER_LEAF
+        assert leaf_budget(quality, preset["segments"], 1, 40 * SAMPLES_PER_LEAF) == min(LEAF_CAP[quality], 40)
+    assert leaf_budget("standard", 8, 7, 500_000) == 14  # the plant of issue 43: 7 objects
+    assert leaf_budget("standard", 8, 3, 100_000) == 8  # never below the preset's
+
+
+def test_the_floor_is_the_presets_and_a_named_rule_or_fewer_samples_drops_it():
+    spec = spec_from_dict({"geometry": "x.obj"})
+    assert (spec.floor_db, spec.build_budget) == (PRESETS["standard"]["floor_db"], PRESETS["standard"]["build_budget"])
+    assert [PRESETS[q]["floor_db"] for q in ("draft", "standard", "high")] == sorted(PRESETS[q]["floor_db"] for q in PRESETS)
+    assert spec_from_dict({"geometry": "x.obj", "fixed": {"hidden": 16, "layers": 2}}).floor_db is None
+    assert spec_from_dict({"geometry": "x.obj", "samples": 4000}).floor_db is None  # a quick look, not the preset's promise
+    assert spec_from_dict({"geometry": "x.obj", "samples": 4000, "floor_db": 31.0}).floor_db == 31.0  # named: kept
+    assert resolve({"geometry": "x", "quality": "high"})["floor_db"] == PRESETS["high"]["floor_db"]
+
+
+@pytest.mark.parametrize("data, message", [({"floor_db": 0}, "floor_db"), ({"floor_db": 120}, "floor_db"), ({"build_budget": -1}, "build_budget")])
+def test_bad_floors_are_one_line_errors(data, message):
+    from prt.runtime.errors import SpecError
+
+    with pytest.raises(SpecError, match=message):
+        spec_from_dict({"geometry": "x.obj", **data})
+
+
+# -- where the error is, and what a round does ------------------------------------------------------
+
+
+def _record(s, samples, psnr, kind="network"):
+    return {"id": s, "samples": samples, "validation_samples": samples // 10, "kind": kind, "sizing": {"psnr_db": {"potsdamer": psnr}}}
+
+
+def test_error_shares_weigh_area_by_error_and_the_round_takes_the_worst_under_the_floor():
+    records = [_record(0, 1000, 40.0), _record(1, 1000, 20.0), _record(2, 4000, 26.0), _record(3, 100, 15.0)]
+    shares = refine.error_shares(records)
+    assert [r["segment"] for r in shares] == [2, 1, 3, 0]  # 4000 x 10^-2.6 > 1000 x 10^-2 > 100 x 10^-1.5 > 1000 x 10^-4
+    assert abs(sum(r["share"] for r in shares) - 1.0) < 1e-3
+    # the pooled PSNR is the sample-weighted MSE's
+    mse = sum(r["validation_samples"] * 10 ** (-r["sizing"]["psnr_db"]["potsdamer"] / 10) for r in records) / sum(r["validation_samples"] for r in records)
+    assert abs(refine.scene_psnr(records) - (-10 * np.log10(mse))) < 1e-3
+    state = {s: {"index": 0, "next": 1, "stalled": False, "changed": False} for s in range(4)}
+    state[1]["stalled"] = True  # its last size up gained little: split it
+    plan = refine.plan_round(records, state, 35.0, 3, lambda s: True)
+    assert plan[:2] == [(2, "grow"), (1, "split")]
+    assert 0 not in [s for s, _ in plan]  # over the floor: left alone
+    state[2]["next"] = 3  # ladder top: split
+    assert refine.plan_round(records, state, 35.0, 3, lambda s: s != 2)[0] == (1, "split")  # 2 can neither grow nor be cut
+    assert refine.plan_round(records, state, 10.0, 3, lambda s: True) == []  # every segment over the floor
+
+
+def test_split_segment_cuts_where_the_tree_agrees_with_the_samples():
+    rng = np.random.default_rng(3)
+    points = np.concatenate([rng.uniform([-1, -1, 0], [1, 1, 0.0], (3000, 3)), rng.uniform([-0.3, -0.3, 0.1], [0.3, 0.3, 0.6], (1500, 3))])
+    ids = np.repeat([0, 1], [3000, 1500])
+    transfer = rng.normal(size=(len(points), 9))
+    seg = segment_samples(points, ids, transfer, max_segments=4, merge=False)
+    tree = seg.to_json()
+    s = int(np.argmax(np.bincount(seg.home)))
+    cut = split_segment(tree, points, ids, seg.home, s, min_samples=64)
+    assert cut is not None
+    tree2, home = cut
+    new = len(tree["segments"])
+    assert tree2["count"] == len(tree2["segments"]) == new + 1 and len(tree["segments"]) == new  # the input is not changed
+    assert (home == new).sum() > 0 and (home == s).sum() > 0 and ((home == s) | (home == new)).sum() == (seg.home == s).sum()
+    assert np.array_equal(home[seg.home != s], seg.home[seg.home != s])
+    # the runtime's rule on the new tree gives every sample its new segment (what a fragment there will run)
+    bounds = np.array([g["bounds"] for g in tree2["segments"]])
+    again = assign_segments(kd_arrays(tree2["nodes"]), {int(k): v for k, v in tree2["roots"].items()}, np.asarray(tree2["leaf_segment"]),
+                            bounds, points, ids)  # fmt: skip
+    assert np.array_equal(again, home)
+    # too few samples: no cut
+    assert split_segment(tree, points, ids, seg.home, s, min_samples=10_000) is None
+
+
+def test_split_segment_gives_back_half_of_a_merged_segments_leaves():
+    rng = np.random.default_rng(4)
+    points = rng.uniform(-1, 1, (4000, 3))
+    points[:, 2] = 0.0
+    ids = np.zeros(len(points), dtype=np.int64)
+    flat = np.tile([0.28, 0.0, 0.1, 0.0], (len(points), 1))  # the same transfer everywhere: every leaf merges
+    seg = segment_samples(points, ids, flat, max_segments=8)
+    assert seg.count == 1 and seg.leaves_before_merge == 8
+    tree2, home = split_segment(seg.to_json(), points, ids, seg.home, 0)
+    assert sorted(np.unique(home)) == [0, 1] and sum(1 for g in tree2["leaf_segment"] if g == 1) == 4
+    bounds = np.array([g["bounds"] for g in tree2["segments"]])
+    again = assign_segments(kd_arrays(tree2["nodes"]), {0: 0}, np.asarray(tree2["leaf_segment"]), bounds, points, ids)
+    assert np.array_equal(again, home)
+
+
+# -- builds -----------------------------------------------------------------------------------------
+
+
+def test_an_unreachable_floor_stops_short_and_says_where(two_objects, tmp_path):
+    out = tmp_path / "short"
+    spec = tmp_path / "spec.json"
+    spec.write_text(json.dumps({"geometry": str(two_objects), **TINY, "vertex_margin": 1.0, "ladder": ONE_SIZE}))
+    proc = subprocess.run([sys.executable, "-m", "prt.train.train_cli", str(spec), "-o", str(out), "--floor", "90", "--build-budget", "1",
+                           "--no-progress", "--threads", "2"], capture_output=True, text=True)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads((out / "build.json").read_text())
+    r = report["refinement"]
+    assert r["met"] is False and r["ended"] == "time" and r["floor_db"] == 90.0 and r["psnr_db"] < 90.0
+    assert report["held_out"]["psnr_db"] == r["psnr_db"] and report["sizing"]["psnr_db"] == r["psnr_db"]
+    worst = r["worst"]
+    assert worst and all(w["objects"] and set(w["objects"]) <= {"ground", "ball"} for w in worst)
+    assert worst == sorted(worst, key=lambda w: -w["share"])
+    assert {w["segment"] for w in worst} <= {s["id"] for s in report["segments"]}
+    # one block in the summary: the absolute PSNR, the floor, the segments and their objects
+    assert "BELOW THE FLOOR" in proc.stdout and "floor 90 dB" in proc.stdout
+    assert f"segment {worst[0]['segment']}:" in proc.stdout and worst[0]["objects"][0] in proc.stdout
+    assert "held-out PSNR" in proc.stdout and "per-vertex PRT's" in proc.stdout
+    for seg in load_manifest(out / "scene.json").segments:  # the manifest's sizing says it too
+        assert seg.sizing["floor_db"] == 90.0 and seg.sizing["scene_psnr_db"] == r["psnr_db"]
+
+
+@pytest.fixture(scope="module")
+def refined(two_objects, tmp_path_factory, request):
+    """A build of a one-size ladder under a floor it cannot reach: one round (the later ones planned away) splits."""
+    out = tmp_path_factory.mktemp("refined") / "scene"
+    spec = spec_from_dict({"geometry": str(two_objects), **TINY, "steps": 200, "analytic": False, "vertex_margin": 1.0, "ladder": ONE_SIZE,
+                           "floor_db": 80.0, "build_budget": 600.0})  # fmt: skip
+
+    def build():
+        planned = refine.plan_round
+        calls = []
+
+        def once(*args, **kwargs):
+            calls.append(1)
+            return planned(*args, **kwargs) if len(calls) == 1 else []
+
+        mp = pytest.MonkeyPatch()
+        mp.setattr(refine, "plan_round", once)
+        lines = []
+        try:
+            return run_build(spec, out, threads=2, progress=False, log=lines.append), lines
+        finally:
+            mp.undo()
+
+    return out, build
+
+
+def test_refinement_splits_where_the_error_is_and_raises_the_psnr(refined, two_objects):
+    out, build = refined
+    report, lines = build()
+    r = report["refinement"]
+    assert r["rounds"] == 1 and r["ended"] == "ladder" and not r["met"]
+    splits = [a for a in r["actions"] if a["action"] == "split" and a["kept"]]
+    assert splits and all(a["size"] == "k8-l1-f2" for a in r["actions"])  # the ladder's top: split, not grown
+    assert r["psnr_db"] > r["start_psnr_db"], r
+    for a in splits:  # a split is kept where its halves together are more accurate than the whole
+        halves = [s for s in report["segments"] if s["id"] in a["into"]]
+        assert refine.scene_psnr(halves) > a["psnr_db"][0]
+        assert all(s["refined"]["action"] == "split" for s in halves)
+    assert r["segments"] == len(report["segments"]) == 2 + len(splits)
+    assert [s["id"] for s in report["segments"]] == list(range(r["segments"]))
+    # the scene exports and the runtime's segment rule covers the new segments
+    manifest = load_manifest(out / "scene.json")
+    assert len(manifest.segments) == r["segments"]
+    assert any("refined" in seg.sizing for seg in manifest.segments)
+    with np.load(out / "precompute" / "samples.npz") as f:
+        points, ids = f["points"], f["object_ids"]
+    found = segment_of(manifest, points, ids)
+    for a in splits:
+        assert set(a["into"]) <= set(np.unique(found).tolist())
+    assert any(line.startswith("refine round 1") for line in lines)
+
+
+def test_an_interrupted_refinement_resumes_from_the_cache(refined):
+    out, build = refined
+    first = json.loads((out / "build.json").read_text())
+    fits = sorted(p.name for p in (out / "precompute" / "fits").iterdir())
+    report, lines = build()  # the same build again: every refined fit comes from the cache
+    assert sorted(p.name for p in (out / "precompute" / "fits").iterdir()) == fits
+    assert report["refinement"]["actions"] == first["refinement"]["actions"] and report["refinement"]["psnr_db"] == first["refinement"]["psnr_db"]
+    assert any("(cached)" in line for line in lines)

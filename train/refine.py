@@ -1,0 +1,314 @@
+"""Refinement: a build under its preset's absolute floor keeps working where the error is (issue 43).
+
+The default sizing rule (:mod:`prt.train.networks.rightsize`, ``"vertex"``) stops each segment at a
+margin over per-vertex PRT; where per-vertex PRT fails too (a building, a CAD assembly) that bar
+says nothing.  So a build also has a floor: its **pooled held-out PSNR** (:func:`scene_psnr`: the
+diffuse, tone-mapped radiance under the scene's lighting, :data:`prt.train.networks.rightsize.SCENE_LIGHT`,
+of every segment's held-out samples together, :func:`prt.train.networks.rightsize.pooled_psnr`).
+While it is under ``floor_db`` and the build's wall time (from its start) leaves room under
+``build_budget`` for the next refit (as long as the mean one so far),
+each round takes the segments holding most of the error (:func:`error_shares`: own samples, which
+are area-uniform, times held-out MSE; the worst first, until half the error or :data:`PER_ROUND`
+segments) that are under the floor themselves, and for each (:func:`plan_round`):
+
+- **grows** its network one size up the build's ladder, past where the margin stopped it (and past
+  its share of per-vertex PRT's bytes); the larger size is kept where it is more accurate;
+- **splits** it (:func:`prt.train.networks.segments.split_segment`) once growing stalls (the last
+  size gained under :data:`MIN_GAIN_DB`) or the ladder's top is reached, while the build has fewer
+  segments than its preset's cap (:data:`prt.train.presets.LEAF_CAP`); both halves are fitted at
+  the parent's size, and the split is kept where the halves' pooled held-out PSNR is above the
+  whole's (else the segment stays whole and is not cut again).
+
+Neither action is kept unless it is more accurate, so refinement does not lower a segment's PSNR.
+
+It ends at the floor (``"floor"``), when the time is spent (``"time"``), or when no segment under
+the floor can grow or be cut (``"ladder"``).  Stopping short, the report names the absolute PSNR,
+the floor, and the segments holding most of the error with the objects whose samples they hold
+(:func:`worst_segments`).
+
+Every fit goes through the fit cache (a refined segment's fits keyed by its samples), and the
+rounds' decisions follow from the fitted PSNRs alone, so an interrupted build resumes: the rounds
+done replay from the cache, and refinement goes on from there.  The refined segments' records and
+weights are ``OUTDIR/refine/segNNN.json`` and ``.npz``; the precompute's own files are not changed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..runtime.files import atomic_save_npz, atomic_write_json
+from ..runtime.segmentation import assign_segments, kd_arrays
+from .fit_cache import fit_hash
+from .networks.network import Architecture
+from .networks.rightsize import PSNR_CAP, SCENE_LIGHT, pooled_psnr, train_segment
+from .networks.segments import split_segment, with_margin
+from .presets import DEFAULT_QUALITY, LEAF_CAP
+
+__all__ = ["REFINE_VERSION", "MIN_GAIN_DB", "PER_ROUND", "ERROR_SHARE", "WORST_SHOWN", "light_psnr", "scene_psnr", "error_shares",
+           "plan_round", "worst_segments", "refine_build", "stop_lines"]  # fmt: skip
+
+REFINE_VERSION = "refine-v1"  # part of a split segment's fit-cache key
+MIN_GAIN_DB = 0.5  # a size up that gains less: the segment is split next
+PER_ROUND = 4  # most segments acted on in one round
+ERROR_SHARE = 0.5  # a round takes the worst segments until they hold this share of the error
+WORST_SHOWN = 5  # segments a stop-short report names
+MIN_SAMPLES = 256  # a segment is not cut below twice this many own samples (segment_samples' min_samples)
+
+
+def light_psnr(record: dict) -> float:
+    """A segment's held-out PSNR under the scene's lighting (its worst map's where that is absent)."""
+    psnr = (record.get("sizing") or {}).get("psnr_db") or {}
+    return float(psnr[SCENE_LIGHT] if SCENE_LIGHT in psnr else min(psnr.values(), default=PSNR_CAP))
+
+
+def scene_psnr(records: list[dict]) -> float:
+    """The pooled held-out PSNR of all segments under the scene's lighting (the floor's measure)."""
+    return round(pooled_psnr([(r["validation_samples"], light_psnr(r)) for r in records]), 3)
+
+
+def error_shares(records: list[dict]) -> list[dict]:
+    """Per segment, its share of the scene's error: own samples (area) x held-out MSE, worst first."""
+    weights = [(r["id"], r["samples"] * 10.0 ** (-light_psnr(r) / 10.0), light_psnr(r)) for r in records]
+    total = sum(w for _, w, _ in weights) or 1.0
+    rows = [{"segment": int(s), "share": round(w / total, 4), "psnr_db": round(p, 3)} for s, w, p in weights]
+    return sorted(rows, key=lambda r: (-r["share"], r["segment"]))
+
+
+def plan_round(records: list[dict], state: dict, floor: float, ladder_size: int, can_split) -> list[tuple[int, str]]:
+    """This round's ``(segment, "grow" | "split")``: the worst segments under the floor (:func:`error_shares`)
+    until they hold :data:`ERROR_SHARE` of the error, at most :data:`PER_ROUND`, each grown while a
+    larger size is left and the last one gained, else split where ``can_split(segment)``."""
+    out, held = [], 0.0
+    for row in error_shares(records):
+        if len(out) >= PER_ROUND or (out and held >= ERROR_SHARE):
+            break
+        s = row["segment"]
+        if row["psnr_db"] >= floor:
+            continue
+        st = state[s]
+        grow = st["next"] < ladder_size
+        split = can_split(s)
+        if grow and (not st["stalled"] or not split):
+            out.append((s, "grow"))
+        elif split:
+            out.append((s, "split"))
+        else:
+            continue
+        held += row["share"]
+    return out
+
+
+def worst_segments(records: list[dict], home: np.ndarray, object_ids: np.ndarray, names: list[str], count: int = WORST_SHOWN) -> list[dict]:
+    """The ``count`` segments holding most of the error: id, share, PSNR and the objects of their samples (most first)."""
+    out = []
+    for row in error_shares(records)[:count]:
+        ids, n = np.unique(np.asarray(object_ids)[np.asarray(home) == row["segment"]], return_counts=True)
+        order = np.argsort(-n, kind="stable")
+        objects = [names[int(ids[i])] if 0 <= int(ids[i]) < len(names) else str(int(ids[i])) for i in order[:3]]
+        out.append({**row, "objects": objects})
+    return out
+
+
+def stop_lines(refinement: dict) -> list[str]:
+    """The summary's lines of a build that stopped under its floor (empty when it reached it)."""
+    if refinement.get("met", True):
+        return []
+    why = {"time": f"the build's time ({refinement['budget_s']:.0f} s) spent", "ladder": "no segment under the floor could grow or be cut"}
+    lines = [f"BELOW THE FLOOR: held-out PSNR {refinement['psnr_db']:.2f} dB (diffuse, under {refinement['light']}) < floor "
+             f"{refinement['floor_db']:g} dB after {refinement['rounds']} refinement round(s); stopped: {why.get(refinement['ended'], refinement['ended'])}",
+             "  the error is in (segment: share of the error, its PSNR, objects):"]  # fmt: skip
+    for w in refinement["worst"]:
+        lines.append(f"    segment {w['segment']}: {100 * w['share']:.0f} %, {w['psnr_db']:.2f} dB, {', '.join(w['objects'])}")
+    return lines
+
+
+def _digest(*arrays) -> str:
+    h = hashlib.sha1()
+    for a in arrays:
+        h.update(np.ascontiguousarray(a, dtype=np.int64).tobytes())
+        h.update(b"|")
+    return h.hexdigest()[:16]
+
+
+def _ladder_index(record: dict, archs: list) -> int:
+    """The ladder rung of a segment's network (-1: analytic or not on the ladder)."""
+    if record["kind"] != "network":
+        return -1
+    a = record["arch"]
+    for i, arch in enumerate(archs):
+        if (arch.hidden, arch.layers, arch.pos_freqs) == (a.get("hidden"), a.get("layers"), a.get("pos_freqs")):
+            return i
+    return -1
+
+
+@dataclasses.dataclass
+class RefineJob:
+    """What refinement needs of the build (:func:`prt.train.build._run_build`)."""
+
+    spec: object
+    out: Path
+    tree: dict  # segments.json's dict
+    samples: dict
+    valid: dict
+    members: list
+    archs: list  # the build's full ladder, smallest first
+    fit_settings: object
+    lights: dict
+    vertex: object
+    data_key: str
+    fit_cache: object  # (pre_key, segment) -> a fit cache (prt.train.fit_cache._FitCache)
+    object_names: list
+    t_start: float
+    log: object = print
+    clock: object = time.perf_counter
+
+
+def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict, dict]:
+    """Refine while under the floor: ``(records, tree, refinement)`` (the report's ``refinement``)."""
+    spec, log = job.spec, job.log
+    floor, budget = float(spec.floor_db), float(spec.build_budget or 0.0)
+    cap = max(LEAF_CAP.get(spec.quality or DEFAULT_QUALITY, LEAF_CAP[DEFAULT_QUALITY]), len(records))
+    samples = {**job.samples, "segment": np.array(job.samples["segment"], copy=True)}
+    valid = {**job.valid, "segment": np.array(job.valid["segment"], copy=True)}
+    members, tree, records = list(job.members), dict(job.tree), [dict(r) for r in records]
+    archs = [a for a in job.archs if isinstance(a, Architecture)]
+    state = {r["id"]: _fresh(_ladder_index(r, archs), len(archs)) for r in records}
+    unsplittable: set[int] = set()
+    actions, rounds, start_psnr = [], 0, scene_psnr(records)
+
+    spent: list[float] = []  # seconds of each refit so far: a grow is one, a split two
+
+    def elapsed() -> float:
+        return job.clock() - job.t_start
+
+    def left(fits: int) -> bool:
+        """Time is left for ``fits`` more refits (as long as the mean one so far): none is started that would end past the budget."""
+        return elapsed() + fits * (sum(spent) / len(spent) if spent else 0.0) < budget
+
+    def can_split(s: int) -> bool:
+        return len(records) < cap and s not in unsplittable and records[s]["samples"] >= 2 * MIN_SAMPLES
+
+    def fit(s: int, arch, like: dict, changed: bool, round_: int, action: str) -> dict:
+        residual = bool((like.get("residual") or {}).get("used"))
+        sub = dataclasses.replace(spec, residual="on" if residual else "off", analytic=False)  # under the floor: a network
+        if not spec.vertex_rule() or job.vertex is None:
+            keep = {"hidden": arch.hidden, "layers": arch.layers, "pos_freqs": arch.pos_freqs}
+            sub = dataclasses.replace(sub, fixed=keep, match=None, target_db=None, vertex_margin=None)
+        own = np.flatnonzero(samples["segment"] == s)
+        pre_key = fit_hash(job.data_key, REFINE_VERSION, _digest(members[s], own, np.flatnonzero(valid["segment"] == s))) if changed else job.data_key
+        t0 = job.clock()
+        record = train_segment(sub, s, samples, valid, members[s], [arch], job.fit_settings, job.lights, False, log, job.fit_cache(pre_key, s),
+                               vertex=job.vertex if spec.vertex_rule() else None)  # fmt: skip
+        spent.append(job.clock() - t0)
+        record["refined"] = {"round": round_, "action": action, "from": like.get("arch_label", like["kind"]),
+                             "from_psnr_db": round(light_psnr(like), 3), "psnr_db": round(light_psnr(record), 3)}  # fmt: skip
+        record["sizing"]["reason"] += f"; refined ({action}, round {round_}) toward the floor {floor:g} dB"
+        return record
+
+    def store(record: dict) -> dict:
+        s = record["id"]
+        folder = job.out / "refine"
+        folder.mkdir(parents=True, exist_ok=True)
+        if "arrays" in record:
+            atomic_save_npz(folder / f"seg{s:03d}.npz", **record.pop("arrays"))
+            record["weights"] = f"refine/seg{s:03d}.npz"
+        atomic_write_json(folder / f"seg{s:03d}.json", record)
+        return record
+
+    ended = "floor"
+    while archs:  # (a grid build has no frequency ladder to grow or refit on: it reports where it stands)
+        psnr = scene_psnr(records)
+        if psnr >= floor:
+            break
+        if not left(1):
+            ended = "time"
+            break
+        todo = plan_round(records, state, floor, len(archs), can_split)
+        if not todo:
+            ended = "ladder"
+            break
+        rounds += 1
+        log(f"refine round {rounds}: held-out {psnr:.2f} dB < floor {floor:g} dB ({elapsed():.0f} of {budget:.0f} s); "
+            + ", ".join(f"{a} segment {s}" for s, a in todo))  # fmt: skip
+        out_of_time = False
+        for s, action in todo:
+            if not left(1 if action == "grow" else 2):
+                out_of_time = True
+                break
+            before = records[s]
+            st = state[s]
+            if action == "grow":
+                j = st["next"]
+                record = fit(s, archs[j], before, st["changed"], rounds, "grow")
+                gain = light_psnr(record) - light_psnr(before)
+                st["next"] = j + 1
+                st["stalled"] = gain < MIN_GAIN_DB
+                if gain > 0:
+                    records[s] = store(record)
+                    st["index"] = j
+                actions.append({"round": rounds, "segment": s, "action": "grow", "to": archs[j].label(), "kept": gain > 0,
+                                "psnr_db": [round(light_psnr(before), 3), round(light_psnr(record), 3)]})  # fmt: skip
+                continue
+            saved = (tree, samples["segment"], valid["segment"].copy(), members[s])
+            cut = split_segment(tree, samples["points"], samples["object_ids"], samples["segment"], s, min_samples=MIN_SAMPLES)
+            if cut is None:
+                unsplittable.add(s)
+                continue
+            tree, samples["segment"] = cut
+            new = len(tree["segments"]) - 1
+            _reassign_validation(tree, valid, s, new)
+            members[s] = with_margin(samples["points"], samples["segment"], s, tree["delta"])
+            members.append(with_margin(samples["points"], samples["segment"], new, tree["delta"]))
+            for g in (s, new):
+                tree["segments"][g]["margin_samples"] = int(len(members[g]) - tree["segments"][g]["samples"])
+            arch = archs[st["index"]] if st["index"] >= 0 else archs[(len(archs) - 1) // 2]
+            records.append(None)  # the new segment's place
+            halves = [fit(g, arch, before, True, rounds, "split") for g in (s, new)]
+            kept = scene_psnr(halves) > light_psnr(before)  # the two halves' pooled held-out PSNR against the whole's
+            actions.append({"round": rounds, "segment": s, "action": "split", "into": [s, new], "size": arch.label(), "kept": kept,
+                            "psnr_db": [round(light_psnr(before), 3), *(round(light_psnr(h), 3) for h in halves)]})  # fmt: skip
+            if not kept:  # no better in two: the segment stays whole, and is not cut again
+                tree, samples["segment"], valid["segment"], members[s] = saved
+                members.pop()
+                records.pop()
+                unsplittable.add(s)
+                continue
+            for g, half in zip((s, new), halves):
+                records[g] = store(half)
+                state[g] = {**_fresh(st["index"], len(archs)), "changed": True}
+        if out_of_time:
+            ended = "time"
+            break
+    else:
+        ended = "floor" if start_psnr >= floor else "ladder"
+    psnr = scene_psnr(records)
+    refinement = {"floor_db": floor, "light": SCENE_LIGHT, "psnr_db": psnr, "start_psnr_db": start_psnr, "met": psnr >= floor,
+                  "ended": ended, "rounds": rounds, "budget_s": budget, "elapsed_s": round(elapsed(), 1), "segments": len(records),
+                  "actions": actions}  # fmt: skip
+    if psnr < floor:
+        refinement["worst"] = worst_segments(records, samples["segment"], samples["object_ids"], job.object_names)
+    if rounds:
+        log(f"refinement: {rounds} round(s), held-out {start_psnr:.2f} -> {psnr:.2f} dB (floor {floor:g} dB), {len(records)} segments")
+    return records, tree, refinement
+
+
+def _fresh(index: int, ladder_size: int) -> dict:
+    """A segment's refinement state: its rung, the next rung to try, whether growing stalled, whether its samples changed."""
+    return {"index": index, "next": index + 1 if index >= 0 else (ladder_size - 1) // 2, "stalled": False, "changed": False}
+
+
+def _reassign_validation(tree: dict, valid: dict, s: int, new: int) -> None:
+    """The held-out samples of segment ``s`` after its split: by the new tree, to ``s`` or ``new``."""
+    mask = valid["segment"] == s
+    if not mask.any():
+        return
+    bounds = np.array([g["bounds"] for g in tree["segments"]], dtype=np.float64)
+    roots = {int(k): int(v) for k, v in tree["roots"].items()}
+    seg = assign_segments(kd_arrays(tree["nodes"]), roots, np.asarray(tree["leaf_segment"]), bounds,
+                          np.asarray(valid["points"], dtype=np.float64)[mask], np.asarray(valid["object_ids"])[mask])  # fmt: skip
+    valid["segment"][np.flatnonzero(mask)] = np.where(np.isin(seg, (s, new)), seg, s)
