@@ -36,7 +36,7 @@ PAGES = [
     ("sdf", "SDF and mixed scenes", "Neural SDFs, tracing, mixed scenes.", ("neural_sdf", "mixed_scene")),
     ("deformable", "Deformable objects", "Deformable characters and sheets per frame.", ("deform",)),
     ("scenes", "Scenes and probe grids", "The networks against the engines' L2 SH probe grid: equal bytes, engine density, light leaking.",
-     ("probe_grid",)),
+     ("probe_grid", "scenes_real")),
 ]
 OTHER = ("other", "Other records", "Recorded files no other page takes.", ())
 
@@ -330,6 +330,17 @@ def readme_rows(root: Path) -> list[tuple[str, str, str, str]]:
         defaults)
     add("web.json", "`prt-web` page of the demo: same pixels", web_pixels)
     add("web.json", "`prt-web` page of the demo: payload, first frame", web_payload)
+
+    def scenes(d):
+        cells = []
+        for s in d.get("scenes", []):
+            groups = "; ".join(
+                f"{g} {c['configurations'].get('onnx', {}).get('psnr_db')} dB (vertex PRT {c['configurations'].get('vertex', {}).get('psnr_db')}, "
+                f"probes at equal bytes {next((v['psnr_db'] for k, v in c['configurations'].items() if k.startswith('probes equal')), '-')})"
+                for g, c in s["groups"].items())  # fmt: skip
+            cells.append(f"{s['name']} ({s['triangles']:,} triangles, {s['objects']} objects): build {s['timing']['wall_s'] / 60:.1f} min; {groups}")
+        return "; ".join(cells) or None
+    add("scenes_real.json", "real scenes at the defaults, diffuse PSNR from their own cameras (exposure matched)", scenes)
     return rows
 
 
