@@ -72,7 +72,7 @@ def main(argv=None) -> int:
     m = scene.manifest
     fig: dict = {"provenance": provenance(), "other_cpu_share_before": other_cpu_share(before, 3.0),
                  "scene": {"name": m.name, "segments": len(m.segments), "objects": len(m.geometry.objects or []),
-                           "materials": len(getattr(m, "materials", None) or [])}}  # fmt: skip
+                           "materials": len((m.raw or {}).get("materials") or [])}}  # fmt: skip
     start, t0 = busy_seconds(), time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "page"
