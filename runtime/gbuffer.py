@@ -32,7 +32,12 @@ Segments are computed in the shader (``shaders/segment_lookup.glsl``) by the rul
 :func:`prt.runtime.segmentation.segment_of`: descend the object's k-d tree, or, for an object
 without a root, take the segment whose box is nearest to the point.  Nearest-box is applied
 per fragment, exactly as ``segment_of`` does per point, so both agree everywhere.  SDF
-scenes are object id 0; in mixed scenes an SDF hit has its object's id.
+scenes are object id 0; in mixed scenes an SDF hit has its object's id.  Mesh triangles that lie
+wholly in one leaf (:func:`prt.runtime.segmentation.face_segments`, with a margin) are drawn by a
+second program that takes their segment as a flat vertex attribute (``PRT_KNOWN_SEGMENT``): the
+descent per fragment, most of the pass's fragment work on llvmpipe, runs only on the triangles
+across a split (:attr:`GBufferPass.known_segments`; off: the reference twin, tested to give the
+same targets).
 
 Read-backs are (H, W, ...) arrays with row 0 at the top of the image.
 """
@@ -55,6 +60,7 @@ from .errors import GeometryError, InputError, SpecError
 from .gl import bind_framebuffer, compile_program
 from .manifest import Manifest
 from .normals import corner_normals
+from .segmentation import face_segments
 
 __all__ = ["GBuffer", "GBufferPass", "segment_tables", "load_mesh", "PACKED_COLUMNS", "PACKED_COVERED", "PACKED_SEGMENT"]
 
@@ -385,6 +391,11 @@ class GBufferPass:
         # the reference twin); _closed_vertices is how many of the buffer's vertices are closed.
         self.cull = False
         self._closed_vertices = 0
+        # Mesh scenes: triangles wholly in one k-d leaf drawn with their segment as an attribute
+        # (False: every fragment descends the tree, the reference twin); _ranges: the draws.
+        self.known_segments = False
+        self._ranges: list[tuple[int, int, bool, bool]] = []  # (first vertex, vertices, culled, segment known)
+        self._known_program = self._known_vao = self._segment_vbo = None
         self._vbo = None
         self._vao = self._program = None
         self._fbo = self._normal_fbo = None
@@ -450,8 +461,11 @@ class GBufferPass:
         self._program = compile_program(self.ctx, fragment, "G-buffer pass", vertex=vertex)
         _set_tables(self._program, tables)
         n_faces = len(mesh["faces"])
-        # Closed faces first (in file order), then the two-sided ones: one culled draw, one not.
-        faces = np.argsort(mesh["two_sided"], kind="stable")
+        # The segment of each triangle wholly in one leaf (the rest pose's: what the rule takes).
+        known = face_segments(mesh["vertices"][mesh["faces"]], mesh["object_ids"], tables["nodes"], tables["roots"])
+        # Closed faces first (in file order), then the two-sided ones: one culled draw, one not;
+        # in each, the faces of known segment first.
+        faces = np.lexsort((known < 0, mesh["two_sided"]))
         self._vbo = self.ctx.buffer(_mesh_vertices(mesh).reshape(n_faces, 3)[faces].tobytes())
         buffers = [(self._vbo, "3f 3f 3f 2i", "in_position", "in_normal", "in_face_normal", "in_info")]
         if self._with_uv:
@@ -474,6 +488,17 @@ class GBufferPass:
         # and culling read the same winding), before any fragment runs.
         self._closed_vertices = 3 * int(np.count_nonzero(~mesh["two_sided"]))
         self.cull = True
+        groups = [side & has for side in (~mesh["two_sided"], mesh["two_sided"]) for has in (known >= 0, known < 0)]  # the order of faces
+        edges = np.cumsum([0] + [3 * int(np.count_nonzero(g)) for g in groups])
+        self._ranges = [(int(edges[k]), int(edges[k + 1] - edges[k]), k < 2, k % 2 == 0) for k in range(4)]
+        if (known >= 0).any():
+            known_define = {"PRT_KNOWN_SEGMENT": 1}
+            self._known_program = compile_program(
+                self.ctx, assemble("segment_lookup.glsl", "gbuffer_mesh.frag", defines={**defines, **known_define}), "G-buffer pass",
+                vertex=assemble("gbuffer_mesh.vert", defines={**uv_define, **material_define, **rest_define, **known_define}))  # fmt: skip
+            self._segment_vbo = self.ctx.buffer(np.repeat(known[faces], 3).astype(np.int32).tobytes())
+            self._known_vao = self.ctx.vertex_array(self._known_program, buffers + [(self._segment_vbo, "1i", "in_segment")])
+            self.known_segments = True
 
     def _build_mixed(self, manifest: Manifest, max_steps: int, hit_eps: float) -> None:
         """Mesh objects (when there are any) as a mesh scene, then the SDF objects' pass."""
@@ -513,7 +538,7 @@ class GBufferPass:
 
     def _set(self, name: str, value) -> None:
         """Set a uniform in every program of the pass, where the compiler kept it."""
-        for program in (self._program, self._sdf_program):
+        for program in (self._program, self._known_program, self._sdf_program):
             if program is not None and name in program:
                 program[name].write(np.ascontiguousarray(value, dtype=np.float32).tobytes())
 
@@ -560,19 +585,25 @@ class GBufferPass:
 
     def _draw(self) -> None:
         """The geometry: closed faces with GL's back-face culling, then two-sided faces without it
-        (:attr:`cull`); or everything in one draw without culling (the shader's discard alone)."""
-        closed = self._closed_vertices if self.cull else 0
+        (:attr:`cull`), each part's triangles of known segment by their own program
+        (:attr:`known_segments`); or everything in one draw without culling (the shader's discard
+        and descent alone), in the same order."""
         if self._vao is None:  # a mixed scene without mesh objects
-            closed = self._vertices = 0
-        if closed:
-            # Back faces of closed surfaces are discarded in the shader; culled by GL as well here
-            # (the same fragments, fewer of them run).
-            self.ctx.front_face, self.ctx.cull_face = "ccw", "back"
-            self.ctx.enable(moderngl.CULL_FACE)
-            self._vao.render(moderngl.TRIANGLES, vertices=closed)
-            self.ctx.disable(moderngl.CULL_FACE)
-        if self._vertices > closed:
-            self._vao.render(moderngl.TRIANGLES, vertices=self._vertices - closed, first=closed)
+            self._vertices = 0
+        elif not self.cull or not self._ranges:  # one draw (SDF scenes: the full-screen pass)
+            self._vao.render(moderngl.TRIANGLES, vertices=self._vertices)
+        else:
+            for first, count, culled, known in self._ranges:
+                if not count:
+                    continue
+                vao = self._known_vao if known and self.known_segments else self._vao
+                if culled:
+                    # Back faces of closed surfaces are discarded in the shader; culled by GL as well
+                    # here (the same fragments, fewer of them run).
+                    self.ctx.front_face, self.ctx.cull_face = "ccw", "back"
+                    self.ctx.enable(moderngl.CULL_FACE)
+                vao.render(moderngl.TRIANGLES, vertices=count, first=first)
+                self.ctx.disable(moderngl.CULL_FACE)
         if self._sdf_vao is not None:  # mixed: SDF hits behind the meshes fail the depth test
             self._sdf_vao.render(moderngl.TRIANGLES, vertices=3)
 
@@ -691,7 +722,7 @@ class GBufferPass:
             return
         self._released = True
         resources = [
-            self._vao, self._program, self._sdf_vao, self._sdf_program, self._vbo, self._uv_vbo, self._albedo_uv_vbo,
+            self._vao, self._program, self._known_vao, self._known_program, self._segment_vbo, self._sdf_vao, self._sdf_program, self._vbo, self._uv_vbo, self._albedo_uv_vbo,
             self._normal_fbo, self._fbo, self.position_texture, self.normal_texture, self.depth_texture, self.uv_texture,
             self.material_texture, self.world_texture, self._rest_vbo,
         ]  # fmt: skip

@@ -12,6 +12,10 @@ inside it; ties to the lowest id).
 :func:`segment_sort` groups pixels or rows by segment (a counting sort; the ONNX backend's
 packing and the screen-space interpolation's refused pixels), with its plain twin
 :func:`segment_sort_reference`.
+
+:func:`face_segments` gives the segment of each triangle that lies wholly in one k-d leaf, with a
+margin (the G-buffer draws those triangles with their segment as a flat attribute and runs the
+per-fragment descent only on the others, :class:`prt.runtime.gbuffer.GBufferPass`).
 """
 
 from __future__ import annotations
@@ -25,7 +29,12 @@ from .errors import InputError
 if TYPE_CHECKING:
     from .manifest import Manifest
 
-__all__ = ["kd_arrays", "assign_segments", "segment_of", "segment_sort", "segment_sort_reference"]
+__all__ = ["kd_arrays", "assign_segments", "segment_of", "segment_sort", "segment_sort_reference", "face_segments", "FACE_MARGIN"]
+
+FACE_MARGIN = (1e-4, 1.0 / 16.0)
+"""A triangle takes a side of a split only when all of it lies at least ``1e-4 + extent / 16`` from the
+split (``extent``: the triangle's own extent along the split's axis): an interpolated fragment
+position can lie a little outside its triangle (rounding, sub-pixel vertex snapping), never by that."""
 
 
 def kd_arrays(nodes: list[dict]) -> tuple[np.ndarray, ...]:
@@ -137,3 +146,69 @@ def segment_sort_reference(segment: np.ndarray, n_segments: int) -> tuple[np.nda
         raise InputError(f"segment {int(segment.max())} appears in the G-buffer but the scene has no such segment")
     offsets = np.concatenate([[0], np.cumsum([len(p) for p in parts])]).astype(np.int64)
     return (np.concatenate(parts) if parts else np.zeros(0, np.int64)).astype(np.int64), offsets
+
+
+def face_segments(corners: np.ndarray, object_ids: np.ndarray, nodes: np.ndarray, roots: np.ndarray) -> np.ndarray:
+    """Segment of every triangle that lies wholly in one leaf of its object's k-d tree, -1 for the others.
+
+    Parameters
+    ----------
+    corners : (F, 3, 3) float32, the triangles' corners (the positions the segment rule takes)
+    object_ids : (F,) int, object id per triangle
+    nodes, roots : the G-buffer's tables (:func:`prt.runtime.gbuffer.segment_tables`): nodes (N, 4)
+        float32 inner ``(axis, split, left, right)``, leaf ``(-1, 0, segment, segment)``; roots (M,)
+        int root node per object id, -1 without one (the nearest-box rule: -1 here)
+
+    Returns
+    -------
+    (F,) int32.  A triangle gets a segment when, at every node of its descent, its corners lie all
+    at or below the split (left) or all above it, by :data:`FACE_MARGIN`, until a leaf or a subtree
+    whose leaves are all one segment; then every point of it, and every fragment drawn from it,
+    ends in that segment.
+    """
+    corners = np.asarray(corners, dtype=np.float32)
+    lo, hi = corners.min(axis=1).astype(np.float64), corners.max(axis=1).astype(np.float64)
+    ids = np.asarray(object_ids, dtype=np.int64)
+    inside = (ids >= 0) & (ids < len(roots))
+    node = np.where(inside, np.asarray(roots)[np.clip(ids, 0, max(len(roots) - 1, 0))], -1).astype(np.int64)
+    out = np.full(len(corners), -1, dtype=np.int32)
+    whole = _subtree_segments(nodes)
+    active = np.flatnonzero(node >= 0)
+    for _ in range(len(nodes) + 1):  # a descent visits each node at most once
+        if not len(active):
+            break
+        n = nodes[node[active]]
+        axis = n[:, 0].astype(np.int64)
+        done = whole[node[active]] >= 0  # a leaf, or a subtree of one segment: the descent's end
+        out[active[done]] = whole[node[active[done]]]
+        active, n, axis = active[~done], n[~done], axis[~done]
+        split = n[:, 1].astype(np.float64)
+        a_lo, a_hi = lo[active, axis], hi[active, axis]
+        margin = FACE_MARGIN[0] + FACE_MARGIN[1] * (a_hi - a_lo)
+        left, right = a_hi + margin <= split, a_lo - margin > split
+        node[active] = np.where(left, n[:, 2], n[:, 3]).astype(np.int64)
+        active = active[left | right]  # a triangle across a split keeps -1 (looked up per fragment)
+    return out
+
+
+def _subtree_segments(nodes: np.ndarray) -> np.ndarray:
+    """(N,) int32 per node: the segment of every leaf below it when that is one segment, else -1."""
+    whole = np.full(len(nodes), -2, dtype=np.int64)  # -2: not yet known
+    for root in range(len(nodes)):
+        stack, seen = [root], set()
+        while stack:  # children before parents, without recursion (trees may be deep)
+            i = stack[-1]
+            axis, _, left, right = nodes[i]
+            if whole[i] != -2:
+                stack.pop()
+            elif axis < 0:
+                whole[i] = int(left)
+                stack.pop()
+            elif i in seen:
+                a, b = whole[int(left)], whole[int(right)]
+                whole[i] = a if a == b and a >= 0 else -1  # (a child still unknown: a loop, no shortcut)
+                stack.pop()
+            else:
+                seen.add(i)
+                stack += [c for c in (int(left), int(right)) if whole[c] == -2 and c not in seen]
+    return whole.astype(np.int32)

@@ -262,7 +262,11 @@ def readme_rows(root: Path) -> list[tuple[str, str, str, str]]:
     def demo(d):
         rows_ = d.get("rows", {})
         first = next(iter(rows_.values()), None)
-        return None if first is None else f"{first['fps']:.1f} FPS at {d.get('size', '?')}x{d.get('size', '?')} (ONNX backend, CPU)"
+        if first is None:
+            return None
+        load = (d.get("provenance", {}).get("machine", {}) or {}).get("other_cpu_share") or 0.0
+        busy = f"; other processes took {100 * load:.0f} % of the CPUs" if load >= 0.05 else ""
+        return f"{first['fps']:.1f} FPS at {d.get('size', '?')}x{d.get('size', '?')} (ONNX backend, CPU{busy})"
 
     add("demo_fps.json", "`make demo` frame rate", demo)
 

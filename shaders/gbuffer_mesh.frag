@@ -34,6 +34,15 @@ in vec2 v_albedo_uv;
 layout(location = PRT_GBUFFER_MATERIAL) out vec4 o_material;
 #endif
 
+#ifdef PRT_KNOWN_SEGMENT
+// Triangles wholly in one k-d leaf: their segment comes with them (runtime/gbuffer.py draws the
+// others with the descent per fragment, prt_segment).
+flat in int v_segment;
+#define PRT_SEGMENT_AT(p) v_segment
+#else
+#define PRT_SEGMENT_AT(p) prt_segment(v_info.x, p)
+#endif
+
 void main() {
     bool two_sided = v_info.y != 0;
     if (!two_sided && !gl_FrontFacing) {
@@ -58,11 +67,11 @@ void main() {
     n = normalize(n);
 #ifdef PRT_GBUFFER_REST
     o_position = vec4(v_rest, 1.0);
-    o_normal = vec4(n, float(prt_segment(v_info.x, v_rest)));
+    o_normal = vec4(n, float(PRT_SEGMENT_AT(v_rest)));
     o_world = vec4(v_position, 1.0);
 #else
     o_position = vec4(v_position, 1.0);
-    o_normal = vec4(n, float(prt_segment(v_info.x, v_position)));
+    o_normal = vec4(n, float(PRT_SEGMENT_AT(v_position)));
 #endif
 #ifdef PRT_GBUFFER_UV
     bool back = two_sided && dot(v_face_normal, to_eye) < 0.0;  // as the normal's flip above

@@ -24,6 +24,10 @@ flat out float v_atlas;
 in vec3 in_rest;  // deformable scenes: this corner in the rest pose (the networks' position input)
 out vec3 v_rest;
 #endif
+#ifdef PRT_KNOWN_SEGMENT
+in int in_segment;  // the face's segment, where all of it lies in one k-d leaf (runtime/gbuffer.py)
+flat out int v_segment;
+#endif
 #ifdef PRT_GBUFFER_MATERIAL
 in vec2 in_albedo_uv;  // this corner's albedo-texture UV (the mesh's own; 0 without one)
 out vec2 v_albedo_uv;
@@ -34,6 +38,9 @@ void main() {
     v_normal = in_normal;
     v_face_normal = in_face_normal;
     v_info = in_info;
+#ifdef PRT_KNOWN_SEGMENT
+    v_segment = in_segment;
+#endif
 #ifdef PRT_GBUFFER_REST
     v_rest = in_rest;
 #endif

@@ -10,6 +10,9 @@
 - back-face culling of closed faces (their own draw, two-sided faces in a second one without
   culling) draws the same G-buffer as one draw with the shader's discard alone, whatever the
   order of the faces in the file;
+- the triangles that lie wholly in one k-d leaf, drawn with their segment as an attribute (no
+  descent per fragment), draw the same G-buffer as every fragment descending the tree; every point
+  of such a triangle has that segment by :func:`segment_of`;
 - the env-map background drawn only where the G-buffer's depth says no geometry is equals the
   full-screen layer there, and a frame built on it equals the frame composited the old way;
 - ``all_finite`` and ``scatter_rows`` equal ``np.isfinite(...).all()`` and ``image[rows] = values``.
@@ -163,6 +166,49 @@ def test_culling_draws_the_same_gbuffer(gl_ctx, scene, request):
                     gpass.cull = True
                 assert (culled[:, 3] > 0.5).sum() > 100
                 assert np.array_equal(culled, plain) and np.array_equal(culled_depth, plain_depth)
+
+
+@pytest.mark.parametrize("scene", ["demo", "closed_spot", "shuffled_demo"])
+def test_known_segments_draw_the_same_gbuffer(gl_ctx, scene, request):
+    with Renderer(request.getfixturevalue(scene), SIZE, SIZE + 5, ctx=gl_ctx) as r:
+        gpass = r.gbuffer
+        assert gpass.known_segments
+        known = sum(count for _, count, _, has in gpass._ranges if has)
+        assert 0 < gpass._vertices - known < known  # most triangles take their segment along
+        for angle in (0.0, 2.0, 4.0):
+            for camera in (r.camera.orbit(angle), Camera(eye=(2.5 * np.sin(angle), -1.2, 2.5 * np.cos(angle)), target=(0, 0, 0))):
+                fast, fast_depth = _targets(gpass, camera)
+                gpass.known_segments = False  # the reference twin: every fragment descends the tree
+                try:
+                    plain, plain_depth = _targets(gpass, camera)
+                finally:
+                    gpass.known_segments = True
+                assert len(np.unique(fast[fast[:, 3] > 0.5, PACKED_SEGMENT])) >= 2
+                assert np.array_equal(fast, plain) and np.array_equal(fast_depth, plain_depth)
+
+
+def test_face_segments_follow_the_rule(demo):
+    from prt.runtime.gbuffer import segment_tables
+    from prt.runtime.segmentation import face_segments, segment_of
+
+    manifest = demo.manifest
+    tables = segment_tables(manifest, np.array([0, 1]))
+    rng = np.random.default_rng(5)
+    # Triangles of every size around the demo's splits (z = -0.0799 for Spot, x = -0.0033 for the ground).
+    centre = rng.uniform(-0.3, 0.3, (4000, 1, 3))
+    corners = (centre + rng.normal(size=(4000, 3, 3)) * np.exp(rng.uniform(-9, -1, (4000, 1, 1)))).astype(np.float32)
+    ids = rng.integers(0, 3, 4000)  # object 2 has no root: the nearest-box rule, never known
+    known = face_segments(corners, ids, tables["nodes"], tables["roots"][:2])
+    assert (known[ids == 2] == -1).all()
+    assert (known[ids == 1] == 1).all()  # both sides of the ground's split are segment 1
+    spot = ids == 0
+    assert 100 < (known[spot] == -1).sum() < spot.sum() - 100  # across the split, and not
+    w = rng.dirichlet(np.ones(3), (4000, 16))  # points inside each triangle, corners included
+    w[:, :3] = np.eye(3)
+    points = np.einsum("fkc,fcd->fkd", w, corners.astype(np.float64)).astype(np.float32)
+    rule = segment_of(manifest, points.reshape(-1, 3), np.repeat(ids, 16)).reshape(-1, 16)
+    has = known >= 0
+    assert (rule[has] == known[has, None]).all()
 
 
 def test_face_order_does_not_change_the_gbuffer(gl_ctx, demo, shuffled_demo):
