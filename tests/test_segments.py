@@ -168,7 +168,13 @@ def test_precompute_key_changes_only_where_the_off_plane_rule_moves_a_cut(tmp_pa
 
     plain = hashlib.sha1(json.dumps([_geometry_key(load_geometry(str(DATA / "CornellBox-Original.obj"))),
                                      {k: v for k, v in asdict(settings).items() if k not in ("adaptive", "split", "sdf_trace")}, FORMAT_VERSION]).encode()).hexdigest()[:16]  # fmt: skip
-    assert keys["cornell"][0] == plain and keys["creature"][0] != plain
+    from prt.train.transport.precompute import precompute_key, scene_sides
+
+    cornell = load_geometry(str(DATA / "CornellBox-Original.obj"))
+    assert precompute_key(cornell, settings) == plain
+    # samples on reachable sides only (prt.train.inputs.visibility): keyed where the sides change
+    sides = scene_sides(cornell, seed=settings.seed, log=lambda *_: None)
+    assert keys["cornell"][0] == (precompute_key(cornell, settings, sides) if sides.changed else plain) and keys["creature"][0] != plain
 
 
 def _unexplained(points, transfer, seg, rank=8):
