@@ -72,9 +72,9 @@ def sample_surface(geometry, count: int, *, seed: int = 0, stream: int = TRAIN_S
     seed, stream : keys of the random generator (use another stream for validation)
     sides : (F, 2) bool or None
         Meshes: the sides of each face samples may stand for (side 0 along the face's winding,
-        side 1 against it; :func:`prt.train.inputs.visibility.surface_sides`).  Faces are then
-        drawn by area times their number of allowed sides, and each sample takes an allowed side
-        (at random where both are).  None: the geometry's own sides (one-sided faces their
+        side 1 against it; :func:`prt.train.inputs.visibility.surface_sides`).  Faces with an
+        allowed side are drawn by area (as without ``sides``), faces without one not at all, and
+        each sample takes an allowed side (at random where both are).  None: the geometry's own sides (one-sided faces their
         front, two-sided ones either), drawn exactly as before.
     """
     if count <= 0:
@@ -83,7 +83,7 @@ def sample_surface(geometry, count: int, *, seed: int = 0, stream: int = TRAIN_S
     areas = np.asarray(mesh.area_faces, dtype=np.float64)
     if sides is not None:
         sides = np.asarray(sides, dtype=bool)
-        areas = areas * sides.sum(axis=1)
+        areas = areas * sides.any(axis=1)  # a face keeps its area's share; its samples split among its allowed sides
     total = areas.sum()
     if not np.isfinite(total) or total <= 0:
         raise GeometryError(f"{geometry.source}: surface has no area to sample")
