@@ -67,6 +67,8 @@ def timed_build(mesh: Path, quality: str, out: Path, threads: int, extra: list[s
     load, busy, cpu, t0 = os.getloadavg()[0], busy_seconds(), _children_cpu(), time.perf_counter()
     proc = subprocess.run(command, capture_output=True, text=True)
     wall = time.perf_counter() - t0
+    if out.is_dir():
+        (out / "train.log").write_text(proc.stdout + proc.stderr)  # the whole log (its warnings among it)
     if proc.returncode != 0:
         raise SystemExit(f"prt-train failed on {mesh} ({quality}): {proc.stderr.strip()[-500:]}")
     report = json.loads((out / "build.json").read_text())

@@ -35,41 +35,11 @@ from prt.bench.provenance import provenance
 from prt.runtime.files import atomic_write_bytes, atomic_write_json
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from builds_vs_vertex import _children_cpu, others_share  # noqa: E402
+from builds_vs_vertex import timed_build  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 # Issue 43's bars: outside / inside views against the reference, over vertex PRT, over the probe grid at equal bytes.
 BARS = {"outside_db": 35.0, "inside_db": 30.0, "over_vertex_db": 3.0, "over_probes_db": 6.0}
-
-
-def timed_build(scene: Path, quality: str, out: Path, threads: int, extra: list[str]) -> dict:
-    """Run (or read back) ``prt-train SCENE -o OUT --quality Q``: wall and CPU time, load, its whole log."""
-    import os
-    import time
-
-    from prt.bench.machine import busy_seconds
-
-    record_path = out / "timing.json"
-    if record_path.is_file() and (out / "scene.json").is_file():
-        return json.loads(record_path.read_text())
-    command = ["nice", "-n", "10", sys.executable, "-m", "prt.train.train_cli", str(scene), "-o", str(out), "--quality", quality,
-               "--threads", str(threads), "--no-progress", *extra]  # fmt: skip
-    print("==", " ".join(command[3:]), flush=True)
-    load, busy, cpu, t0 = os.getloadavg()[0], busy_seconds(), _children_cpu(), time.perf_counter()
-    proc = subprocess.run(command, capture_output=True, text=True)
-    wall = time.perf_counter() - t0
-    (out / "train.log").write_text(proc.stdout + proc.stderr) if out.is_dir() else None
-    if proc.returncode != 0:
-        raise SystemExit(f"prt-train failed on {scene}: {proc.stderr.strip()[-500:]}")
-    report = json.loads((out / "build.json").read_text())
-    cpu = _children_cpu() - cpu
-    record = {"scene": str(scene), "quality": quality, "command": "prt-train " + " ".join(command[6:]), "wall_s": round(wall, 1),
-              "cpu_s": round(cpu, 1), "threads": threads, "load_average": round(load, 2), "other_cpu_share": others_share(busy, cpu, wall),
-              "weight_bytes": report["memory"]["weight_bytes"], "sizing": report.get("sizing"),
-              "summary": proc.stdout.strip().splitlines()[-24:]}  # fmt: skip
-    atomic_write_json(record_path, record)
-    print("\n".join(record["summary"]), flush=True)
-    return record
 
 
 def split_views(cameras: Path, build: Path) -> dict[str, list]:
