@@ -225,3 +225,21 @@ def test_an_interrupted_refinement_resumes_from_the_cache(refined):
     assert sorted(p.name for p in (out / "precompute" / "fits").iterdir()) == fits
     assert report["refinement"]["actions"] == first["refinement"]["actions"] and report["refinement"]["psnr_db"] == first["refinement"]["psnr_db"]
     assert any("(cached)" in line for line in lines)
+
+
+def test_a_build_at_its_floor_is_left_as_it_is(tmp_path):
+    """Refinement runs only under the floor: records over it come back unchanged, nothing fitted, nothing written."""
+    spec = spec_from_dict({"geometry": "x.obj"})  # standard: floor 35 dB
+    records = [_record(0, 1000, 41.0), _record(1, 3000, 38.0)]
+
+    def no_fit(*_):
+        raise AssertionError("nothing is fitted at the floor")
+
+    job = refine.RefineJob(spec, tmp_path, {"segments": [{"id": 0}, {"id": 1}]}, {"segment": np.zeros(4, dtype=np.int64)},
+                           {"segment": np.zeros(2, dtype=np.int64)}, [np.arange(4), np.arange(4)], spec.architectures(), None, {}, None,
+                           "key", no_fit, ["a"], t_start=0.0, log=lambda line: None, clock=lambda: 0.0)  # fmt: skip
+    out, tree, report = refine.refine_build(job, records)
+    assert out == records and tree == job.tree
+    assert report["met"] and report["ended"] == "floor" and report["rounds"] == 0 and "worst" not in report
+    assert report["psnr_db"] == refine.scene_psnr(records) >= 35.0
+    assert not (tmp_path / "refine").exists() and refine.stop_lines(report) == []

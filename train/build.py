@@ -4,6 +4,7 @@ Each stage is cached in the output folder and resumes after an interruption:
 
     OUTDIR/precompute/          samples, ground-truth transfer, segments (prt.train.transport.precompute)
     OUTDIR/train/segNNN.json    per-segment fit: chosen size, errors, sizes tried (+ .npz weights)
+    OUTDIR/refine/segNNN.json   a segment refitted under the floor (prt.train.refine; + .npz weights)
     OUTDIR/segments/, geometry.npz, scene.json   the scene folder, written by prt.export.scene
     OUTDIR/build.json           the report: per-segment table, memory, timings
 """

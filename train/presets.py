@@ -100,8 +100,8 @@ def resolve(data: dict) -> dict:
     if names_rule:  # (a margin of its own keeps the preset's ladder)
         preset.pop("vertex_margin", None)
         preset.pop("ladder", None)
-    samples = data.get("samples")  # checked later (check_settings); a value of the wrong type is no count here
-    fewer = isinstance(samples, (int, float)) and not isinstance(samples, bool) and samples < preset.get("samples", 0)
+    given = data.get("samples")  # (a value of the wrong type is left for the spec check to refuse)
+    fewer = isinstance(given, (int, float)) and not isinstance(given, bool) and given < preset.get("samples", 0)
     if names_rule or fewer:  # the floor's own fields given keep it
         for key in FLOOR_FIELDS:
             preset.pop(key, None)

@@ -139,7 +139,7 @@ def _ladder_index(record: dict, archs: list) -> int:
     """The ladder rung of a segment's network (-1: analytic or not on the ladder)."""
     if record["kind"] != "network":
         return -1
-    a = record["arch"]
+    a = record.get("arch") or {}
     for i, arch in enumerate(archs):
         if (arch.hidden, arch.layers, arch.pos_freqs) == (a.get("hidden"), a.get("layers"), a.get("pos_freqs")):
             return i
