@@ -243,3 +243,18 @@ def test_a_build_at_its_floor_is_left_as_it_is(tmp_path):
     assert report["met"] and report["ended"] == "floor" and report["rounds"] == 0 and "worst" not in report
     assert report["psnr_db"] == refine.scene_psnr(records) >= 35.0
     assert not (tmp_path / "refine").exists() and refine.stop_lines(report) == []
+
+
+@pytest.mark.parametrize("floor", [None, 80.0])
+def test_the_unshadowed_shortcut_keeps_to_the_floor(two_objects, tmp_path, floor):
+    """Where vertex PRT is poor the unshadowed transfer beats it by the margin (the ball's lit cap does here);
+    under a floor it must also reach the floor itself, else the segment gets a network (the AS1 plate: 11 dB)."""
+    spec = spec_from_dict({"geometry": str(two_objects), **TINY, "steps": 60, "analytic": True, "vertex_margin": -20.0, "ladder": ONE_SIZE,
+                           **({"floor_db": floor, "build_budget": 1.0} if floor else {})})  # fmt: skip
+    lines = []
+    run_build(spec, tmp_path / "scene", threads=2, progress=False, log=lines.append)
+    kinds = [s.kind for s in load_manifest(tmp_path / "scene" / "scene.json").segments]
+    if floor is None:
+        assert "analytic" in kinds  # any margin over vertex PRT is met by the unshadowed transfer
+    else:
+        assert "analytic" not in kinds, lines

@@ -300,8 +300,12 @@ def train_segment(spec, s, samples, valid, member_idx, archs, fit_settings, ligh
             log(f"segment {s}: analytic (unshadowed; shaded PSNR {a_worst:.2f} dB >= {spec.target_db} dB)")
             return {**analytic, "sizing": _sizing(rule, spec, "analytic", a_psnr, True, [],
                                                   f"unshadowed transfer already meets {spec.target_db} dB ({a_worst:.2f} dB)")}  # fmt: skip
-        if rule == "vertex" and _gain(a_psnr, v_psnr) >= spec.vertex_margin:
-            log(f"segment {s}: analytic (unshadowed; {_gain(a_psnr, v_psnr):+.2f} dB over vertex PRT >= {spec.vertex_margin:+g} dB)")
+        # A floor (the preset's absolute held-out PSNR) holds for the unshadowed transfer too: where vertex
+        # PRT is poor (coarse CAD and BIM meshes) beating it says nothing of the segment's own error.
+        under_floor = getattr(spec, "floor_db", None) is not None and a_worst < spec.floor_db
+        if rule == "vertex" and _gain(a_psnr, v_psnr) >= spec.vertex_margin and not under_floor:
+            log(f"segment {s}: analytic (unshadowed; {_gain(a_psnr, v_psnr):+.2f} dB over vertex PRT >= {spec.vertex_margin:+g} dB"
+                f"{f', {a_worst:.2f} dB >= the floor {spec.floor_db:g} dB' if getattr(spec, 'floor_db', None) is not None else ''})")
             return {**analytic, "vertex": _vertex_record(v_psnr, budget, "error", _gain(a_psnr, v_psnr)),
                     "sizing": _sizing(rule, spec, "analytic", a_psnr, True, [], f"unshadowed transfer already {_gain(a_psnr, v_psnr):+.2f} dB "
                                       f"over vertex PRT", extra=_vertex_extra(v_psnr, budget, "error"))}  # fmt: skip
