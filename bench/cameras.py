@@ -18,6 +18,7 @@ import json
 from pathlib import Path
 
 from prt.runtime.camera import DEFAULT_CAMERA, Camera
+from prt.runtime.camera_path import read_json_file
 from prt.runtime.errors import InputError
 
 __all__ = ["load_views", "views_from_dict", "camera_record", "MAX_VIEWS"]
@@ -37,28 +38,8 @@ def load_views(path) -> list[Camera]:
         with a missing or malformed field or no usable camera.
     """
     path = Path(path)
-    try:
-        if path.is_dir():
-            raise InputError(f"{path}: is a folder, not a views file")
-        size = path.stat().st_size
-        if size > MAX_FILE_BYTES:
-            raise InputError(f"{path}: {size} bytes is too large for a views file (at most {MAX_FILE_BYTES})")
-        text = path.read_bytes().decode("utf-8-sig")
-    except (OSError, ValueError) as exc:
-        if isinstance(exc, InputError):
-            raise
-        reason = getattr(exc, "strerror", None) or ("not UTF-8 text" if isinstance(exc, UnicodeDecodeError) else exc)
-        raise InputError(f"{path}: cannot read the views file ({reason})") from None
-    try:
-        data = json.loads(text, parse_constant=_refuse_constant)
-    except (json.JSONDecodeError, RecursionError, ValueError) as exc:
-        detail = f"line {exc.lineno} column {exc.colno}: {exc.msg}" if isinstance(exc, json.JSONDecodeError) else str(exc) or "too deeply nested"
-        raise InputError(f"{path}: not valid JSON ({detail})") from None
+    data = read_json_file(path, folder="a views file", large="a views file", unreadable="the views file", max_bytes=MAX_FILE_BYTES)
     return views_from_dict(data, path)
-
-
-def _refuse_constant(name: str):
-    raise ValueError(f"{name} is not a number JSON allows")
 
 
 def _clip(value) -> str:

@@ -163,25 +163,33 @@ def load_camera_path(path) -> CameraPath:
         version, a missing or malformed field, a keyframe that is no usable camera.
     """
     path = Path(path)
+    data = read_json_file(path, folder="a camera-path file", large="a camera path", unreadable="the camera path")
+    return camera_path_from_dict(data, path)
+
+
+
+def read_json_file(path, *, folder: str, large: str, unreadable: str, max_bytes: int | None = None):
+    """A user's small JSON file, parsed strictly (NaN and Infinity refused), or one :class:`InputError` line
+    naming it: ``folder``, ``large`` and ``unreadable`` name the kind of file in those messages."""
+    path = Path(path)
+    max_bytes = MAX_FILE_BYTES if max_bytes is None else max_bytes
     try:
         if path.is_dir():
-            raise InputError(f"{path}: is a folder, not a camera-path file")
+            raise InputError(f"{path}: is a folder, not {folder}")
         size = path.stat().st_size
-        if size > MAX_FILE_BYTES:
-            raise InputError(f"{path}: {size} bytes is too large for a camera path (at most {MAX_FILE_BYTES})")
+        if size > max_bytes:
+            raise InputError(f"{path}: {size} bytes is too large for {large} (at most {max_bytes})")
         text = path.read_bytes().decode("utf-8-sig")
     except (OSError, ValueError) as exc:  # ValueError: a NUL in the path, or undecodable bytes
         if isinstance(exc, InputError):
             raise
         reason = getattr(exc, "strerror", None) or ("not UTF-8 text" if isinstance(exc, UnicodeDecodeError) else exc)
-        raise InputError(f"{path}: cannot read the camera path ({reason})") from None
+        raise InputError(f"{path}: cannot read {unreadable} ({reason})") from None
     try:
-        data = json.loads(text, parse_constant=_refuse_constant)
+        return json.loads(text, parse_constant=_refuse_constant)
     except (json.JSONDecodeError, RecursionError, ValueError) as exc:
         detail = f"line {exc.lineno} column {exc.colno}: {exc.msg}" if isinstance(exc, json.JSONDecodeError) else str(exc) or "too deeply nested"
         raise InputError(f"{path}: not valid JSON ({detail})") from None
-    return camera_path_from_dict(data, path)
-
 
 def _refuse_constant(name: str):
     raise ValueError(f"{name} is not a number JSON allows")
