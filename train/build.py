@@ -32,7 +32,7 @@ from ..runtime.envmaps import BUNDLED_ENVMAPS, bundled_envmap_path
 from ..runtime.errors import SpecError
 from ..runtime.files import atomic_save_npz, atomic_write_json
 from ..runtime.manifest import validate_manifest_field
-from .networks.fit import DEFAULT_LADDER, DEFAULT_STEPS, LOSSES, FitSettings
+from .networks.fit import DEFAULT_LADDER, DEFAULT_LOSS, DEFAULT_STEPS, LOSSES, FitSettings
 from .inputs.geometry import load_geometry
 from .inputs.materials import mesh_materials, textured_geometry
 from .inputs.mixed import load_scene_geometry, parse_objects, resolve_objects
@@ -85,7 +85,7 @@ class BuildSpec:
     lr: float = 1e-2
     patience: int = 10
     bf16: bool | None = False  # bf16 autocast: about 2x faster on AVX512-BF16, about 9 % higher error
-    loss: str = "l1"  # fitting loss (prt.train.networks.fit.LOSSES): L1 on the coefficients, or "relative" (over each sample's brightness)
+    loss: str = DEFAULT_LOSS  # fitting loss (prt.train.networks.fit.LOSSES): "l2" (squared error), "l1", "relative" (L1 over each sample's brightness)
     # frequency networks learn the direct transfer's residual from the unshadowed transfer of the
     # normal (prt.train.networks.network): "auto" per segment by its mean visibility (prt.train.networks.rightsize), "on", "off"
     residual: str = "auto"

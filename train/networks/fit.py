@@ -34,14 +34,21 @@ __all__ = [
     "RELATIVE_FLOOR",
     "loss_weights",
     "weighted_l1_numpy",
+    "loss_numpy",
+    "DEFAULT_LOSS",
     "batch_loss",
     "brightness",
 ]
 
-# Fitting losses: "l1" (the paper's: L1 on the coefficients, so a dim sample's error weighs as
-# little as its transfer is small) and "relative" (each sample's L1 divided by c + m, m its
-# brightness, so the loss follows the relative error that a tone-mapped image shows).
-LOSSES = ("l1", "relative")
+# Fitting losses: "l2" (the default: squared error on the coefficients), "l1" (the paper's: L1 on the
+# coefficients) and "relative" (each sample's L1 divided by c + m, m its brightness, so the loss follows
+# the relative error that a tone-mapped image shows).  The targets are Monte Carlo estimates: unbiased,
+# but where little of the sky is visible (a room lit through its windows) their noise is skewed, most
+# samples see none of it and a few see a lot.  L2's minimiser is the samples' conditional mean, the
+# transfer itself; L1's is their median, which there lies far below the mean: fitted with L1 the
+# Duplex house's sunlit floor came out at 0.002 against 0.155 (docs/benchmarks/loss_l2.md).
+LOSSES = ("l2", "l1", "relative")
+DEFAULT_LOSS = "l2"
 # c of "relative", in transfer units: an unoccluded surface's DC coefficient is 0.282 (Y_00), the
 # Cornell box's dim interior's about 0.04; below c a sample's weight stops growing.  0.02 let the
 # dark samples (DC ~ 0) outweigh the open ones so far that a k32 network of the Cornell floor fitted
@@ -93,19 +100,21 @@ class FitSettings:
     bf16: bool | None = False  # True: bf16 autocast (2x faster here, ~9 % higher error); None: where native
     max_seconds: float | None = None  # wall-clock budget per fit
     steps: int | None = None  # Adam steps per network (None: DEFAULT_STEPS unless ``epochs`` is set)
-    loss: str = "l1"  # see LOSSES; "relative" also picks the kept network by its weighted validation error
+    loss: str = DEFAULT_LOSS  # see LOSSES; the kept network is the one with the lowest validation error in the loss's own terms
     loss_floor: float = RELATIVE_FLOOR  # c of the "relative" loss
     # Where frequency networks train: "cpu" or "cuda" (resolve_device; grid networks stay on the CPU).
     # Not in the cache key: a fit made on either device serves a build on the other.
     device: str = "cpu"
 
     def cache_key(self) -> dict:
-        """The fields that key cached fits: every field but the device, the loss's only where not the
-        default "l1" (so builds made before the loss option keep their keys and their cached fits)."""
+        """The fields that key cached fits: every field but the device; the loss where not "l1" (so
+        "l1" fits keep the keys they had before the loss option), its floor only for "relative"."""
         keyed = asdict(self)
         del keyed["device"]
         if self.loss == "l1":
             del keyed["loss"], keyed["loss_floor"]
+        elif self.loss != "relative":
+            del keyed["loss_floor"]
         return keyed
 
     def plan(self, n: int) -> tuple[int, int, int, int]:
@@ -202,11 +211,11 @@ def brightness(transfer: np.ndarray, n: int) -> np.ndarray:
 
 def loss_weights(transfer: np.ndarray, n: int, loss: str = "relative", floor: float = RELATIVE_FLOOR) -> np.ndarray | None:
     """Per-sample loss weights, shape (M,) float32, mean 1: ``1 / (floor + m)`` (m: :func:`brightness`)
-    normalised so the loss keeps the plain L1's scale; None for ``loss="l1"``.  Every output of a
-    sample (all 64 of "direct+rgb") gets its sample's weight."""
+    normalised so the loss keeps the plain L1's scale; None for ``loss="l1"`` and ``"l2"`` (unweighted).
+    Every output of a sample (all 64 of "direct+rgb") gets its sample's weight."""
     if loss not in LOSSES:
         raise ValueError(f"loss must be one of {', '.join(LOSSES)}, got {loss!r}")
-    if loss == "l1":
+    if loss != "relative":
         return None
     if not (math.isfinite(floor) and floor > 0):
         raise ValueError(f"loss_floor must be finite and > 0, got {floor!r}")
@@ -215,7 +224,7 @@ def loss_weights(transfer: np.ndarray, n: int, loss: str = "relative", floor: fl
 
 
 def weighted_l1_numpy(pred: np.ndarray, truth: np.ndarray, weights: np.ndarray | None = None) -> float:
-    """Plain reference of the fitting loss: mean over samples and outputs of ``w_i |pred - truth|``
+    """Plain reference of the L1 fitting losses: mean over samples and outputs of ``w_i |pred - truth|``
     (``weights`` None: plain L1)."""
     err = np.abs(np.asarray(pred, np.float64) - np.asarray(truth, np.float64))
     if weights is not None:
@@ -223,13 +232,26 @@ def weighted_l1_numpy(pred: np.ndarray, truth: np.ndarray, weights: np.ndarray |
     return float(err.mean())
 
 
-def batch_loss(out: torch.Tensor, target_scaled: torch.Tensor, scale: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
-    """The fitting loss of a batch: L1 on the transfer itself (``out`` and ``target_scaled`` are in the
-    network's scaled units, ``scale`` (outputs,) maps them back), each sample's row times its weight
-    ((B, 1), :func:`loss_weights`) where given.  :func:`weighted_l1_numpy` is its plain twin."""
+def loss_numpy(pred: np.ndarray, truth: np.ndarray, loss: str = DEFAULT_LOSS, weights: np.ndarray | None = None) -> float:
+    """Plain reference of :func:`batch_loss` for ``loss``: the mean squared error over samples and
+    outputs ("l2"), else :func:`weighted_l1_numpy` (``weights``: the "relative" loss's)."""
+    if loss == "l2":
+        return float(np.square(np.asarray(pred, np.float64) - np.asarray(truth, np.float64)).mean())
+    return weighted_l1_numpy(pred, truth, weights)
+
+
+def batch_loss(out: torch.Tensor, target_scaled: torch.Tensor, scale: torch.Tensor, weights: torch.Tensor | None = None,
+               loss: str = DEFAULT_LOSS) -> torch.Tensor:
+    """The fitting loss of a batch on the transfer itself (``out`` and ``target_scaled`` are in the
+    network's scaled units, ``scale`` (outputs,) maps them back): the squared error ("l2"), or the
+    absolute error, each sample's row times its weight ((B, 1), :func:`loss_weights`) where given.
+    :func:`loss_numpy` is its plain twin."""
+    diff = (out - target_scaled) * scale
+    if loss == "l2":
+        return diff.square().mean()
     if weights is None:
-        return ((out - target_scaled).abs() * scale).mean()
-    return ((out - target_scaled).abs() * scale * weights).mean()
+        return diff.abs().mean()
+    return (diff.abs() * weights).mean()
 
 
 def _as_input(points: np.ndarray, normals: np.ndarray, codes: np.ndarray | None = None) -> torch.Tensor:
@@ -247,11 +269,13 @@ def _predict(model: torch.nn.Module, x: torch.Tensor, batch: int = 65536) -> np.
 class Validation:
     """The held-out check a fit runs every few steps (frequency and grid networks alike): the
     history, the progress callback, the best state so far (a 0.5 % better score restarts the
-    patience count) and early stopping.  The score is the validation MAE, or with ``weights``
-    (the relative loss) the weighted L1 of :func:`weighted_l1_numpy`."""
+    patience count) and early stopping.  The score is the fit's own loss on the held-out samples:
+    the mean squared error of the total transfer ("l2"), the validation MAE ("l1"), or with
+    ``weights`` (the relative loss) the weighted L1 of :func:`weighted_l1_numpy`."""
 
     def __init__(self, xv: torch.Tensor, yv: np.ndarray, n_coeffs: int, weights, settings, progress=None):
         self.xv, self.yv, self.n_coeffs, self.weights = xv, yv, n_coeffs, weights
+        self.squared = getattr(settings, "loss", DEFAULT_LOSS) == "l2"
         self.settings, self.progress = settings, progress
         self.best = (math.inf, None, 0)  # (score, state, evaluation that last improved by 0.5 %)
         self.history: list[dict] = []
@@ -267,7 +291,10 @@ class Validation:
         self.history.append({"epoch": self.evaluation, "step": step, "train_l1": train_l1, "val_mae": val_mae})
         if self.progress is not None:
             self.progress(step, total_steps, train_l1, val_mae)
-        score = val_mae if self.weights is None else weighted_l1_numpy(val_pred, self.yv, self.weights)
+        if self.squared:
+            score = float(np.square(total_transfer(val_pred, self.n_coeffs) - total_transfer(self.yv, self.n_coeffs)).mean())
+        else:
+            score = val_mae if self.weights is None else weighted_l1_numpy(val_pred, self.yv, self.weights)
         if score < self.best[0] * (1 - 5e-3):
             self.best = (score, copy.deepcopy(model.state_dict()), self.evaluation)
         elif score < self.best[0]:
@@ -329,7 +356,7 @@ def fit_segment(
     y = torch.from_numpy(np.ascontiguousarray(target, dtype=np.float32)).to(device)  # the scaled tanh output's target
     xv = _as_input(val_points, val_normals, val_codes)
     yv = np.asarray(val_transfer, dtype=np.float32)
-    # L1 on the transfer itself, computed through the scaled tanh output
+    # the loss on the transfer itself, computed through the scaled tanh output
     inv_scale = torch.from_numpy(1.0 / scale).to(device)
     y_scaled = (y - torch.from_numpy(offset).to(device)) * inv_scale
     weights = loss_weights(transfer, n_coeffs, settings.loss, settings.loss_floor)
@@ -368,7 +395,7 @@ def fit_segment(
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
             pre = model.trunk(features)
         out = torch.tanh(pre.float())
-        loss = batch_loss(out, y_scaled[idx], scale_t, None if w is None else w[idx])
+        loss = batch_loss(out, y_scaled[idx], scale_t, None if w is None else w[idx], settings.loss)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

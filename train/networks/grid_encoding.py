@@ -469,7 +469,7 @@ def fit_grid_segment(
         for group in opt.param_groups:
             group["lr"] = settings.lr * rate * group["lr_scale"]
         out = torch.tanh(model.trunk(model.encode(x[idx])))
-        loss = batch_loss(out, y_scaled[idx], scale_t, None if w is None else w[idx])
+        loss = batch_loss(out, y_scaled[idx], scale_t, None if w is None else w[idx], settings.loss)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
