@@ -103,14 +103,18 @@ def test_older_manifests_without_encoding_are_frequency_networks():
 
 
 def test_default_encoding_keeps_fit_cache_keys():
-    """The frequency build's cache keys are those of before the grid option (values from that code)."""
+    """The frequency build's cache keys with the L1 loss are those of before the grid option (values from
+    that code); the default loss (L2) keys its own fits."""
     from prt.train.build import BuildSpec, _FitCache, _hash, spec_from_dict
 
-    spec = BuildSpec(geometry="x", bounces=0)  # direct transfer: the layout the keys were taken from
+    spec = BuildSpec(geometry="x", bounces=0, loss="l1")  # direct transfer: the layout the keys were taken from
     assert spec.encoding == "freq" and spec.grid is None
     cache = _FitCache(Path("fits"), "prekey", 3, spec.fit_settings())
     names = [cache._paths(a)[0].name for a in spec.architectures()]
     assert names[0] == "342a1e485ec73e5a.json" and names[-1] == "15c7ed98289bd823.json"
+    default = BuildSpec(geometry="x", bounces=0)
+    default_cache = _FitCache(Path("fits"), "prekey", 3, default.fit_settings())
+    assert not set(names) & {default_cache._paths(a)[0].name for a in default.architectures()}
     assert _hash([a.as_dict() for a in spec.architectures()]) == "23a8fb0504017710"
     grid = spec_from_dict({"geometry": "x", "encoding": "grid", "bounces": 0})
     assert [a.label() for a in grid.architectures()] == [f"grid-L6-F2-T12-N4-32-k{k}-l{l}" for k, l in ((16, 1), (32, 2), (64, 2), (64, 3))]
