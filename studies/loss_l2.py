@@ -115,7 +115,7 @@ def main(argv=None) -> int:
         print(json.dumps(row), flush=True)
         rows.append(row)
     prov = provenance()
-    prov["machine"]["other_cpu_share"] = round(other_cpu_share(busy0, wall0), 3)
+    prov["machine"]["other_cpu_share"] = round(other_cpu_share(busy0, time.perf_counter() - wall0), 3)
     out = {"provenance": prov, "build": str(args.build), "build_loss": build["spec"].get("loss", "l1"), "view": view, "size": args.size,
            "rays": args.rays, "steps": args.steps, "view_truth_mean": round(float(truth.mean()), 5),
            "view_build_network_mean": round(float(net.mean()), 5), "segments": rows}  # fmt: skip

@@ -1,6 +1,7 @@
-"""The fitting loss option (``loss = "l2" | "l1" | "relative"``, prt.train.networks.fit): each loss against its
-plain numpy twin, deterministic fits, the relative loss fitting dim samples better, and the default (L2)
-keeping the mean of skewed Monte Carlo targets where L1 fits their median."""
+"""The fitting loss option (``loss = "auto" | "l2" | "l1" | "relative"``, prt.train.networks.fit): each loss against
+its plain numpy twin, deterministic fits, the relative loss fitting dim samples better, L2 keeping the mean of
+skewed Monte Carlo targets where L1 fits their median, and the default ("auto") choosing between them per
+segment by its samples' visibility."""
 
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ from prt.train.networks.fit import (  # noqa: E402
     fit_segment,
     loss_weights,
     loss_numpy,
+    resolve_loss,
     weighted_l1_numpy,
 )
 from prt.train.networks.network import Architecture, target_scaling  # noqa: E402
@@ -93,8 +95,8 @@ def _fit(loss, steps=250):
 
 
 @pytest.mark.parametrize("loss", ["l2", "l1"])
-def test_default_is_l2_and_fits_are_deterministic(loss):
-    assert FitSettings().loss == "l2"
+def test_default_is_auto_and_fits_are_deterministic(loss):
+    assert FitSettings().loss == "auto"
     a, _, _ = _fit(loss, steps=40)
     b, _, _ = _fit(loss, steps=40)
     for x, y in zip(a.model.state_dict().values(), b.model.state_dict().values()):
@@ -109,7 +111,7 @@ def _sparse_light(seed, m):
     p = rng.uniform(-1, 1, (m, 3)).astype(np.float32)
     p[:, 2] = 0.0
     n = np.tile(np.float32([0, 0, 1]), (m, 1))
-    truth = (0.3 * (1.0 + 0.3 * np.sin(2.0 * p[:, 0:1])) * np.linspace(1.0, 0.2, 16)[None]).astype(np.float32)
+    truth = (0.085 * (1.0 + 0.3 * np.sin(2.0 * p[:, 0:1])) * np.linspace(1.0, 0.2, 16)[None]).astype(np.float32)  # visibility ~0.3
     seen = (rng.uniform(size=(m, 1)) < 0.15).astype(np.float32)
     return p, n, truth * seen / 0.15, truth
 
@@ -130,6 +132,28 @@ def test_l2_keeps_the_mean_of_skewed_monte_carlo_targets():
     assert means["l1"] < 0.5, means
 
 
+def test_auto_picks_l1_on_open_samples_and_l2_on_occluded_ones():
+    """"auto": the mean visibility (DC over the unshadowed DC, 0.282) decides; the fit is then the chosen loss's, bit for bit."""
+    open_t = np.zeros((10, 16), np.float32)
+    open_t[:, 0] = 0.9 * 0.2820948
+    assert resolve_loss("auto", open_t, 4) == "l1"
+    shut = open_t.copy()
+    shut[:, 0] = 0.7 * 0.2820948
+    assert resolve_loss("auto", shut, 4) == "l2"
+    assert resolve_loss("relative", shut, 4) == "relative" and resolve_loss("l1", shut, 4) == "l1"
+    # the sparse-light problem is occluded (15 % of the samples see the light): "auto" fits it as "l2"
+    p, n, noisy, _ = _sparse_light(0, 800)
+    vp, vn, vnoisy, _ = _sparse_light(1, 200)
+    arch = Architecture(hidden=16, layers=2, pos_freqs=2)
+    bounds = np.array([[-1.0, -1.0, -0.1], [1.0, 1.0, 0.1]])
+    torch.set_num_threads(1)
+    fits = {loss: fit_segment(p, n, noisy, vp, vn, vnoisy, arch, bounds, FitSettings(steps=30, batch=256, lr=1e-2, seed=3, loss=loss))
+            for loss in ("auto", "l2", "l1")}  # fmt: skip
+    same = lambda a, b: all(np.array_equal(x.numpy(), y.numpy()) for x, y in zip(a.model.state_dict().values(), b.model.state_dict().values()))  # noqa: E731
+    assert resolve_loss("auto", noisy, 4) == "l2"
+    assert same(fits["auto"], fits["l2"]) and not same(fits["auto"], fits["l1"])
+
+
 def test_relative_loss_fits_dim_samples_better():
     _, l1_dim, l1_bright = _fit("l1")
     _, rel_dim, rel_bright = _fit("relative")
@@ -142,16 +166,17 @@ def test_spec_and_cli_carry_the_loss():
     from prt.train.build import BuildSpec, spec_from_dict
     from prt.train.train_cli import _spec_from_args, build_parser
 
-    assert BuildSpec().loss == "l2" and BuildSpec().fit_settings().loss == "l2"
+    assert BuildSpec().loss == "auto" and BuildSpec().fit_settings().loss == "auto"
     spec = spec_from_dict({"geometry": "bunny", "loss": "relative"})
     assert spec.fit_settings().loss == "relative" and spec.to_dict()["loss"] == "relative"
     # "l1" keys cached fits as before the option; the others key their own (the floor only where used)
     l1 = spec_from_dict({"geometry": "bunny", "loss": "l1"}).fit_settings().cache_key()
     assert "loss" not in l1 and "loss_floor" not in l1 and spec.fit_settings().cache_key()["loss"] == "relative"
     default = BuildSpec().fit_settings().cache_key()
-    assert default["loss"] == "l2" and "loss_floor" not in default
+    assert default["loss"] == "auto" and "loss_floor" not in default
     with pytest.raises(SpecError, match="^loss: "):
         spec_from_dict({"geometry": "bunny", "loss": "l3"})
     args = build_parser().parse_args(["bunny", "-o", "/tmp/x", "--loss", "relative"])
     assert _spec_from_args(args).loss == "relative"
-    assert _spec_from_args(build_parser().parse_args(["bunny", "-o", "/tmp/x"])).loss == "l2"
+    assert _spec_from_args(build_parser().parse_args(["bunny", "-o", "/tmp/x"])).loss == "auto"
+    assert _spec_from_args(build_parser().parse_args(["bunny", "-o", "/tmp/x", "--loss", "l2"])).loss == "l2"

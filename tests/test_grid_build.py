@@ -104,7 +104,7 @@ def test_older_manifests_without_encoding_are_frequency_networks():
 
 def test_default_encoding_keeps_fit_cache_keys():
     """The frequency build's cache keys with the L1 loss are those of before the grid option (values from
-    that code); the default loss (L2) keys its own fits."""
+    that code); the default loss ("auto") keys its own fits."""
     from prt.train.build import BuildSpec, _FitCache, _hash, spec_from_dict
 
     spec = BuildSpec(geometry="x", bounces=0, loss="l1")  # direct transfer: the layout the keys were taken from

@@ -152,10 +152,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--grid", default=None, metavar="L6-F2-T12-N4-32",
                    help="with --encoding grid: L levels of F features, at most 2^T table rows per level, N_min-N_max cells per axis "
                         "[L6-F2-T12-N4-32; without --hidden/--layers the MLP is right-sized over 16x1, 32x2, 64x2, 64x3]")
-    g.add_argument("--loss", choices=("l2", "l1", "relative"), default=None,
-                   help="fitting loss: squared error on the transfer coefficients (fits the Monte Carlo targets' mean), L1 on them "
-                        "(the paper's; fits their median, too dark where few rays see light: rooms lit through windows), or each sample's "
-                        "L1 over its brightness (DC of its transfer, floor 0.05) [l2]")
+    g.add_argument("--loss", choices=("auto", "l2", "l1", "relative"), default=None,
+                   help="fitting loss: auto (per segment: l1 where its samples see >= 80 %% of their cosine lobe, else l2), squared error "
+                        "on the transfer coefficients (fits the Monte Carlo targets' mean), L1 on them (the paper's; fits their median: too "
+                        "dark where few rays see light, rooms lit through windows), or each sample's L1 over its brightness [auto]")
     g.add_argument("--residual", choices=("auto", "on", "off"), default=None,
                    help="frequency networks learn the direct transfer's residual from the unshadowed transfer of the normal (the graph adds "
                         "it back): auto per segment where its samples see >= 80 %% of their cosine lobe on average, on, off [auto]")

@@ -7,6 +7,7 @@ sizes and keeps the smallest network that meets the error target.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import time
 from dataclasses import asdict, dataclass, field
@@ -15,6 +16,7 @@ import numpy as np
 import torch
 
 from ...export.onnx_model import NORMAL_EPS
+from ...runtime.sh import unshadowed_transfer
 from .network import Architecture, TransferMLP, normal_quadratic, residual_terms, target_scaling
 
 __all__ = [
@@ -36,19 +38,29 @@ __all__ = [
     "weighted_l1_numpy",
     "loss_numpy",
     "DEFAULT_LOSS",
+    "LOSS_VISIBILITY",
+    "resolve_loss",
     "batch_loss",
     "brightness",
 ]
 
-# Fitting losses: "l2" (the default: squared error on the coefficients), "l1" (the paper's: L1 on the
-# coefficients) and "relative" (each sample's L1 divided by c + m, m its brightness, so the loss follows
-# the relative error that a tone-mapped image shows).  The targets are Monte Carlo estimates: unbiased,
-# but where little of the sky is visible (a room lit through its windows) their noise is skewed, most
-# samples see none of it and a few see a lot.  L2's minimiser is the samples' conditional mean, the
-# transfer itself; L1's is their median, which there lies far below the mean: fitted with L1 the
-# Duplex house's sunlit floor came out at 0.002 against 0.155 (docs/benchmarks/loss_l2.md).
-LOSSES = ("l2", "l1", "relative")
-DEFAULT_LOSS = "l2"
+# Fitting losses: "l2" (squared error on the coefficients), "l1" (the paper's: L1 on the
+# coefficients), "relative" (each sample's L1 divided by c + m, m its brightness, so the loss follows
+# the relative error that a tone-mapped image shows), and "auto" (the default): per segment, L1 where
+# its samples see at least LOSS_VISIBILITY of their cosine lobe, L2 elsewhere.
+# Why: the targets are Monte Carlo estimates, and what a network cannot resolve it fits by the loss's
+# optimum: L2's is the mean, the transfer; L1's is the median.  Where most of the light is occluded
+# (a room lit through its windows: few samples see the sun patch, most see none of it, and the noise
+# of each is skewed the same way) the median lies far below the mean: fitted with L1 the Duplex
+# house's sunlit floor came out at 0.002 against 0.155 (docs/benchmarks/loss_l2_duplex.md).  Where
+# little is occluded (Spot, open surfaces) L1 fitted better: 41.9 vs 40.6 dB held out on Spot's
+# standard build, where every segment sees >= 0.8 of its lobe.
+LOSSES = ("auto", "l2", "l1", "relative")
+DEFAULT_LOSS = "auto"
+LOSS_VISIBILITY = 0.8
+"""``loss: "auto"``: a segment whose samples see at least this share of their cosine lobe on average
+(its mean DC coefficient over the unshadowed one's, as ``residual: "auto"`` measures it) fits with
+"l1", below it with "l2"."""
 # c of "relative", in transfer units: an unoccluded surface's DC coefficient is 0.282 (Y_00), the
 # Cornell box's dim interior's about 0.04; below c a sample's weight stops growing.  0.02 let the
 # dark samples (DC ~ 0) outweigh the open ones so far that a k32 network of the Cornell floor fitted
@@ -223,6 +235,17 @@ def loss_weights(transfer: np.ndarray, n: int, loss: str = "relative", floor: fl
     return (w / w.mean()).astype(np.float32)
 
 
+def resolve_loss(loss: str, transfer: np.ndarray, bands: int) -> str:
+    """The loss a fit uses: ``loss`` itself, or for "auto" "l1" where the samples' mean visibility
+    (mean DC of the direct transfer over the unshadowed transfer's) is at least
+    :data:`LOSS_VISIBILITY`, else "l2"."""
+    if loss != "auto":
+        return loss
+    u00 = float(unshadowed_transfer(np.array([[0.0, 0.0, 1.0]]), bands)[0, 0])  # the same for every normal
+    visibility = float(np.mean(np.asarray(transfer, np.float64)[:, 0])) / u00 if len(transfer) else 0.0
+    return "l1" if visibility >= LOSS_VISIBILITY else "l2"
+
+
 def weighted_l1_numpy(pred: np.ndarray, truth: np.ndarray, weights: np.ndarray | None = None) -> float:
     """Plain reference of the L1 fitting losses: mean over samples and outputs of ``w_i |pred - truth|``
     (``weights`` None: plain L1)."""
@@ -332,6 +355,8 @@ def fit_segment(
     codes, val_codes : (N, d), (M, d) shape codes of the samples (deformable scenes, ``arch.code_dim`` = d)
     """
     settings = settings or FitSettings()
+    if settings.loss == "auto":
+        settings = dataclasses.replace(settings, loss=resolve_loss("auto", transfer, arch.bands))
     for name, a in (("points", points), ("normals", normals), ("transfer", transfer)):
         if not np.isfinite(a).all():
             raise ValueError(f"training {name} contain NaN or Inf")

@@ -27,6 +27,8 @@ held-out samples, the same errors reported).
 
 from __future__ import annotations
 
+import dataclasses
+
 import math
 import time
 from dataclasses import asdict, dataclass
@@ -36,7 +38,7 @@ import torch
 from torch import nn
 
 from ...export.onnx_model import LEAKY_SLOPE, NORMAL_EPS
-from .fit import FitResult, FitSettings, Validation, _as_input, _predict, batch_loss, loss_weights, shaded_error, transfer_error
+from .fit import FitResult, FitSettings, Validation, _as_input, _predict, batch_loss, loss_weights, resolve_loss, shaded_error, transfer_error
 from .network import layout_width, mlp_numpy, target_scaling
 
 __all__ = [
@@ -427,6 +429,8 @@ def fit_grid_segment(
     ``settings.lr * table_lr_scale`` (Adam, eps 1e-15 as instant-ngp), the MLP with ``settings.lr``.
     bf16 and ``max_seconds`` are not supported (ignored)."""
     settings = settings or FitSettings()
+    if settings.loss == "auto":  # as fit_segment
+        settings = dataclasses.replace(settings, loss=resolve_loss("auto", transfer, arch.bands))
     for name, a in (("points", points), ("normals", normals), ("transfer", transfer)):
         if not np.isfinite(a).all():
             raise ValueError(f"training {name} contain NaN or Inf")

@@ -48,7 +48,7 @@ from tqdm import tqdm
 
 from ...runtime.sh import unshadowed_transfer
 from ...runtime.shading import tonemap
-from .fit import FitSettings, fit_segment, right_size, right_size_matching, shaded_error, total_transfer, transfer_error
+from .fit import FitSettings, fit_segment, resolve_loss, right_size, right_size_matching, shaded_error, total_transfer, transfer_error
 from .grid_encoding import GridArchitecture, fit_grid_segment
 from .grid_encoding import evaluate_numpy as grid_evaluate
 from .network import Architecture
@@ -317,6 +317,7 @@ def train_segment(spec, s, samples, valid, member_idx, archs, fit_settings, ligh
     log(f"segment {s}: {len(train_idx):,} training samples ({base['margin_samples']:,} margin), {len(vt):,} held out")
     mode = getattr(spec, "residual", "off")
     use, visibility = residual_choice(mode, t, n, spec.bands)
+    base["loss"] = resolve_loss(fit_settings.loss, t, spec.bands)  # what fit_segment makes of "auto" on these samples
     scores, done = {}, {}
 
     def fit(arch):
