@@ -26,7 +26,8 @@ BILINEAR_TOLERANCE = 1.0 / 256.0
 # Texture (64x64 texels, 64 rays per texel, 32 bounce rays) against small networks fitted to 2500
 # samples of the same transfer: two representations of it, so a loose bound (measured 28.2 dB under
 # the scene's light, 24.7 dB relit by the studio map, whose small bright lights show the small
-# networks' error most).
+# networks' error most, with the L1 loss at 400 steps; the default loss fits the box's occluded
+# segments with L2, which needs more steps: 24.6 / 23.5 dB at 400, 26.3 / 25.4 dB at 1000, AMD EPYC).
 MIN_PSNR_TEXTURE_VS_ONNX = 25.0
 MIN_PSNR_RELIT = 22.0
 
@@ -37,7 +38,7 @@ def cornell_texture(tmp_path_factory):
     out = tmp_path_factory.mktemp("cornell_texture") / "scene"
     proc = subprocess.run(
         [sys.executable, "-m", "prt.train.train_cli", str(CORNELL), "-o", str(out), "--samples", "2500", "--validation", "600",
-         "--rays", "64", "--segments", "1", "--hidden", "32", "--layers", "2", "--steps", "400", "--bounces", "1",
+         "--rays", "64", "--segments", "1", "--hidden", "32", "--layers", "2", "--steps", "1000", "--bounces", "1",
          "--bounce-rays", "32", "--no-analytic", "--no-progress", "--threads", "1", "--transfer-texture", str(SIZE)],
         capture_output=True, text=True,
     )  # fmt: skip
