@@ -85,7 +85,7 @@ class BuildSpec:
     lr: float = 1e-2
     patience: int = 10
     bf16: bool | None = False  # bf16 autocast: about 2x faster on AVX512-BF16, about 9 % higher error
-    loss: str = DEFAULT_LOSS  # fitting loss (prt.train.networks.fit.LOSSES): "l2" (squared error), "l1", "relative" (L1 over each sample's brightness)
+    loss: str = DEFAULT_LOSS  # fitting loss (prt.train.networks.fit.LOSSES): "auto" (per segment by visibility), "l2", "l1", "relative"
     # frequency networks learn the direct transfer's residual from the unshadowed transfer of the
     # normal (prt.train.networks.network): "auto" per segment by its mean visibility (prt.train.networks.rightsize), "on", "off"
     residual: str = "auto"

@@ -40,6 +40,7 @@ __all__ = [
     "DEFAULT_LOSS",
     "LOSS_VISIBILITY",
     "resolve_loss",
+    "mean_visibility",
     "batch_loss",
     "brightness",
 ]
@@ -235,15 +236,19 @@ def loss_weights(transfer: np.ndarray, n: int, loss: str = "relative", floor: fl
     return (w / w.mean()).astype(np.float32)
 
 
+def mean_visibility(transfer: np.ndarray, bands: int) -> float:
+    """The samples' mean visibility: the mean DC coefficient of their (direct) transfer over the
+    unshadowed transfer's (the same for every normal); 0 for no samples."""
+    u00 = float(unshadowed_transfer(np.array([[0.0, 0.0, 1.0]]), bands)[0, 0])
+    return float(np.mean(np.asarray(transfer[:, 0], np.float64))) / u00 if len(transfer) else 0.0
+
+
 def resolve_loss(loss: str, transfer: np.ndarray, bands: int) -> str:
-    """The loss a fit uses: ``loss`` itself, or for "auto" "l1" where the samples' mean visibility
-    (mean DC of the direct transfer over the unshadowed transfer's) is at least
-    :data:`LOSS_VISIBILITY`, else "l2"."""
+    """The loss a fit uses: ``loss`` itself, or for "auto" "l1" where the samples' :func:`mean_visibility`
+    is at least :data:`LOSS_VISIBILITY`, else "l2"."""
     if loss != "auto":
         return loss
-    u00 = float(unshadowed_transfer(np.array([[0.0, 0.0, 1.0]]), bands)[0, 0])  # the same for every normal
-    visibility = float(np.mean(np.asarray(transfer, np.float64)[:, 0])) / u00 if len(transfer) else 0.0
-    return "l1" if visibility >= LOSS_VISIBILITY else "l2"
+    return "l1" if mean_visibility(transfer, bands) >= LOSS_VISIBILITY else "l2"
 
 
 def weighted_l1_numpy(pred: np.ndarray, truth: np.ndarray, weights: np.ndarray | None = None) -> float:

@@ -28,7 +28,6 @@ held-out samples, the same errors reported).
 from __future__ import annotations
 
 import dataclasses
-
 import math
 import time
 from dataclasses import asdict, dataclass

@@ -48,7 +48,7 @@ from tqdm import tqdm
 
 from ...runtime.sh import unshadowed_transfer
 from ...runtime.shading import tonemap
-from .fit import FitSettings, fit_segment, resolve_loss, right_size, right_size_matching, shaded_error, total_transfer, transfer_error
+from .fit import FitSettings, fit_segment, mean_visibility, resolve_loss, right_size, right_size_matching, shaded_error, total_transfer, transfer_error
 from .grid_encoding import GridArchitecture, fit_grid_segment
 from .grid_encoding import evaluate_numpy as grid_evaluate
 from .network import Architecture
@@ -87,8 +87,7 @@ def residual_choice(mode: str, transfer: np.ndarray, normals: np.ndarray, bands:
     ``mode``: "on", "off", or "auto" (:data:`RESIDUAL_VISIBILITY`; :func:`train_segment` then
     fits both kinds once and keeps the better); beyond 4 bands the unshadowed transfer is not a
     quadratic of the normal, so "auto" says no ("on" is refused by the spec)."""
-    u00 = float(unshadowed_transfer(np.array([[0.0, 0.0, 1.0]]), bands)[0, 0])  # the same for every normal
-    visibility = float(np.mean(np.asarray(transfer[:, 0], np.float64))) / u00 if len(transfer) else 0.0
+    visibility = mean_visibility(transfer, bands)
     if mode == "on":
         return True, visibility
     if mode == "off" or bands > 4:
