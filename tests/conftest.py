@@ -62,7 +62,8 @@ def cornell_rgb(tmp_path_factory):
     """The Cornell box, 2 bounces, tiny networks trained briefly (every segment a network): one
     build per test session, shared by the xdist workers (tests/test_bounces.py, tests/test_web.py);
     the tests only read it.  1000 steps: the default loss fits the box's occluded segments with L2,
-    which at 200 steps had not learnt the colour bleeding yet (red/green ratio near the red wall over
+    which at 200 steps had not learnt the colour bleeding yet (one-off measurement, script not kept:
+    red/green ratio near the red wall over
     near the green one 1.02; L1 1.08; at 1000 steps L2 1.17, L1 1.21)."""
     base = tmp_path_factory.getbasetemp()
     shared = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base  # xdist: the workers' common folder

@@ -27,7 +27,8 @@ BILINEAR_TOLERANCE = 1.0 / 256.0
 # samples of the same transfer: two representations of it, so a loose bound (measured 28.2 dB under
 # the scene's light, 24.7 dB relit by the studio map, whose small bright lights show the small
 # networks' error most, with the L1 loss at 400 steps; the default loss fits the box's occluded
-# segments with L2, which needs more steps: 24.6 / 23.5 dB at 400, 26.3 / 25.4 dB at 1000, AMD EPYC).
+# segments with L2, which needs more steps: 24.6 / 23.5 dB at 400, 26.3 / 25.4 dB at 1000, AMD EPYC,
+# one-off measurements).
 MIN_PSNR_TEXTURE_VS_ONNX = 25.0
 MIN_PSNR_RELIT = 22.0
 
