@@ -89,3 +89,40 @@ def slivers(folder: Path) -> Path:
     path = Path(folder) / "slivers.obj"
     path.write_text("".join(f"v {x} {y} {z}\n" for x, y, z in v) + "".join(f"f {a + 1} {b_ + 1} {c + 1}\n" for a, b_, c in f))
     return path
+
+
+def doubled_sheets(folder: Path) -> Path:
+    """Petals as plant models build them: each a curved open sheet doubled by a copy a hair above
+    it (0.0005 of the scene's 2-unit span), six of them round a stem, over a ground, as OBJ."""
+    v, f = [], []
+
+    def sheet(points: np.ndarray, columns: int) -> None:
+        base = len(v)
+        v.extend(points.tolist())
+        rows = len(points) // columns
+        for i in range(rows - 1):
+            for j in range(columns - 1):
+                a = base + i * columns + j
+                f.extend([[a, a + columns, a + 1], [a + 1, a + columns, a + columns + 1]])
+
+    s, t = np.meshgrid(np.linspace(0.08, 0.9, 12), np.linspace(-0.18, 0.18, 6), indexing="ij")
+    for k in range(6):
+        angle = k * np.pi / 3
+        # A petal leaving the stem upwards and curling down at its tip, cupped across.
+        radial, height = s, 0.6 + 0.5 * s - 0.6 * s**2 + 0.4 * t**2
+        lateral = t
+        x = radial * np.cos(angle) - lateral * np.sin(angle)
+        z = radial * np.sin(angle) + lateral * np.cos(angle)
+        under = np.stack([x, height, z], axis=-1).reshape(-1, 3)
+        sheet(under, 6)
+        sheet(under + (0.0, 0.0005, 0.0), 6)
+    g = len(v)
+    v.extend([[-1, 0, -1], [1, 0, -1], [1, 0, 1], [-1, 0, 1]])
+    f.extend([[g, g + 2, g + 1], [g, g + 3, g + 2]])
+    path = Path(folder) / "doubled_sheets.obj"
+    lines = [f"o petals\n"] + [f"v {x:.7f} {y:.7f} {z:.7f}\n" for x, y, z in v[:g]]
+    lines += [f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in f[:-2]]
+    lines += ["o ground\n"] + [f"v {x} {y} {z}\n" for x, y, z in v[g:]]
+    lines += [f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in f[-2:]]
+    path.write_text("".join(lines))
+    return path

@@ -27,6 +27,20 @@ sides (:func:`prt.train.inputs.sampling.sample_surface`'s ``sides``):
 A scene whose surfaces see no environment at all (a sealed box) keeps its sides as they are.
 Points are then checked one by one (:func:`hidden_points`): a sample all of whose rays end on
 sides that are not reachable sits inside a solid (interpenetrating CAD parts) and is dropped.
+
+Light reaching a side is not yet an eye reaching it.  A plant's petal modelled as two sheets a
+hair apart (the orchids' petals: 0.0006 normalised units), a panel glued 1 cm off a wall, the
+underside of a rug: the inner sides are reachable (a few grazing rays leave the gap at its rim),
+but no camera fits in the gap, so the G-buffer never shows them.  Their samples are nearly black
+and stand at the very positions of the bright outer sides with the opposite normal; a network
+fitted to both blurs the two, and the petals the camera sees render at about half their
+brightness (two of the orchids' flower segments refitted on their outer sides' samples alone:
++8 and +10 dB held out).  So a side is **in a gap** when at least
+:data:`GAP_SHARE` of its pilot rays hit a surface less than :data:`GAP` (normalised scene units:
+the scene spans about 2) above the side's plane -- the height of the hit over the side, not the
+ray's length, which grazing rays stretch -- and such a side gets no samples.  A concave corner
+(a floor meeting a wall) hides at most about half its hemisphere that way, far below the bar.
+The point check drops a sample whose every ray hits that close too (a floor under a cabinet).
 """
 
 from __future__ import annotations
@@ -37,16 +51,20 @@ import numpy as np
 import scipy.sparse
 import scipy.sparse.csgraph
 
-__all__ = ["SIDE_RULE", "SurfaceSides", "surface_sides", "hidden_points", "PILOT_RAYS"]
+__all__ = ["SIDE_RULE", "SurfaceSides", "surface_sides", "hidden_points", "PILOT_RAYS", "GAP", "GAP_SHARE"]
 
 # Part of the precompute key of builds whose sides differ from the geometry's own.
-SIDE_RULE = "reach-v1"
+SIDE_RULE = "reach-v2"  # v2: sides and points in gaps no camera enters get no samples
 # Rays per pilot point; pilot points per face side (fewer on very large meshes, at least 1).
 PILOT_RAYS = 12
 PILOT_POINTS = 2
 PILOT_BUDGET = 250_000  # pilot points in all (both sides of every face)
 # Rays per sample of the point check.
 POINT_RAYS = 8
+# A side in a gap: this share of its pilot rays hit a surface less than GAP above its plane
+# (normalised scene units, the scene spans about 2: 0.1 % of it).
+GAP = 2e-3
+GAP_SHARE = 0.9
 
 
 @dataclass
@@ -96,22 +114,36 @@ def _hemisphere(normals: np.ndarray, rays: int, rng: np.random.Generator) -> np.
 
 
 def _trace(scene, origins: np.ndarray, dirs: np.ndarray, face_normal: np.ndarray, chunk: int = 1 << 18):
-    """Hit face (-1: escaped) and the side of it each ray arrives at (0: its front)."""
+    """Hit face (-1: escaped), the side of it each ray arrives at (0: its front) and the distance
+    travelled (inf where it escaped)."""
     import os
     from concurrent.futures import ThreadPoolExecutor
 
     hit = np.empty(len(dirs), dtype=np.int64)
+    distance = np.empty(len(dirs), dtype=np.float64)
 
     def run(start: int) -> None:  # Embree releases the GIL while it traces
         stop = start + chunk
-        hit[start:stop] = scene.run(origins[start:stop], dirs[start:stop], query="INTERSECT")
+        out = scene.run(origins[start:stop], dirs[start:stop], query="INTERSECT", output=1)
+        hit[start:stop] = np.where(np.asarray(out["geomID"]) != -1, np.asarray(out["primID"]), -1)
+        distance[start:stop] = out["tfar"]
 
     with ThreadPoolExecutor(max_workers=max(1, min(8, os.cpu_count() or 1))) as pool:
         list(pool.map(run, range(0, len(dirs), chunk)))
     side = np.zeros(len(dirs), dtype=np.int64)
     ok = hit >= 0
     side[ok] = (np.einsum("kc,kc->k", dirs[ok].astype(np.float64), face_normal[hit[ok]]) > 0).astype(np.int64)
-    return hit, side
+    distance[~ok] = np.inf
+    return hit, side, distance
+
+
+def _in_gap(dirs: np.ndarray, normals: np.ndarray, distance: np.ndarray, rays: int) -> np.ndarray:
+    """(K,) bool per ray: it hits a surface less than :data:`GAP` above its origin's plane.
+
+    dirs : (K * rays, 3); normals : (K, 3) unit normals of the origins' sides; distance : (K * rays,)
+    """
+    height = distance.reshape(-1, rays) * np.einsum("krc,kc->kr", dirs.reshape(-1, rays, 3).astype(np.float64), normals)
+    return (height < GAP).reshape(-1)
 
 
 def _embree(vertices: np.ndarray, faces: np.ndarray):
@@ -172,7 +204,8 @@ def surface_sides(geometry, *, rays: int = PILOT_RAYS, points: int = PILOT_POINT
     scene = _embree(vertices, faces)
     origins = np.repeat((pts + offset * side_normal).astype(np.float32), rays, axis=0)
     dirs = _hemisphere(side_normal, rays, rng)
-    hit, hit_side = _trace(scene, origins, dirs, normal)
+    hit, hit_side, distance = _trace(scene, origins, dirs, normal)
+    gap_ray = _in_gap(dirs, side_normal, distance, rays)
 
     node = np.repeat(2 * face + side, rays)
     # A pilot point whose origin starts inside a closed solid (parts that overlap by less than the
@@ -182,7 +215,10 @@ def surface_sides(geometry, *, rays: int = PILOT_RAYS, points: int = PILOT_POINT
     back_hits = (on_closed & (hit_side == 1)).reshape(-1, rays).sum(axis=1)
     inside = (closed_hits >= rays // 4) & (2 * back_hits > closed_hits)
     usable = ~np.repeat(inside, rays)
-    hit, hit_side, node = hit[usable], hit_side[usable], node[usable]
+    hit, hit_side, node, gap_ray = hit[usable], hit_side[usable], node[usable], gap_ray[usable]
+    traced = np.bincount(node, minlength=2 * n_faces)
+    in_gap = (traced > 0) & (np.bincount(node, weights=gap_ray, minlength=2 * n_faces) >= GAP_SHARE * np.maximum(traced, 1))
+    in_gap = in_gap.reshape(n_faces, 2)
     escaped = np.zeros(2 * n_faces, dtype=bool)
     escaped[node[hit < 0]] = True
     reach = np.zeros(2 * n_faces + 1, dtype=bool)
@@ -208,9 +244,12 @@ def surface_sides(geometry, *, rays: int = PILOT_RAYS, points: int = PILOT_POINT
     back_only = ~two_sided & ~reachable[:, 0] & reachable[:, 1]
     new_two_sided[back_only] = True
     allowed[back_only] = (False, True)
+    gapped = allowed & in_gap
+    allowed &= ~in_gap
     hidden = ~allowed.any(axis=1)
     dropped_side = two_sided & (allowed.sum(axis=1) == 1)
     stats.update(hidden_faces=int(hidden.sum()), one_side_kept=int(dropped_side.sum()), seen_from_behind=int(back_only.sum()),
+                 sides_in_gaps=int(gapped.sum()),
                  hidden_area=float(np.asarray(geometry.mesh.area_faces)[hidden].sum() / max(geometry.mesh.area, 1e-30)))
     changed = bool((allowed != own).any() or (new_two_sided != two_sided).any())
     if changed:
@@ -219,6 +258,11 @@ def surface_sides(geometry, *, rays: int = PILOT_RAYS, points: int = PILOT_POINT
         if hidden.any():
             notes.append(f"{int(hidden.sum()):,} of {n_faces:,} triangles ({100 * stats['hidden_area']:.1f} % of the area) "
                          f"are seen from no reachable place (inside solids, between coincident faces): no samples there")
+        if gapped.any():
+            who = sorted({names[i] for i in np.unique(objects[gapped.any(axis=1)])})
+            shown = ", ".join(who[:5]) + (f" and {len(who) - 5} more" if len(who) > 5 else "")
+            notes.append(f"{int(gapped.sum()):,} triangle sides face another surface closer than {GAP:g} (doubled sheets, "
+                         f"layers, parts resting on others) and no camera fits there: no samples on them ({shown})")
         if dropped_side.any():
             notes.append(f"{int(dropped_side.sum()):,} two-sided triangles are reachable from one side only: samples on that side")
         if back_only.any():
@@ -232,11 +276,12 @@ def surface_sides(geometry, *, rays: int = PILOT_RAYS, points: int = PILOT_POINT
 
 def hidden_points(geometry, sides: SurfaceSides, points: np.ndarray, normals: np.ndarray, *, rays: int = POINT_RAYS,
                   seed: int = 0, offset: float = 1e-4) -> np.ndarray:
-    """(N,) bool: samples whose every ray ends on a side no light reaches (points inside solids).
+    """(N,) bool: samples whose every ray ends on a side no light reaches (points inside solids),
+    or whose every ray hits a surface less than :data:`GAP` above it (in a gap no camera enters).
 
     A sample on a reachable face side can still sit inside another solid where two parts
     interpenetrate; its rays then all hit that solid from inside.  One escaping ray, or one hit
-    on a reachable side, keeps it.
+    on a reachable side, keeps it, unless all its rays stay in a gap (a floor under a cabinet).
     """
     vertices = np.asarray(geometry.mesh.vertices, dtype=np.float64)
     faces = np.asarray(geometry.mesh.faces, dtype=np.int64)
@@ -246,6 +291,7 @@ def hidden_points(geometry, sides: SurfaceSides, points: np.ndarray, normals: np
     n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
     origins = np.repeat((np.asarray(points, np.float64) + offset * n).astype(np.float32), rays, axis=0)
     dirs = _hemisphere(n, rays, rng)
-    hit, hit_side = _trace(_embree(vertices, faces), origins, dirs, normal)
+    hit, hit_side, distance = _trace(_embree(vertices, faces), origins, dirs, normal)
     seen = np.where(hit >= 0, sides.reachable.reshape(-1)[2 * np.maximum(hit, 0) + hit_side], True)
-    return ~seen.reshape(-1, rays).any(axis=1)
+    in_gap = _in_gap(dirs, n, distance, rays).reshape(-1, rays).all(axis=1)
+    return ~seen.reshape(-1, rays).any(axis=1) | in_gap

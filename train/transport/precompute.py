@@ -248,7 +248,7 @@ def run_precompute(
         train, valid, dropped = _drop_hidden_points(geometry, sides, train, valid, settings.seed)
         timings["hidden_points_dropped"] = dropped
         if sum(dropped):
-            log(f"precompute: {dropped[0]:,} training and {dropped[1]:,} held-out samples inside other solids drawn again")
+            log(f"precompute: {dropped[0]:,} training and {dropped[1]:,} held-out samples inside other solids or in gaps drawn again")
     timings["sampling_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
