@@ -293,3 +293,16 @@ def test_the_unshadowed_shortcut_keeps_to_the_floor(two_objects, tmp_path, floor
         assert "analytic" in kinds  # any margin over vertex PRT is met by the unshadowed transfer
     else:
         assert "analytic" not in kinds, lines
+
+
+def test_the_build_budget_counts_from_the_commands_start(two_objects, tmp_path):
+    """``started`` (prt-train's process start) is where the budget counts from: a build whose command
+    began longer ago than its budget refines nothing and says its time was spent."""
+    import time
+
+    spec = spec_from_dict({"geometry": str(two_objects), **TINY, "analytic": False, "vertex_margin": 1.0, "ladder": ONE_SIZE,
+                           "floor_db": 80.0, "build_budget": 60.0})  # fmt: skip
+    report = run_build(spec, tmp_path / "late", threads=2, progress=False, log=lambda line: None, started=time.perf_counter() - 120.0)
+    r = report["refinement"]
+    assert r["rounds"] == 0 and r["ended"] == "time" and not r["met"]
+    assert report["timings"]["total_s"] >= 120.0  # the build's own clock starts with the command too

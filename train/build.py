@@ -427,8 +427,12 @@ def _hash(*parts) -> str:
 
 
 def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress=True, log=print, force: bool = False,
-              executor=None, device: str = "cpu") -> dict:  # fmt: skip
+              executor=None, device: str = "cpu", started: float | None = None) -> dict:  # fmt: skip
     """Run (or resume) a build; returns the report written to ``build.json``.
+
+    ``started``: the ``time.perf_counter()`` the build's time counts from (``prt-train`` passes its
+    process's start, so that the preset's ``build_budget`` bounds what the user waits for, imports
+    and argument checks included); default: now.
 
     ``progress``: True draws the build's one progress line on a terminal (:class:`prt.train.progress.BuildProgress`;
     nothing when stderr is not one), False none, or a display of the caller's.
@@ -447,14 +451,16 @@ def run_build(spec: BuildSpec, out_dir, *, threads: int | None = None, progress=
     if log is print:
         log = display.log  # log lines above the progress line
     try:
-        return _run_build(spec, out_dir, threads=threads, display=display, log=log, force=force, executor=executor, device=device)
+        return _run_build(spec, out_dir, threads=threads, display=display, log=log, force=force, executor=executor, device=device,
+                          started=started)  # fmt: skip
     finally:
         if display is not progress:
             display.close()
 
 
-def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log, force: bool, executor, device: str = "cpu") -> dict:
-    t_start = time.perf_counter()
+def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log, force: bool, executor, device: str = "cpu",
+               started: float | None = None) -> dict:  # fmt: skip
+    t_start = time.perf_counter() if started is None else float(started)
     out = Path(out_dir)
     progress = display
     if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):

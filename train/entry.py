@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import importlib
 import sys
+import time
 
 __all__ = ["train_main", "precompute_main", "load_command"]
 
@@ -30,8 +31,9 @@ def load_command(module: str, command: str, purpose: str = "building scenes"):
 
 
 def train_main(argv: list[str] | None = None) -> int:
+    started = time.perf_counter()  # before the imports: a preset's build budget bounds the whole command
     module = load_command("prt.train.train_cli", "prt-train")
-    return 2 if module is None else module.main(argv)
+    return 2 if module is None else module.main(argv, started=started)
 
 
 def precompute_main(argv: list[str] | None = None) -> int:

@@ -13,6 +13,10 @@ new, empty or one of our build folders (marked by ``.prt-build``); ``--force`` w
 
 from __future__ import annotations
 
+import time
+
+_MODULE_START = time.perf_counter()  # ``python -m prt.train.train_cli``: the build's time counts from here, before the imports
+
 import argparse
 import json
 import os
@@ -277,7 +281,10 @@ def _bake_texture(args, spec) -> None:
         raise InputError(f"--transfer-texture: {exc}") from None
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, started: float | None = None) -> int:
+    """``started``: the ``time.perf_counter()`` of the process's start (:func:`prt.train.entry.train_main`),
+    from which the build's time budget counts; default: now."""
+    started = time.perf_counter() if started is None else started
     args = build_parser().parse_args(argv)
     try:
         if args.threads is not None and args.threads < 1:
@@ -293,7 +300,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             with open_executor(args.cluster, args.threads) as executor:
                 report = run_build(spec, args.out, threads=args.threads, progress=display, log=display.log, force=args.force,
-                                   executor=executor, device=device)  # fmt: skip
+                                   executor=executor, device=device, started=started)  # fmt: skip
         finally:
             display.close()
         if args.transfer_texture is not None:
@@ -396,4 +403,4 @@ def print_report(report: dict, out: Path) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main(started=_MODULE_START))
