@@ -100,41 +100,6 @@ def test_error_shares_weigh_area_by_error_and_the_round_takes_the_worst_under_th
     assert refine.plan_round(records, state, 10.0, 3, lambda s: True) == []  # every segment over the floor
 
 
-def test_the_round_ranks_segments_as_they_are_seen():
-    """A dim room whose error is small at exposure 1 but large at the exposure a view of it gets
-    outranks a sunlit wall whose error is larger at exposure 1; the floor stays at exposure 1."""
-    wall, room = _record(0, 1000, 30.0), _record(1, 1000, 38.0)
-    wall["seen"] = {"psnr_db": 31.0, "exposure": 0.9}
-    room["seen"] = {"psnr_db": 18.0, "exposure": 20.0}
-    assert [r["segment"] for r in refine.error_shares([wall, room])] == [1, 0]
-    assert refine.error_shares([_record(0, 1000, 30.0), _record(1, 1000, 38.0)])[0]["segment"] == 0  # (without "seen": exposure 1)
-    assert refine.plan_round([wall, room], {s: {"index": 0, "next": 1, "stalled": False, "changed": False} for s in (0, 1)}, 35.0, 3,
-                             lambda s: True)[0] == (1, "grow")  # fmt: skip
-    assert abs(refine.scene_psnr([wall, room]) - refine.pooled_psnr([(100, 30.0), (100, 38.0)])) < 1e-3  # the floor's measure
-
-
-def test_seen_psnr_is_the_same_for_a_scene_lit_a_twentieth_as_bright():
-    """Auto exposure follows the samples' own brightness: scaling truth and prediction by k leaves the
-    seen PSNR as it was, where the PSNR at exposure 1 falls with the light."""
-    from prt.runtime.sh import unshadowed_transfer
-    from prt.train.networks.rightsize import seen_psnr, shaded_psnr
-
-    rng = np.random.default_rng(0)
-    normals = rng.normal(size=(400, 3))
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    truth = unshadowed_transfer(normals, 4) * rng.uniform(0.2, 1.0, size=(400, 1))
-    pred = truth * (1 + 0.05 * rng.normal(size=truth.shape))
-    light = np.zeros((16, 3))
-    light[0], light[2] = 1.0, 0.6
-    e1, p1 = seen_psnr(pred, truth, light, 16)
-    e2, p2 = seen_psnr(0.05 * pred, 0.05 * truth, light, 16)
-    # (auto exposure's log(EPS + L) keeps black finite, so the scaling is not exact: 1e-4 against L ~ 0.01)
-    assert abs(e2 / e1 - 20.0) < 1.0 and abs(p1 - p2) < 0.5, (e1, e2, p1, p2)
-    at_one = [shaded_psnr(k * pred, k * truth, {"l": light}, 16)["l"] for k in (1.0, 0.05)]
-    assert at_one[1] > at_one[0] + 10  # at exposure 1 the dim copy's error nearly vanishes
-    assert abs(p1 - shaded_psnr(pred, truth, {"l": light}, 16, exposure=e1)["l"]) < 1e-9
-
-
 def test_split_segment_cuts_where_the_tree_agrees_with_the_samples():
     rng = np.random.default_rng(3)
     points = np.concatenate([rng.uniform([-1, -1, 0], [1, 1, 0.0], (3000, 3)), rng.uniform([-0.3, -0.3, 0.1], [0.3, 0.3, 0.6], (1500, 3))])

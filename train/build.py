@@ -42,7 +42,7 @@ from .networks.grid_encoding import DEFAULT_GRID, GridArchitecture, parse_grid
 from .networks.network import Architecture
 from .outdir import check_output_folder, mark_output_folder
 from .presets import PRESETS, QUALITIES, leaf_budget
-from .refine import RefineJob, refine_build, scene_psnr, seen_psnr_of
+from .refine import RefineJob, refine_build, scene_psnr
 from .presets import differences as preset_differences
 from .progress import BOUNCE_RAY, EXPORT_SEGMENT, RAY, BuildProgress, step_cost
 from .transport.vertex_estimate import estimate_vertex_prt
@@ -617,8 +617,6 @@ def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log
         segments, seg_json, refinement = refine_build(job, segments)
     refine_s = time.perf_counter() - t0
     held_out = {"light": SCENE_LIGHT, "psnr_db": scene_psnr(segments), "floor_db": spec.floor_db}
-    if all("seen" in r for r in segments):  # each segment at its own auto exposure (prt.train.refine.seen_psnr_of)
-        held_out["seen_psnr_db"] = scene_psnr(segments, seen_psnr_of)
     exported = [_with_scene_psnr(r, held_out) for r in segments]
 
     # -- stage 3: export

@@ -7,10 +7,9 @@ diffuse, tone-mapped radiance under the scene's lighting, :data:`prt.train.netwo
 of every segment's held-out samples together, :func:`prt.train.networks.rightsize.pooled_psnr`).
 While it is under ``floor_db`` and the build's wall time (from its start) leaves room under
 ``build_budget`` for the next refit (as long as the longest one so far),
-each round takes the segments holding most of the error as it is seen (:func:`error_shares`: own
-samples, which are area-uniform, times held-out MSE at the segment's own auto exposure,
-:func:`seen_psnr_of`; the worst first, until half the error or :data:`PER_ROUND` segments) that are
-under the floor themselves at that exposure, and for each (:func:`plan_round`):
+each round takes the segments holding most of the error (:func:`error_shares`: own samples, which
+are area-uniform, times held-out MSE; the worst first, until half the error or :data:`PER_ROUND`
+segments) that are under the floor themselves, and for each (:func:`plan_round`):
 
 - **grows** its network one size up the build's ladder, past where the margin stopped it (and past
   its share of per-vertex PRT's bytes); the larger size is kept where it is more accurate;
@@ -20,12 +19,7 @@ under the floor themselves at that exposure, and for each (:func:`plan_round`):
   the parent's size, and the split is kept where the halves' pooled held-out PSNR is above the
   whole's (else the segment stays whole and is not cut again).
 
-Neither action is kept unless it is more accurate as seen, so refinement does not lower a segment's
-PSNR at its auto exposure.  The floor itself stays at exposure 1, where the presets' floors were
-measured (:mod:`prt.train.presets`); a scene is shown at auto exposure (``prt-runtime``'s default for
-scenes), where a room lit through its windows is 5 to 50 times brighter than at exposure 1 and so is
-its error.  Ranked at exposure 1, the Duplex house's refinement went to its sunlit outside while its
-interiors, 17.7 dB in views inside, were never touched.
+Neither action is kept unless it is more accurate, so refinement does not lower a segment's PSNR.
 
 It ends at the floor (``"floor"``), when the time is spent (``"time"``), or when no segment under
 the floor can grow or be cut (``"ladder"``).  Stopping short, the report names the absolute PSNR,
@@ -55,7 +49,7 @@ from .networks.rightsize import PSNR_CAP, SCENE_LIGHT, pooled_psnr, train_segmen
 from .networks.segments import split_segment, with_margin
 from .presets import DEFAULT_QUALITY, LEAF_CAP
 
-__all__ = ["REFINE_VERSION", "MIN_GAIN_DB", "PER_ROUND", "ERROR_SHARE", "WORST_SHOWN", "light_psnr", "seen_psnr_of", "scene_psnr", "error_shares",
+__all__ = ["REFINE_VERSION", "MIN_GAIN_DB", "PER_ROUND", "ERROR_SHARE", "WORST_SHOWN", "light_psnr", "scene_psnr", "error_shares",
            "plan_round", "worst_segments", "refine_build", "stop_lines"]  # fmt: skip
 
 REFINE_VERSION = "refine-v1"  # part of a split segment's fit-cache key
@@ -72,25 +66,14 @@ def light_psnr(record: dict) -> float:
     return float(psnr[SCENE_LIGHT] if SCENE_LIGHT in psnr else min(psnr.values(), default=PSNR_CAP))
 
 
-def seen_psnr_of(record: dict) -> float:
-    """A segment's held-out PSNR as auto exposure shows it (``record["seen"]``,
-    :func:`prt.train.networks.rightsize.seen_psnr`); :func:`light_psnr` for records without it."""
-    seen = record.get("seen") or {}
-    return float(seen["psnr_db"]) if "psnr_db" in seen else light_psnr(record)
-
-
-def scene_psnr(records: list[dict], measure=light_psnr) -> float:
-    """The pooled held-out PSNR of all segments under the scene's lighting (the floor's measure; with
-    ``measure=seen_psnr_of``, each segment at its own auto exposure)."""
-    return round(pooled_psnr([(r["validation_samples"], measure(r)) for r in records]), 3)
+def scene_psnr(records: list[dict]) -> float:
+    """The pooled held-out PSNR of all segments under the scene's lighting (the floor's measure)."""
+    return round(pooled_psnr([(r["validation_samples"], light_psnr(r)) for r in records]), 3)
 
 
 def error_shares(records: list[dict]) -> list[dict]:
-    """Per segment, its share of the scene's error as it is seen: own samples (area) x held-out MSE at
-    the segment's auto exposure (:func:`seen_psnr_of`), worst first.  At exposure 1 a room lit
-    through its windows holds almost none of a house's error; at the exposure a view of it gets,
-    most of it (the Duplex: interiors at exposures of 5 to 50)."""
-    weights = [(r["id"], r["samples"] * 10.0 ** (-seen_psnr_of(r) / 10.0), seen_psnr_of(r)) for r in records]
+    """Per segment, its share of the scene's error: own samples (area) x held-out MSE, worst first."""
+    weights = [(r["id"], r["samples"] * 10.0 ** (-light_psnr(r) / 10.0), light_psnr(r)) for r in records]
     total = sum(w for _, w, _ in weights) or 1.0
     rows = [{"segment": int(s), "share": round(w / total, 4), "psnr_db": round(p, 3)} for s, w, p in weights]
     return sorted(rows, key=lambda r: (-r["share"], r["segment"]))
@@ -138,7 +121,7 @@ def stop_lines(refinement: dict) -> list[str]:
     why = {"time": f"the build's time ({refinement['budget_s']:.0f} s) spent", "ladder": "no segment under the floor could grow or be cut"}
     lines = [f"BELOW THE FLOOR: held-out PSNR {refinement['psnr_db']:.2f} dB (diffuse, under {refinement['light']}) < floor "
              f"{refinement['floor_db']:g} dB after {refinement['rounds']} refinement round(s); stopped: {why.get(refinement['ended'], refinement['ended'])}",
-             "  the error is in (segment: share of the error as seen, its PSNR at its auto exposure, objects):"]  # fmt: skip
+             "  the error is in (segment: share of the error, its PSNR, objects):"]  # fmt: skip
     for w in refinement["worst"]:
         lines.append(f"    segment {w['segment']}: {100 * w['share']:.0f} %, {w['psnr_db']:.2f} dB, {', '.join(w['objects'])}")
     return lines
@@ -196,7 +179,7 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
     archs = [a for a in job.archs if isinstance(a, Architecture)]
     state = {r["id"]: _fresh(_ladder_index(r, archs), len(archs)) for r in records}
     unsplittable: set[int] = set()
-    actions, rounds, start_psnr, start_seen = [], 0, scene_psnr(records), scene_psnr(records, seen_psnr_of)
+    actions, rounds, start_psnr = [], 0, scene_psnr(records)
 
     spent: list[float] = []  # seconds of each refit so far: a grow is one, a split two
 
@@ -264,15 +247,14 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
             if action == "grow":
                 j = st["next"]
                 record = fit(s, archs[j], before, st["changed"], rounds, "grow")
-                gain = seen_psnr_of(record) - seen_psnr_of(before)  # as it is seen (error_shares' measure)
+                gain = light_psnr(record) - light_psnr(before)
                 st["next"] = j + 1
                 st["stalled"] = gain < MIN_GAIN_DB
                 if gain > 0:
                     records[s] = store(record)
                     st["index"] = j
                 actions.append({"round": rounds, "segment": s, "action": "grow", "to": archs[j].label(), "kept": gain > 0,
-                                "psnr_db": [round(light_psnr(before), 3), round(light_psnr(record), 3)],
-                                "seen_psnr_db": [round(seen_psnr_of(before), 3), round(seen_psnr_of(record), 3)]})  # fmt: skip
+                                "psnr_db": [round(light_psnr(before), 3), round(light_psnr(record), 3)]})  # fmt: skip
                 continue
             saved = (tree, samples["segment"], valid["segment"].copy(), members[s])
             cut = split_segment(tree, samples["points"], samples["object_ids"], samples["segment"], s, min_samples=MIN_SAMPLES)
@@ -289,10 +271,9 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
             arch = archs[st["index"]] if st["index"] >= 0 else archs[(len(archs) - 1) // 2]
             records.append(None)  # the new segment's place
             halves = [fit(g, arch, before, True, rounds, "split") for g in (s, new)]
-            kept = scene_psnr(halves, seen_psnr_of) > seen_psnr_of(before)  # the halves' pooled held-out PSNR against the whole's, as seen
+            kept = scene_psnr(halves) > light_psnr(before)  # the two halves' pooled held-out PSNR against the whole's
             actions.append({"round": rounds, "segment": s, "action": "split", "into": [s, new], "size": arch.label(), "kept": kept,
-                            "psnr_db": [round(light_psnr(before), 3), *(round(light_psnr(h), 3) for h in halves)],
-                            "seen_psnr_db": [round(seen_psnr_of(before), 3), *(round(seen_psnr_of(h), 3) for h in halves)]})  # fmt: skip
+                            "psnr_db": [round(light_psnr(before), 3), *(round(light_psnr(h), 3) for h in halves)]})  # fmt: skip
             if not kept:  # no better in two: the segment stays whole, and is not cut again
                 tree, samples["segment"], valid["segment"], members[s] = saved
                 members.pop()
@@ -309,14 +290,12 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
         ended = "floor" if start_psnr >= floor else "ladder"
     psnr = scene_psnr(records)
     refinement = {"floor_db": floor, "light": SCENE_LIGHT, "psnr_db": psnr, "start_psnr_db": start_psnr, "met": psnr >= floor,
-                  "seen_psnr_db": scene_psnr(records, seen_psnr_of), "start_seen_psnr_db": start_seen,
                   "ended": ended, "rounds": rounds, "budget_s": budget, "elapsed_s": round(elapsed(), 1), "segments": len(records),
                   "actions": actions}  # fmt: skip
     if psnr < floor:
         refinement["worst"] = worst_segments(records, samples["segment"], samples["object_ids"], job.object_names)
     if rounds:
-        log(f"refinement: {rounds} round(s), held-out {start_psnr:.2f} -> {psnr:.2f} dB (floor {floor:g} dB; as seen at each segment's "
-            f"auto exposure {start_seen:.2f} -> {refinement['seen_psnr_db']:.2f} dB), {len(records)} segments")  # fmt: skip
+        log(f"refinement: {rounds} round(s), held-out {start_psnr:.2f} -> {psnr:.2f} dB (floor {floor:g} dB), {len(records)} segments")
     return records, tree, refinement
 
 

@@ -379,9 +379,8 @@ def print_report(report: dict, out: Path) -> None:
                  if held.get("floor_db") is not None else "")
         refined = report.get("refinement") or {}
         rounds = f" after {refined['rounds']} refinement round(s) from {refined['start_psnr_db']:.2f} dB" if refined.get("rounds") else ""
-        seen = f"; {held['seen_psnr_db']:.2f} dB with each segment at its own auto exposure" if "seen_psnr_db" in held else ""
         print(f"held-out PSNR: {held['psnr_db']:.2f} dB (diffuse, under {held['light']})"
-              + (f" vs per-vertex PRT's {vertex_db:.2f} dB" if vertex_db is not None else "") + rounds + floor + seen)  # fmt: skip
+              + (f" vs per-vertex PRT's {vertex_db:.2f} dB" if vertex_db is not None else "") + rounds + floor)  # fmt: skip
         for line in stop_lines(refined):
             print(line)
     preset = report.get("preset") or {}

@@ -46,7 +46,6 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
-from ...runtime.exposure import auto_exposure
 from ...runtime.sh import unshadowed_transfer
 from ...runtime.shading import tonemap
 from .fit import FitSettings, fit_segment, mean_visibility, resolve_loss, right_size, right_size_matching, shaded_error, total_transfer, transfer_error
@@ -55,7 +54,7 @@ from .grid_encoding import evaluate_numpy as grid_evaluate
 from .network import Architecture
 from .network import evaluate_numpy as freq_evaluate
 
-__all__ = ["RULES", "ENDINGS", "pooled_psnr", "scene_sizing", "RESIDUAL_MODES", "RESIDUAL_VISIBILITY", "residual_choice", "PSNR_CAP", "shaded_psnr", "seen_psnr", "predict_numpy", "candidates", "search_cheapest", "weight_bytes", "train_segment", "SegmentJob",
+__all__ = ["RULES", "ENDINGS", "pooled_psnr", "scene_sizing", "RESIDUAL_MODES", "RESIDUAL_VISIBILITY", "residual_choice", "PSNR_CAP", "shaded_psnr", "predict_numpy", "candidates", "search_cheapest", "weight_bytes", "train_segment", "SegmentJob",
            "segment_task", "validation_split", "SCENE_LIGHT"]  # fmt: skip
 
 RULES = ("fixed", "target_mae", "match", "target_db", "vertex")
@@ -123,19 +122,6 @@ def shaded_psnr(pred, truth, lights: dict, n: int, albedo=DEFAULT_ALBEDO, exposu
         mse = float(np.mean((a - b) ** 2)) if a.size else 0.0
         out[name] = PSNR_CAP if mse <= 10.0 ** (-PSNR_CAP / 10.0) else min(PSNR_CAP, float(-10.0 * np.log10(mse)))
     return out
-
-
-def seen_psnr(pred, truth, light, n: int, albedo=DEFAULT_ALBEDO) -> tuple[float, float]:
-    """``(exposure, PSNR dB)``: :func:`shaded_psnr` under one light at the exposure auto-exposure
-    (:func:`prt.runtime.exposure.auto_exposure`) gives ``truth``'s own radiance: the error as a frame
-    filled with these samples shows it.  Scenes are shown at auto exposure; at exposure 1 a room lit
-    through its windows is nearly black and its error counts for nothing next to the sunlit outside."""
-    albedo = np.asarray(albedo, dtype=np.float64).reshape(3)
-    tt = total_transfer(np.asarray(truth, dtype=np.float64), n)
-    light = np.asarray(light, dtype=np.float64)
-    rt = (tt @ light if tt.ndim == 2 else np.einsum("mkc,kc->mc", tt, light)) * albedo
-    exposure = auto_exposure(np.maximum(rt, 0.0)) if len(rt) else 1.0
-    return exposure, shaded_psnr(pred, truth, {"light": light}, n, albedo, exposure)["light"]
 
 
 def predict_numpy(arch, arrays: dict, points, normals) -> np.ndarray:
@@ -293,14 +279,6 @@ def train_segment(spec, s, samples, valid, member_idx, archs, fit_settings, ligh
     def psnr_of(pred) -> dict[str, float]:
         return {k: round(v, 3) for k, v in shaded_psnr(pred, vt, lights, n_coeffs, albedo).items()}
 
-    def seen_of(pred) -> dict:
-        """The held-out PSNR under the scene's lighting at the auto exposure of the segment's own radiance
-        (:func:`seen_psnr`): where refinement works (:mod:`prt.train.refine`)."""
-        if SCENE_LIGHT not in lights or not len(vt):
-            return {}
-        exposure, psnr = seen_psnr(pred, vt, lights[SCENE_LIGHT], n_coeffs, albedo)
-        return {"seen": {"light": SCENE_LIGHT, "exposure": round(exposure, 4), "psnr_db": round(psnr, 3)}}
-
     reference = spec.reference_architecture()
     if rule == "vertex":
         if vertex is None:
@@ -314,7 +292,7 @@ def train_segment(spec, s, samples, valid, member_idx, archs, fit_settings, ligh
             pred = np.concatenate([pred, np.zeros((len(pred), vt.shape[1] - n_coeffs), dtype=pred.dtype)], axis=1)
         mae = transfer_error(pred, vt, n_coeffs)
         analytic = {**base, "kind": "analytic", "val_mae": mae, "shaded": shaded_error(pred, vt, lights, n_coeffs), "tried": [], "flops_per_fragment": 0,
-                    "weight_bytes": 0, **seen_of(pred)}  # fmt: skip
+                    "weight_bytes": 0}  # fmt: skip
         a_psnr = psnr_of(pred)
         a_worst = a_psnr.get(SCENE_LIGHT, min(a_psnr.values(), default=PSNR_CAP))
         if rule == "target_db" and a_worst >= spec.target_db:
@@ -339,7 +317,7 @@ def train_segment(spec, s, samples, valid, member_idx, archs, fit_settings, ligh
     mode = getattr(spec, "residual", "off")
     use, visibility = residual_choice(mode, t, n, spec.bands)
     base["loss"] = resolve_loss(fit_settings.loss, t, spec.bands)  # what fit_segment makes of "auto" on these samples
-    scores, done, preds = {}, {}, {}
+    scores, done = {}, {}
 
     def fit(arch):
         if arch in done:  # fitted in this call already (the residual probe, then the sizing rule)
@@ -352,8 +330,7 @@ def train_segment(spec, s, samples, valid, member_idx, archs, fit_settings, ligh
             result = _fit(arch)
             if fits is not None:
                 fits.put(result)
-        preds[arch.label()] = predict_numpy(arch, result.model.arrays(), vp, vn)
-        scores[arch.label()] = psnr_of(preds[arch.label()])
+        scores[arch.label()] = psnr_of(predict_numpy(arch, result.model.arrays(), vp, vn))
         done[arch] = result
         return result
 
@@ -482,7 +459,6 @@ def train_segment(spec, s, samples, valid, member_idx, archs, fit_settings, ligh
         "arrays": result.model.arrays(),
         "history": result.history,
         **({"vertex": vertex_record} if vertex_record is not None else {}),
-        **seen_of(preds[arch.label()]),
         "sizing": _sizing(rule, spec, arch.label(), scores[arch.label()], met, tried, why, encoding=_encoding(arch),
                           extra=_vertex_extra(v_psnr, budget, vertex_record["ended"]) if vertex_record else None),
     }
