@@ -31,9 +31,9 @@ sides that are not reachable sits inside a solid (interpenetrating CAD parts) an
 Light reaching a side is not yet an eye reaching it.  A plant's petal modelled as two sheets a
 hair apart (the orchids' petals: 0.0006 normalised units), a panel glued 1 cm off a wall, the
 underside of a rug: the inner sides are reachable (a few grazing rays leave the gap at its rim),
-but no camera fits in the gap, so the G-buffer never shows them.  Their samples are nearly black
-and stand at the very positions of the bright outer sides with the opposite normal; a network
-fitted to both blurs the two, and the petals the camera sees render at about half their
+but no camera fits in the gap, so the G-buffer never shows them.  Their samples are nearly black,
+and the lower sheet's inner side lies a hair below the upper sheet's lit outer side with the same
+normal; a network fitted to both blurs the two, and the petals the camera sees render at about half their
 brightness (two of the orchids' flower segments refitted on their outer sides' samples alone:
 +8 and +10 dB held out).  So a side is **in a gap** when at least
 :data:`GAP_SHARE` of its pilot rays hit a surface less than :data:`GAP` (normalised scene units:
