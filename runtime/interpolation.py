@@ -382,34 +382,42 @@ def _compile():
                         norm2 = np.float32(0.0)
                         spread2 = np.float32(0.0)
                         nd = unshadowed.shape[1]  # residuals from the unshadowed transfer in the direct part
+                        # Two loops, the direct part (residuals) and the rest, without a branch per
+                        # coefficient: each vectorises across the coefficients.
                         if four:
-                            for ch in range(n):
+                            for ch in range(nd):
+                                v0 = transfer[r0, ch] - unshadowed[r0, ch]
+                                v1 = transfer[r1, ch] - unshadowed[r1, ch]
+                                v2 = transfer[r2, ch] - unshadowed[r2, ch]
+                                v3 = transfer[r3, ch] - unshadowed[r3, ch]
+                                mean = ((v0 + v1) + (v2 + v3)) * np.float32(0.25) + unshadowed[t, ch]
+                                transfer[t, ch] = mean
+                                norm2 += mean * mean
+                                d = max(max(v0, v1), max(v2, v3)) - min(min(v0, v1), min(v2, v3))
+                                spread2 += d * d
+                            for ch in range(nd, n):
                                 v0 = transfer[r0, ch]
                                 v1 = transfer[r1, ch]
                                 v2 = transfer[r2, ch]
                                 v3 = transfer[r3, ch]
-                                if ch < nd:
-                                    v0 -= unshadowed[r0, ch]
-                                    v1 -= unshadowed[r1, ch]
-                                    v2 -= unshadowed[r2, ch]
-                                    v3 -= unshadowed[r3, ch]
                                 mean = ((v0 + v1) + (v2 + v3)) * np.float32(0.25)
-                                if ch < nd:
-                                    mean += unshadowed[t, ch]
                                 transfer[t, ch] = mean
                                 norm2 += mean * mean
                                 d = max(max(v0, v1), max(v2, v3)) - min(min(v0, v1), min(v2, v3))
                                 spread2 += d * d
                         else:
-                            for ch in range(n):
+                            for ch in range(nd):
+                                v0 = transfer[r0, ch] - unshadowed[r0, ch]
+                                v1 = transfer[r1, ch] - unshadowed[r1, ch]
+                                mean = (v0 + v1) * np.float32(0.5) + unshadowed[t, ch]
+                                transfer[t, ch] = mean
+                                norm2 += mean * mean
+                                d = max(v0, v1) - min(v0, v1)
+                                spread2 += d * d
+                            for ch in range(nd, n):
                                 v0 = transfer[r0, ch]
                                 v1 = transfer[r1, ch]
-                                if ch < nd:
-                                    v0 -= unshadowed[r0, ch]
-                                    v1 -= unshadowed[r1, ch]
                                 mean = (v0 + v1) * np.float32(0.5)
-                                if ch < nd:
-                                    mean += unshadowed[t, ch]
                                 transfer[t, ch] = mean
                                 norm2 += mean * mean
                                 d = max(v0, v1) - min(v0, v1)
