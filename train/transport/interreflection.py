@@ -37,6 +37,9 @@ hit points and nearest samples are found once (:func:`trace_bounce_rays`) and ev
 rays landing nearest to q.  Indirect light is smooth, so it takes fewer rays than the direct
 term (:data:`BOUNCE_RAYS`).
 
+The training samples' indirect part is then averaged over their nearest samples on the same side
+(:func:`smooth_indirect`): the networks would otherwise fit part of the gather's noise.
+
 ``prt-train --bounces N`` runs :func:`bounce_stage` after the direct precompute and fits
 networks of the "direct+rgb" layout (:mod:`prt.train.networks.network`) to ``[T_0, T_ind_R, T_ind_G,
 T_ind_B]``; the albedos of the bouncing surfaces are the diffuse albedos (``Kd``) of the mesh's
@@ -59,7 +62,7 @@ __all__ = ["BounceRays", "BounceJob", "trace_bounce_rays", "bounce_chunk", "trac
 # Rays per sample of the bounce stage (the direct transfer keeps its own count).  32: on the
 # Cornell box (105k samples, 512 direct rays) 64 bounce rays made the stage 3.5x the direct
 # transfer's time (the nearest-sample searches dominate), over the issue's 3x budget for the
-# whole precompute; the networks average the gather's noise over many samples.
+# whole precompute; the training targets' indirect part is averaged over neighbours (smooth_indirect).
 BOUNCE_RAYS = 32
 # Weight of the normal against the position in the nearest-sample search: the other side of
 # a sheet is 2 * NORMAL_WEIGHT away, far beyond the sample spacing (~0.03 at 20k samples).
