@@ -245,6 +245,29 @@ def test_a_build_at_its_floor_is_left_as_it_is(tmp_path):
     assert not (tmp_path / "refine").exists() and refine.stop_lines(report) == []
 
 
+def test_no_refit_starts_inside_the_end_reserve(tmp_path):
+    """The budget's last END_RESERVE_S seconds are kept for the export and the command's exit: a build
+    under its floor with less time left than that starts no round; with a little more it starts one."""
+    spec = spec_from_dict({"geometry": "x.obj"})  # standard: floor 35 dB, budget 1200 s
+    records = [_record(0, 1000, 20.0), _record(1, 3000, 22.0)]
+
+    def job(now, lines):
+        samples = {"segment": np.array([0, 0, 1, 1]), "object_ids": np.zeros(4, dtype=np.int64)}
+        return refine.RefineJob(spec, tmp_path, {"segments": [{"id": 0}, {"id": 1}]}, samples, {"segment": np.zeros(2, dtype=np.int64)},
+                                [np.arange(4), np.arange(4)], spec.architectures(), None, {}, None, "key", None, ["a"], t_start=0.0,
+                                log=lines.append, clock=lambda: now)  # fmt: skip
+
+    budget = float(spec.build_budget)
+    lines: list[str] = []
+    # 2 s before the budget (the orchids' build took 1.8 s after its last refit: export, start and exit)
+    _, _, report = refine.refine_build(job(budget - 2.0, lines), records)
+    assert report["rounds"] == 0 and report["ended"] == "time" and not lines
+    lines = []
+    with pytest.raises(Exception):  # the round starts: these stand-in records have no samples to fit
+        refine.refine_build(job(budget - refine.END_RESERVE_S - 0.5, lines), records)
+    assert lines and lines[0].startswith("refine round 1")
+
+
 @pytest.mark.parametrize("floor", [None, 80.0])
 def test_the_unshadowed_shortcut_keeps_to_the_floor(two_objects, tmp_path, floor):
     """Where vertex PRT is poor the unshadowed transfer beats it by the margin (the ball's lit cap does here);
