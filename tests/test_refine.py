@@ -90,14 +90,34 @@ def test_error_shares_weigh_area_by_error_and_the_round_takes_the_worst_under_th
     # the pooled PSNR is the sample-weighted MSE's
     mse = sum(r["validation_samples"] * 10 ** (-r["sizing"]["psnr_db"]["potsdamer"] / 10) for r in records) / sum(r["validation_samples"] for r in records)
     assert abs(refine.scene_psnr(records) - (-10 * np.log10(mse))) < 1e-3
-    state = {s: {"index": 0, "next": 1, "stalled": False, "changed": False} for s in range(4)}
-    state[1]["stalled"] = True  # its last size up gained little: split it
+    state = {s: refine._fresh(0, 3) for s in range(4)}
+    state[1]["stalled"] = True  # its last size up gained little: train it longer
     plan = refine.plan_round(records, state, 35.0, 3, lambda s: True)
-    assert plan[:2] == [(2, "grow"), (1, "split")]
+    assert plan[:2] == [(2, "grow"), (1, "longer")]
     assert 0 not in [s for s, _ in plan]  # over the floor: left alone
-    state[2]["next"] = 3  # ladder top: split
-    assert refine.plan_round(records, state, 35.0, 3, lambda s: s != 2)[0] == (1, "split")  # 2 can neither grow nor be cut
+    state[1]["longer_stalled"] = True  # the last doubling of its steps gained little too: split it
+    assert refine.plan_round(records, state, 35.0, 3, lambda s: True)[:2] == [(2, "grow"), (1, "split")]
+    state[1]["longer_stalled"], state[1]["steps"] = False, refine.MAX_STEPS  # as long as it may train: split
+    assert refine.plan_round(records, state, 35.0, 3, lambda s: True)[:2] == [(2, "grow"), (1, "split")]
+    state[2]["next"] = 3  # ladder top: longer
+    assert refine.plan_round(records, state, 35.0, 3, lambda s: True)[0] == (2, "longer")
+    state[2]["steps"] = refine.MAX_STEPS  # ladder top and steps spent: split
+    assert refine.plan_round(records, state, 35.0, 3, lambda s: s != 2)[0] == (1, "split")  # 2 can neither grow, train longer nor be cut
+    state[3]["stalled"], state[3]["longer_stalled"] = True, True
+    assert (3, "grow") in refine.plan_round(records, state, 35.0, 3, lambda s: False)  # stalled but cannot be cut: the sizes left
     assert refine.plan_round(records, state, 10.0, 3, lambda s: True) == []  # every segment over the floor
+
+
+def test_scaled_steps_trains_longer_by_steps_epochs_and_time_budget():
+    from prt.train.networks.fit import DEFAULT_STEPS, FitSettings
+
+    base = FitSettings(steps=1000, batch=4096)
+    assert refine.scaled_steps(base, 1) is base
+    assert refine.scaled_steps(base, 4).steps == 4000 and refine.scaled_steps(base, 4).batch == 4096
+    assert refine.scaled_steps(FitSettings(), 2).steps == 2 * DEFAULT_STEPS
+    epochs = refine.scaled_steps(FitSettings(epochs=30, max_seconds=10.0), 2)
+    assert (epochs.epochs, epochs.steps, epochs.max_seconds) == (60, None, 20.0)
+    assert refine.scaled_steps(base, 2).cache_key() != base.cache_key()  # a longer fit is its own cache entry
 
 
 def test_split_segment_cuts_where_the_tree_agrees_with_the_samples():
@@ -182,6 +202,7 @@ def refined(two_objects, tmp_path_factory, request):
 
         mp = pytest.MonkeyPatch()
         mp.setattr(refine, "plan_round", once)
+        mp.setattr(refine, "MAX_STEPS", 1)  # no longer training: a one-size ladder splits at once
         lines = []
         try:
             return run_build(spec, out, threads=2, progress=False, log=lines.append), lines
@@ -225,6 +246,48 @@ def test_an_interrupted_refinement_resumes_from_the_cache(refined):
     assert sorted(p.name for p in (out / "precompute" / "fits").iterdir()) == fits
     assert report["refinement"]["actions"] == first["refinement"]["actions"] and report["refinement"]["psnr_db"] == first["refinement"]["psnr_db"]
     assert any("(cached)" in line for line in lines)
+
+
+def test_at_the_ladders_top_a_segment_trains_longer_and_the_longer_fit_is_cached(two_objects, tmp_path):
+    """A one-size ladder under an unreachable floor: round 1 trains the worst segments at twice the build's
+    steps (real fits, their settings seen); a longer fit is kept only where more accurate, and the same build
+    again takes it from the fit cache."""
+    spec = spec_from_dict({"geometry": str(two_objects), **TINY, "steps": 100, "analytic": False, "vertex_margin": 1.0, "ladder": ONE_SIZE,
+                           "floor_db": 80.0, "build_budget": 600.0})  # fmt: skip
+    seen = []
+    real = refine.train_segment
+
+    def spy(sub, s, samples, valid, members, archs, settings, *args, **kwargs):
+        seen.append((s, settings.steps))
+        return real(sub, s, samples, valid, members, archs, settings, *args, **kwargs)
+
+    def build(lines):
+        calls = []
+        planned = refine.plan_round
+        mp = pytest.MonkeyPatch()
+        mp.setattr(refine, "plan_round", lambda *a, **k: (calls.append(1), planned(*a, **k) if len(calls) == 1 else [])[1])
+        mp.setattr(refine, "train_segment", spy)
+        try:
+            return run_build(spec, tmp_path / "scene", threads=2, progress=False, log=lines.append)
+        finally:
+            mp.undo()
+
+    report = build([])
+    actions = report["refinement"]["actions"]
+    assert actions and all(a["action"] == "longer" and a["steps"] == 2 for a in actions), actions
+    assert sorted(s for s, _ in seen) == sorted(a["segment"] for a in actions) and all(steps == 200 for _, steps in seen)
+    for a in actions:
+        assert a["kept"] == (a["psnr_db"][1] > a["psnr_db"][0])
+        record = next(r for r in report["segments"] if r["id"] == a["segment"])
+        assert ("refined" in record) == a["kept"]
+        if a["kept"]:
+            assert record["refined"]["steps"] == 2 and record["refined"]["action"] == "longer"
+    fits = sorted(p.name for p in (tmp_path / "scene" / "precompute" / "fits").iterdir())
+    lines = []
+    again = build(lines)  # every longer fit from the cache: no new entry, the same decisions
+    assert sorted(p.name for p in (tmp_path / "scene" / "precompute" / "fits").iterdir()) == fits
+    assert sum("(cached)" in line for line in lines) >= len(actions)
+    assert again["refinement"]["actions"] == actions and again["refinement"]["psnr_db"] == report["refinement"]["psnr_db"]
 
 
 def test_a_build_at_its_floor_is_left_as_it_is(tmp_path):

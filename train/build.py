@@ -617,7 +617,7 @@ def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log
     # -- stage 2b: refinement while under the floor (prt.train.refine), within the build's time
     t0, refinement = time.perf_counter(), None
     if spec.floor_db is not None and geometry.kind == "mesh":
-        fit_cache = lambda pre_key, s: _FitCache(fits_folder, pre_key, s, fit_settings)  # noqa: E731
+        fit_cache = lambda pre_key, s, settings: _FitCache(fits_folder, pre_key, s, settings)  # noqa: E731
         job = RefineJob(spec, out, seg_json, samples, valid, members, archs, fit_settings, lights, vertex, data_key, fit_cache,
                         list(geometry.object_names), t_start, log)  # fmt: skip
         segments, seg_json, refinement = refine_build(job, segments)

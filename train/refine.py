@@ -6,23 +6,33 @@ says nothing.  So a build also has a floor: its **pooled held-out PSNR** (:func:
 diffuse, tone-mapped radiance under the scene's lighting, :data:`prt.train.networks.rightsize.SCENE_LIGHT`,
 of every segment's held-out samples together, :func:`prt.train.networks.rightsize.pooled_psnr`).
 While it is under ``floor_db`` and the build's wall time (from its start) leaves room under
-``build_budget`` for the next refit (as long as the longest one so far) and :data:`END_RESERVE_S`,
+``build_budget`` for a refit (as long per step as that size's longest so far; one that does not fit is
+passed over for the round's cheaper ones) and :data:`END_RESERVE_S`,
 each round takes the segments holding most of the error (:func:`error_shares`: own samples, which
 are area-uniform, times held-out MSE; the worst first, until half the error or :data:`PER_ROUND`
 segments) that are under the floor themselves, and for each (:func:`plan_round`):
 
 - **grows** its network one size up the build's ladder, past where the margin stopped it (and past
-  its share of per-vertex PRT's bytes); the larger size is kept where it is more accurate;
-- **splits** it (:func:`prt.train.networks.segments.split_segment`) once growing stalls (the last
-  size gained under :data:`MIN_GAIN_DB`) or the ladder's top is reached, while the build has fewer
-  segments than its preset's cap (:data:`prt.train.presets.LEAF_CAP`); both halves are fitted at
-  the parent's size, and the split is kept where the halves' pooled held-out PSNR is above the
-  whole's (else the segment stays whole and is not cut again).
+  its share of per-vertex PRT's bytes), trained :data:`REFIT_STEPS` times the build's steps (or the
+  segment's own, where it has more); the larger size is kept where it is more accurate;
+- **trains it longer** once growing stalls (the last size gained under :data:`MIN_GAIN_DB`) or the
+  ladder's top is reached: the same size refitted with twice its steps, up to :data:`MAX_STEPS`
+  times the build's, kept where more accurate, until a doubling gains under :data:`MIN_GAIN_DB`;
+- **splits** it (:func:`prt.train.networks.segments.split_segment`) once neither growing nor longer
+  training gains, while the build has fewer segments than its preset's cap
+  (:data:`prt.train.presets.LEAF_CAP`); both halves are fitted at the parent's size, each at half its
+  steps (not under the build's: as many passes over its half of the samples), and
+  the split is kept where the halves' pooled held-out PSNR is above the whole's (else the segment
+  stays whole and is not cut again).
 
-Neither action is kept unless it is more accurate, so refinement does not lower a segment's PSNR.
+The steps axis comes from the Duplex house (issue 43): its fits at the preset's 1,000 steps are far
+from converged (its five worst segments, one-off: the same size at 3x the steps +1.5 to +2.8 dB;
+one size up at 1x -0.6 to +3.6 dB, at 2x the steps -0.0 to +5.1 dB).
+
+No action is kept unless it is more accurate, so refinement does not lower a segment's PSNR.
 
 It ends at the floor (``"floor"``), when the time is spent (``"time"``), or when no segment under
-the floor can grow or be cut (``"ladder"``).  Stopping short, the report names the absolute PSNR,
+the floor can grow, train longer or be cut (``"ladder"``).  Stopping short, the report names the absolute PSNR,
 the floor, and the segments holding most of the error with the objects whose samples they hold
 (:func:`worst_segments`).
 
@@ -44,16 +54,19 @@ import numpy as np
 from ..runtime.files import atomic_save_npz, atomic_write_json
 from ..runtime.segmentation import assign_segments, kd_arrays
 from .fit_cache import fit_hash
+from .networks.fit import DEFAULT_STEPS
 from .networks.network import Architecture
 from .networks.rightsize import PSNR_CAP, SCENE_LIGHT, pooled_psnr, train_segment
 from .networks.segments import split_segment, with_margin
 from .presets import DEFAULT_QUALITY, LEAF_CAP
 
-__all__ = ["REFINE_VERSION", "MIN_GAIN_DB", "END_RESERVE_S", "PER_ROUND", "ERROR_SHARE", "WORST_SHOWN", "light_psnr", "scene_psnr", "error_shares",
-           "plan_round", "worst_segments", "refine_build", "stop_lines"]  # fmt: skip
+__all__ = ["REFINE_VERSION", "MIN_GAIN_DB", "REFIT_STEPS", "MAX_STEPS", "END_RESERVE_S", "PER_ROUND", "ERROR_SHARE", "WORST_SHOWN", "light_psnr", "scene_psnr", "error_shares",
+           "plan_round", "worst_segments", "refine_build", "stop_lines", "scaled_steps"]  # fmt: skip
 
 REFINE_VERSION = "refine-v1"  # part of a split segment's fit-cache key
-MIN_GAIN_DB = 0.5  # a size up that gains less: the segment is split next
+MIN_GAIN_DB = 0.5  # a size up (or a doubling of the steps) that gains less: that axis is done for the segment
+REFIT_STEPS = 2  # a grown network trains this many times the build's steps (its fits are far from converged at 1x)
+MAX_STEPS = 8  # "longer" doubles a segment's steps up to this many times the build's
 PER_ROUND = 4  # most segments acted on in one round
 ERROR_SHARE = 0.5  # a round takes the worst segments until they hold this share of the error
 WORST_SHOWN = 5  # segments a stop-short report names
@@ -85,9 +98,10 @@ def error_shares(records: list[dict]) -> list[dict]:
 
 
 def plan_round(records: list[dict], state: dict, floor: float, ladder_size: int, can_split) -> list[tuple[int, str]]:
-    """This round's ``(segment, "grow" | "split")``: the worst segments under the floor (:func:`error_shares`)
-    until they hold :data:`ERROR_SHARE` of the error, at most :data:`PER_ROUND`, each grown while a
-    larger size is left and the last one gained, else split where ``can_split(segment)``."""
+    """This round's ``(segment, "grow" | "longer" | "split")``: the worst segments under the floor
+    (:func:`error_shares`) until they hold :data:`ERROR_SHARE` of the error, at most :data:`PER_ROUND`,
+    each grown while a larger size is left and the last one gained, else trained longer while its steps
+    are under :data:`MAX_STEPS` and the last doubling gained, else split where ``can_split(segment)``."""
     out, held = [], 0.0
     for row in error_shares(records):
         if len(out) >= PER_ROUND or (out and held >= ERROR_SHARE):
@@ -96,12 +110,16 @@ def plan_round(records: list[dict], state: dict, floor: float, ladder_size: int,
         if row["psnr_db"] >= floor:
             continue
         st = state[s]
-        grow = st["next"] < ladder_size
-        split = can_split(s)
-        if grow and (not st["stalled"] or not split):
+        grow = st["next"] < ladder_size and not st["stalled"]
+        longer = st["index"] >= 0 and 2 * st.get("steps", 1) <= MAX_STEPS and not st.get("longer_stalled", False)
+        if grow:
             out.append((s, "grow"))
-        elif split:
+        elif longer:
+            out.append((s, "longer"))
+        elif can_split(s):
             out.append((s, "split"))
+        elif st["next"] < ladder_size:  # cannot be cut: the sizes left are tried anyway
+            out.append((s, "grow"))
         else:
             continue
         held += row["share"]
@@ -123,7 +141,7 @@ def stop_lines(refinement: dict) -> list[str]:
     """The summary's lines of a build that stopped under its floor (empty when it reached it)."""
     if refinement.get("met", True):
         return []
-    why = {"time": f"the build's time ({refinement['budget_s']:.0f} s) spent", "ladder": "no segment under the floor could grow or be cut"}
+    why = {"time": f"the build's time ({refinement['budget_s']:.0f} s) spent", "ladder": "no segment under the floor could grow, train longer or be cut"}
     lines = [f"BELOW THE FLOOR: held-out PSNR {refinement['psnr_db']:.2f} dB (diffuse, under {refinement['light']}) < floor "
              f"{refinement['floor_db']:g} dB after {refinement['rounds']} refinement round(s); stopped: {why.get(refinement['ended'], refinement['ended'])}",
              "  the error is in (segment: share of the error, its PSNR, objects):"]  # fmt: skip
@@ -166,7 +184,7 @@ class RefineJob:
     lights: dict
     vertex: object
     data_key: str
-    fit_cache: object  # (pre_key, segment) -> a fit cache (prt.train.fit_cache._FitCache)
+    fit_cache: object  # (pre_key, segment, fit settings) -> a fit cache (prt.train.fit_cache._FitCache)
     object_names: list
     t_start: float
     log: object = print
@@ -186,21 +204,24 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
     unsplittable: set[int] = set()
     actions, rounds, start_psnr = [], 0, scene_psnr(records)
 
-    spent: list[float] = []  # seconds of each refit so far: a grow is one, a split two
+    spent: dict[str, float] = {}  # per size, the most seconds per step-multiple of its refits so far (a fit at 4x the steps: its seconds / 4)
 
     def elapsed() -> float:
         return job.clock() - job.t_start
 
-    def left(fits: int) -> bool:
-        """Time is left for ``fits`` more refits (as long as the longest one so far): none is started that
-        would end past the budget.  (The mean let the orchids' build end 2.4 s past its 1200 s: its last
-        refits, larger networks on more samples, took longer than the mean.)"""
-        return elapsed() + fits * (max(spent) if spent else 0.0) + END_RESERVE_S < budget
+    def left(fits: int, steps: int = 1, arch=None) -> bool:
+        """Time is left for ``fits`` more refits of ``arch`` at ``steps`` times the build's steps, each as long per
+        step as that size's longest so far (any size's, for a size not fitted yet): none is started that would end
+        past the budget.  (The mean let the orchids' build end 2.4 s past its 1200 s: its last refits, larger
+        networks on more samples, took longer than the mean.)"""
+        per = spent.get(arch.label()) if arch is not None else None
+        per = per if per is not None else max(spent.values(), default=0.0)
+        return elapsed() + fits * steps * per + END_RESERVE_S < budget
 
     def can_split(s: int) -> bool:
         return len(records) < cap and s not in unsplittable and records[s]["samples"] >= 2 * MIN_SAMPLES
 
-    def fit(s: int, arch, like: dict, changed: bool, round_: int, action: str) -> dict:
+    def fit(s: int, arch, steps: int, like: dict, changed: bool, round_: int, action: str) -> dict:
         residual = bool((like.get("residual") or {}).get("used"))
         sub = dataclasses.replace(spec, residual="on" if residual else "off", analytic=False)  # under the floor: a network
         if not spec.vertex_rule() or job.vertex is None:
@@ -208,11 +229,12 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
             sub = dataclasses.replace(sub, fixed=keep, match=None, target_db=None, vertex_margin=None)
         own = np.flatnonzero(samples["segment"] == s)
         pre_key = fit_hash(job.data_key, REFINE_VERSION, _digest(members[s], own, np.flatnonzero(valid["segment"] == s))) if changed else job.data_key
+        settings = scaled_steps(job.fit_settings, steps)
         t0 = job.clock()
-        record = train_segment(sub, s, samples, valid, members[s], [arch], job.fit_settings, job.lights, False, log, job.fit_cache(pre_key, s),
+        record = train_segment(sub, s, samples, valid, members[s], [arch], settings, job.lights, False, log, job.fit_cache(pre_key, s, settings),
                                vertex=job.vertex if spec.vertex_rule() else None)  # fmt: skip
-        spent.append(job.clock() - t0)
-        record["refined"] = {"round": round_, "action": action, "from": like.get("arch_label", like["kind"]),
+        spent[arch.label()] = max(spent.get(arch.label(), 0.0), (job.clock() - t0) / steps)
+        record["refined"] = {"round": round_, "action": action, "steps": steps, "from": like.get("arch_label", like["kind"]),
                              "from_psnr_db": round(light_psnr(like), 3), "psnr_db": round(light_psnr(record), 3)}  # fmt: skip
         record["sizing"]["reason"] += f"; refined ({action}, round {round_}) toward the floor {floor:g} dB"
         return record
@@ -242,23 +264,28 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
         rounds += 1
         log(f"refine round {rounds}: held-out {psnr:.2f} dB < floor {floor:g} dB ({elapsed():.0f} of {budget:.0f} s); "
             + ", ".join(f"{a} segment {s}" for s, a in todo))  # fmt: skip
-        out_of_time = False
+        ran = 0
         for s, action in todo:
-            if not left(1 if action == "grow" else 2):
-                out_of_time = True
-                break
             before = records[s]
             st = state[s]
-            if action == "grow":
-                j = st["next"]
-                record = fit(s, archs[j], before, st["changed"], rounds, "grow")
+            # a split's halves train half the whole's steps each (as many passes over their half of the samples)
+            steps = {"grow": max(st["steps"], REFIT_STEPS), "longer": 2 * st["steps"]}.get(action, max(1, st["steps"] // 2))
+            j = {"grow": st["next"], "longer": st["index"]}.get(action, st["index"] if st["index"] >= 0 else (len(archs) - 1) // 2)
+            if not left(2 if action == "split" else 1, steps, archs[j]):
+                continue  # not in the time left: a cheaper action of this round may be
+            ran += 1
+            if action in ("grow", "longer"):
+                record = fit(s, archs[j], steps, before, st["changed"], rounds, action)
                 gain = light_psnr(record) - light_psnr(before)
-                st["next"] = j + 1
-                st["stalled"] = gain < MIN_GAIN_DB
+                if action == "grow":
+                    st["next"] = j + 1
+                    st["stalled"] = gain < MIN_GAIN_DB
+                else:
+                    st["longer_stalled"] = gain < MIN_GAIN_DB
                 if gain > 0:
                     records[s] = store(record)
-                    st["index"] = j
-                actions.append({"round": rounds, "segment": s, "action": "grow", "to": archs[j].label(), "kept": gain > 0,
+                    st["index"], st["steps"] = j, steps
+                actions.append({"round": rounds, "segment": s, "action": action, "to": archs[j].label(), "steps": steps, "kept": gain > 0,
                                 "psnr_db": [round(light_psnr(before), 3), round(light_psnr(record), 3)]})  # fmt: skip
                 continue
             saved = (tree, samples["segment"], valid["segment"].copy(), members[s])
@@ -273,11 +300,11 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
             members.append(with_margin(samples["points"], samples["segment"], new, tree["delta"]))
             for g in (s, new):
                 tree["segments"][g]["margin_samples"] = int(len(members[g]) - tree["segments"][g]["samples"])
-            arch = archs[st["index"]] if st["index"] >= 0 else archs[(len(archs) - 1) // 2]
+            arch = archs[j]
             records.append(None)  # the new segment's place
-            halves = [fit(g, arch, before, True, rounds, "split") for g in (s, new)]
+            halves = [fit(g, arch, steps, before, True, rounds, "split") for g in (s, new)]
             kept = scene_psnr(halves) > light_psnr(before)  # the two halves' pooled held-out PSNR against the whole's
-            actions.append({"round": rounds, "segment": s, "action": "split", "into": [s, new], "size": arch.label(), "kept": kept,
+            actions.append({"round": rounds, "segment": s, "action": "split", "into": [s, new], "size": arch.label(), "steps": steps, "kept": kept,
                             "psnr_db": [round(light_psnr(before), 3), *(round(light_psnr(h), 3) for h in halves)]})  # fmt: skip
             if not kept:  # no better in two: the segment stays whole, and is not cut again
                 tree, samples["segment"], valid["segment"], members[s] = saved
@@ -287,8 +314,8 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
                 continue
             for g, half in zip((s, new), halves):
                 records[g] = store(half)
-                state[g] = {**_fresh(st["index"], len(archs)), "changed": True}
-        if out_of_time:
+                state[g] = {**_fresh(st["index"], len(archs)), "steps": steps, "changed": True}
+        if not ran:
             ended = "time"
             break
     else:
@@ -305,8 +332,24 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
 
 
 def _fresh(index: int, ladder_size: int) -> dict:
-    """A segment's refinement state: its rung, the next rung to try, whether growing stalled, whether its samples changed."""
-    return {"index": index, "next": index + 1 if index >= 0 else (ladder_size - 1) // 2, "stalled": False, "changed": False}
+    """A segment's refinement state: its rung, the next rung to try, whether growing stalled, its steps (a multiple of
+    the build's), whether doubling them stalled, whether its samples changed."""
+    return {"index": index, "next": index + 1 if index >= 0 else (ladder_size - 1) // 2, "stalled": False, "steps": 1,
+            "longer_stalled": False, "changed": False}  # fmt: skip
+
+
+def scaled_steps(settings, times: int):
+    """``settings`` (:class:`prt.train.networks.fit.FitSettings`) training ``times`` as long: its steps (the
+    default's where unset), or its epochs in an epoch-based run, and its time budget per fit."""
+    if times == 1:
+        return settings
+    if settings.steps is None and settings.epochs is not None:
+        longer = {"epochs": settings.epochs * times}
+    else:
+        longer = {"steps": (DEFAULT_STEPS if settings.steps is None else settings.steps) * times}
+    if settings.max_seconds is not None:
+        longer["max_seconds"] = settings.max_seconds * times
+    return dataclasses.replace(settings, **longer)
 
 
 def _reassign_validation(tree: dict, valid: dict, s: int, new: int) -> None:
