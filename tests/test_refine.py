@@ -331,6 +331,42 @@ def test_no_refit_starts_inside_the_end_reserve(tmp_path):
     assert lines and lines[0].startswith("refine round 1")
 
 
+def test_a_refit_that_does_not_fit_in_the_time_left_is_passed_over_for_cheaper_ones(tmp_path, monkeypatch):
+    """Near the budget's end a segment's next refit (the ladder's top size at 4x the steps) would end past it:
+    it is passed over while smaller sizes' refits still fit, and no refit ends inside the end reserve.
+    The fits are stand-ins that take a set time per size and step on the test's clock, each 0.5 dB (the top size)
+    or 0.6 dB better: the top-size segment stays among the worst and is planned in round after round."""
+    spec = spec_from_dict({"geometry": "x.obj"})  # standard: floor 35 dB, budget 1200 s
+    archs = [a for a in spec.architectures() if hasattr(a, "hidden")]
+    top, small = archs[-1], archs[0]
+    now, fitted = [1050.0], {}
+
+    def arch_record(s, arch, psnr):
+        return {"id": s, "samples": 100, "validation_samples": 10, "kind": "network", "arch_label": arch.label(),
+                "arch": {"hidden": arch.hidden, "layers": arch.layers, "pos_freqs": arch.pos_freqs},
+                "sizing": {"psnr_db": {"potsdamer": psnr}, "reason": "fitted"}}  # fmt: skip
+
+    def fake_fit(sub, s, samples, valid, members, ladder, settings, *args, **kwargs):
+        (arch,) = ladder
+        now[0] += (30.0 if arch == top else 1.0) * settings.steps / spec.fit_settings().steps  # seconds per 1x the steps
+        fitted[s] = fitted.get(s, 0) + 1
+        return arch_record(s, arch, 15.0 + (0.5 if s == 0 else 0.6) * fitted[s])
+
+    monkeypatch.setattr(refine, "train_segment", fake_fit)
+    records = [arch_record(0, top, 15.0), arch_record(1, small, 15.0), arch_record(2, small, 15.0)]  # 0: at the ladder's top
+    samples = {"segment": np.array([0, 1, 2]), "object_ids": np.zeros(3, dtype=np.int64)}
+    job = refine.RefineJob(spec, tmp_path, {"segments": [{"id": s} for s in range(3)]}, samples, {"segment": np.array([0, 1, 2])},
+                           [np.array([s]) for s in range(3)], spec.architectures(), spec.fit_settings(), {}, None, "key",
+                           lambda *a: None, ["a"], t_start=0.0, log=lambda line: None, clock=lambda: now[0])  # fmt: skip
+    _, _, report = refine.refine_build(job, records)
+    top_actions = [(a["round"], a["action"], a["steps"]) for a in report["actions"] if a["segment"] == 0]
+    assert top_actions == [(1, "longer", 2)], report["actions"]  # 60 s; at 4x (120 s) it never fits again
+    later = [a for a in report["actions"] if a["round"] > 1]
+    assert later and all(a["segment"] != 0 for a in later)  # the smaller sizes' refits go on
+    assert max(a["round"] for a in later) >= 4  # past the rounds that planned segment 0 and passed it over
+    assert report["ended"] == "time" and now[0] + refine.END_RESERVE_S <= float(spec.build_budget)
+
+
 @pytest.mark.parametrize("floor", [None, 80.0])
 def test_the_unshadowed_shortcut_keeps_to_the_floor(two_objects, tmp_path, floor):
     """Where vertex PRT is poor the unshadowed transfer beats it by the margin (the ball's lit cap does here);
