@@ -26,8 +26,8 @@ segments) that are under the floor themselves, and for each (:func:`plan_round`)
   stays whole and is not cut again).
 
 The steps axis comes from the Duplex house (issue 43): its fits at the preset's 1,000 steps are far
-from converged (its five worst segments, one-off: the same size at 3x the steps +1.5 to +2.8 dB;
-one size up at 1x -0.6 to +3.6 dB, at 2x the steps -0.0 to +5.1 dB).
+from converged (its five worst segments, ``studies/refine_steps.py``, ``docs/benchmarks/refine_steps_duplex.json``:
+the same size at 3x the steps +1.5 to +2.8 dB; one size up at 1x -0.6 to +3.6 dB, at 2x the steps -0.0 to +5.1 dB).
 
 No action is kept unless it is more accurate, so refinement does not lower a segment's PSNR.
 
@@ -111,7 +111,7 @@ def plan_round(records: list[dict], state: dict, floor: float, ladder_size: int,
             continue
         st = state[s]
         grow = st["next"] < ladder_size and not st["stalled"]
-        longer = st["index"] >= 0 and 2 * st.get("steps", 1) <= MAX_STEPS and not st.get("longer_stalled", False)
+        longer = st["index"] >= 0 and 2 * st["steps"] <= MAX_STEPS and not st["longer_stalled"]
         if grow:
             out.append((s, "grow"))
         elif longer:
