@@ -43,6 +43,7 @@ from prt.runtime.files import atomic_write_bytes, atomic_write_json
 from prt.runtime.manifest import load_manifest
 from prt.runtime.segmentation import segment_of
 from prt.train.build import _env_lights
+from prt.train.networks.fit import total_transfer
 from prt.train.transport.interreflection import bounce_stage
 from prt.train.transport.transfer import compute_transfer, make_tracer
 
@@ -134,9 +135,7 @@ def main(argv: list[str] | None = None) -> int:
         # the segments by the manifest's rule: samples.npz keeps the precompute's, before refinement's splits
         seg = segment_of(manifest, pts.astype(np.float64), samples["object_ids"][idx]).astype(np.int64)
         _, out = networks.compute_reference(np.concatenate([pts, nrm], axis=1).astype(np.float32), seg)
-        n = 16
-        net = shade(out[:, :n], light) if out.shape[1] == n else shade(out[:, :n], light) + sum(
-            np.einsum("pk,k->p", out[:, n * (c + 1) : n * (c + 2)].astype(np.float64), light[:, c]) for c in range(3)) / 3.0  # fmt: skip
+        net = shade(total_transfer(out, light.shape[0]), light)
         rt, rn = relative(target, ref), relative(net, ref)
         segs = []
         for s in np.unique(seg):
