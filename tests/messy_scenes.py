@@ -126,3 +126,17 @@ def doubled_sheets(folder: Path) -> Path:
     lines += [f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in f[-2:]]
     path.write_text("".join(lines))
     return path
+
+
+def clad_wall(folder: Path) -> Path:
+    """Cladding as BIM and CAD files carry it: an open panel standing off a closed wall by a batten's
+    depth (0.004 of the scene's 2-unit span: 4 cm on a 20 m building), on a ground.  Light reaches
+    the wall's face behind the panel through the gap's rim, so the reachable-sides flood keeps it;
+    no camera fits in the gap."""
+    scene = trimesh.Scene()
+    scene.add_geometry(box((-1.5, 0, -0.1), (1.5, 1.5, 0.1)), node_name="wall")
+    z = -0.1 - 0.008  # source units: the ground's 4-unit side is the 2-unit span
+    panel = trimesh.Trimesh([[-1, 0.2, z], [1, 0.2, z], [1, 1.2, z], [-1, 1.2, z]], [[0, 2, 1], [0, 3, 2]], process=False)
+    scene.add_geometry(panel, node_name="panel")
+    scene.add_geometry(ground(0.0, 2.0), node_name="ground")
+    return _write(scene, Path(folder) / "clad_wall.glb")

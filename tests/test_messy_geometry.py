@@ -9,7 +9,10 @@ do) and compared with transfer ray-traced at that pixel with the side the camera
 per-pixel reference.  Before the reachable-sides rule (prt.train.inputs.visibility) the BIM wall
 failed this by a factor of ten (its facade's samples were mostly dark ones from between the layers);
 before its gap rule the doubled petals failed it, 17 % off against 2 % with it (dark samples on the
-inner sides, a hair from the lit outer ones with the same normal; one scratch run).
+inner sides, a hair from the lit outer ones with the same normal; one scratch run).  A panel stood
+off a wall by 0.004 (cladding on battens) is 27 % off with the rule's first width (0.002) and 10 %
+with its width now (0.006): the wall's samples near the gap's rim, which light reaches through it,
+stay (its tolerance below is wider for that).
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ import messy_scenes
 
 # Relative mean error of the DC coefficient at the camera's pixels, nearest samples vs reference.
 TOLERANCE = 0.05
+CASE_TOLERANCE = {"clad_wall": 0.15}  # the samples near the rim of the gap behind the panel stay (module docstring)
 
 
 def _camera_points(geometry, eye, target, size=48, fov=50.0):
@@ -93,6 +97,7 @@ VIEWS = {  # (eye, target) in the normalised scene
     "mirrored_instances": [((0.3, 1.0, 1.8), (0, 0.1, 0)), ((-0.4, 1.2, -1.6), (0, 0.1, 0))],
     "slivers": [((1.5, 1.2, -1.5), (0, 0, 0))],
     "doubled_sheets": [((1.2, 1.6, -1.4), (0, 0.5, 0)), ((-1.5, 1.3, 0.9), (0, 0.5, 0))],
+    "clad_wall": [((0.3, 0.5, -1.6), (0, 0.35, 0)), ((-0.8, 0.7, -1.2), (0, 0.35, 0))],
 }
 
 
@@ -101,7 +106,7 @@ def test_samples_agree_with_what_the_camera_sees(case, tmp_path):
     path = getattr(messy_scenes, case)(tmp_path)
     geometry, samples = _precomputed(path, tmp_path)
     error = _agreement(geometry, samples["points"], samples["normals"], samples["transfer"], VIEWS[case])
-    assert error < TOLERANCE, f"{case}: nearest samples off the per-pixel reference by {100 * error:.1f} %"
+    assert error < CASE_TOLERANCE.get(case, TOLERANCE), f"{case}: nearest samples off the per-pixel reference by {100 * error:.1f} %"
 
 
 def test_without_the_rule_the_layered_wall_fails(tmp_path):
@@ -123,6 +128,18 @@ def test_without_the_gap_rule_doubled_sheets_fail(tmp_path, monkeypatch):
     geometry, samples = _precomputed(messy_scenes.doubled_sheets(tmp_path), tmp_path)
     error = _agreement(geometry, samples["points"], samples["normals"], samples["transfer"], VIEWS["doubled_sheets"])
     assert error > 3 * TOLERANCE
+
+
+def test_with_the_narrow_gap_the_clad_wall_fails(tmp_path, monkeypatch):
+    """The wall's face behind a panel stood off it by 0.004 lies beyond a gap of 0.002 (the rule's
+    width before): its dark samples, with the panel's normal, are then nearer the panel's pixels than
+    most of the panel's own."""
+    from prt.train.inputs import visibility
+
+    monkeypatch.setattr(visibility, "GAP", 0.002)
+    geometry, samples = _precomputed(messy_scenes.clad_wall(tmp_path), tmp_path)
+    error = _agreement(geometry, samples["points"], samples["normals"], samples["transfer"], VIEWS["clad_wall"])
+    assert error > 1.5 * CASE_TOLERANCE["clad_wall"]
 
 
 def test_doubled_sheets_keep_only_their_outer_sides(tmp_path):
