@@ -11,8 +11,8 @@ failed this by a factor of ten (its facade's samples were mostly dark ones from 
 before its gap rule the doubled petals failed it, 17 % off against 2 % with it (dark samples on the
 inner sides, a hair from the lit outer ones with the same normal; one scratch run).  A panel stood
 off a wall by 0.004 (cladding on battens) is 27 % off with the rule's first width (0.002) and 10 %
-with its width now (0.006): the wall's samples near the gap's rim, which light reaches through it,
-stay (its tolerance below is wider for that).
+with its width now (0.006; one scratch run, the tests below hold both sides): the wall's samples
+near the gap's rim, which light reaches through it, stay (its tolerance below is wider for that).
 """
 
 from __future__ import annotations

@@ -46,10 +46,11 @@ How close is close: :data:`GAP` is 0.3 % of the scene's span (5 cm on a 20 m hou
 plant).  A BIM wall's finish, cladding and lining layers stand 2 to 10 cm apart: at 0.1 % (the
 rule's first width) the Duplex house kept samples on the faces a layer or two behind the room
 sides the camera sees, 0.002-0.005 behind them with the same normal and mostly dark (4,552 of them
-within 0.03 of the samples one inside view sees), and its networks drew blotches over the rooms'
-walls and floors.  At 0.3 % the house's inside views went from 19.3 to 21.4 dB and its outside
-views from 27.2 to 30.7 dB (one build each, ``studies/scenes_real.py`` records the standard
-figures), its leak figure inside from 16 % to 0.8 %.  A corridor, a room, the space under a
+within 0.03 of the samples one inside view sees: a scratch count), and its networks drew blotches
+over the rooms' walls and floors.  At 0.3 % the house's inside views went from 19.3 to 21.4 dB and
+its outside views from 27.2 to 30.7 dB, its leak figure inside from 16 % to 0.8 %
+(``docs/benchmarks/scenes_real.json`` and ``scenes_real_before_gap6.json``, ``studies/scenes_real.py``);
+at 0.5 % (one scratch build) it was at 20.8 / 29.9 dB: wider is not better.  A corridor, a room, the space under a
 table are far wider than that in any scene a camera walks through; a gap a camera could enter
 at 0.3 % of the span would need a level about 300 times a person's width across.
 """
