@@ -108,6 +108,27 @@ def test_error_shares_weigh_area_by_error_and_the_round_takes_the_worst_under_th
     assert refine.plan_round(records, state, 10.0, 3, lambda s: True) == []  # every segment over the floor
 
 
+def test_the_stop_report_names_the_segments_worst_at_their_own_exposure_whatever_their_area():
+    """A room's wall: few samples and dark, so last by area at exposure 1, yet a view inside shows it exposed for it."""
+    records = [_record(0, 40000, 31.0), _record(1, 30000, 30.0), _record(2, 500, 33.0), _record(3, 400, 34.0), _record(4, 300, 34.5),
+               _record(5, 20000, 36.0, kind="analytic")]  # fmt: skip
+    for r, exposed in zip(records[:5], (31.0, 32.0, 18.0, 22.0, 20.0)):
+        r["sizing"]["exposed_psnr_db"] = exposed
+    home = np.repeat(np.arange(6), 10)
+    object_ids = np.repeat([0, 0, 1, 2, 2, 0], 10)
+    names = ["walls", "closet", "bath"]
+    by_area = refine.worst_segments(records, home, object_ids, names, count=2)
+    assert [w["segment"] for w in by_area] == [0, 1] and by_area[0]["exposed_psnr_db"] == 31.0
+    exposed = refine.worst_exposed(records, home, object_ids, names, count=3)
+    assert [(w["segment"], w["exposed_psnr_db"], w["objects"]) for w in exposed] == [(2, 18.0, ["closet"]), (4, 20.0, ["bath"]), (3, 22.0, ["bath"])]
+    assert 5 not in [r["segment"] for r in refine.exposed_order(records)]  # no figure (analytic): not ranked
+    lines = refine.stop_lines({"met": False, "psnr_db": 30.5, "light": "potsdamer", "floor_db": 35.0, "rounds": 2, "ended": "time",
+                               "budget_s": 1200.0, "worst": by_area, "worst_exposed": exposed})  # fmt: skip
+    at = next(i for i, line in enumerate(lines) if "own exposure" in line)
+    assert lines[at + 1].split() == ["segment", "2:", "18.00", "dB,", "33.00", "dB,", "closet"]
+    assert refine.stop_lines({"met": True}) == []
+
+
 def test_scaled_steps_trains_longer_by_steps_epochs_and_time_budget():
     from prt.train.networks.fit import DEFAULT_STEPS, FitSettings
 

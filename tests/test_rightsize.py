@@ -25,7 +25,8 @@ from prt.train.build import spec_from_dict
 from prt.train.networks.fit import DEFAULT_LADDER
 from prt.train.networks.grid_encoding import GridArchitecture
 from prt.train.networks.network import Architecture, TransferMLP, evaluate_numpy, target_scaling
-from prt.train.networks.rightsize import candidates, search_cheapest, shaded_psnr
+from prt.runtime.exposure import KEY, LUMINANCE
+from prt.train.networks.rightsize import candidates, exposed_psnr, search_cheapest, shaded_psnr
 
 DATA = Path(__file__).parent / "data"
 
@@ -61,6 +62,37 @@ def test_shaded_psnr_matches_a_per_sample_loop(width):
     # more error, less PSNR
     worse = shaded_psnr(truth + rng.normal(0, 0.1, truth.shape), truth, {"a": light}, n, albedo)["a"]
     assert worse < fast
+
+
+def test_exposed_psnr_scores_a_dark_room_as_a_view_exposed_for_it_would():
+    """The same 5 % error on a lit facade and on a room 1/40 as bright: at exposure 1 the room's error hardly counts
+    (9 dB less here: sRGB's slope near black gives some back), at its own auto exposure it counts as the facade's."""
+    rng = np.random.default_rng(5)
+    n = 16
+    truth = np.zeros((400, n))
+    truth[:, 0] = rng.uniform(0.2, 0.4, 400)  # a DC term: positive radiance under a DC light
+    truth[:, 1:4] = rng.normal(0.0, 0.02, (400, 3))
+    pred = truth * (1.0 + rng.normal(0.0, 0.05, (400, 1)))
+    light = np.zeros((n, 3))
+    light[0] = 2.0
+    albedo = [0.8, 0.8, 0.8]
+    bright = exposed_psnr(pred, truth, light, n, albedo)
+    dark = exposed_psnr(pred / 40, truth / 40, light, n, albedo)
+    assert dark == pytest.approx(bright, abs=0.05)  # the exposure follows the light
+    at_one_bright = shaded_psnr(pred, truth, {"a": light}, n, albedo)["a"]
+    at_one_dark = shaded_psnr(pred / 40, truth / 40, {"a": light}, n, albedo)["a"]
+    assert at_one_dark > at_one_bright + 5  # exposure 1: the dark room's error counts far less
+    # the same figure written out: shaded_psnr at the exposure that puts the truth's median luminance at the key
+    rt = np.maximum((truth / 40 @ light) * np.asarray(albedo), 0.0)
+    exposure = KEY / np.median(rt @ np.asarray(LUMINANCE))
+    assert dark == pytest.approx(shaded_psnr(pred / 40, truth / 40, {"a": light}, n, albedo, exposure=exposure)["a"], abs=1e-9)
+    # a third of the samples black (backs against walls): the exposure still follows the lit ones
+    black = truth.copy()
+    black[:130] = 0.0
+    lit = exposed_psnr(pred[130:], truth[130:], light, n, albedo)
+    assert exposed_psnr(np.where(black == 0.0, 0.0, pred), black, light, n, albedo) > lit - 2.0
+    assert exposed_psnr(truth, truth, light, n, albedo) == 100.0
+    assert exposed_psnr(pred * 1.1, truth, light, n, albedo) < bright  # a bias on top: worse
 
 
 class _Fit:

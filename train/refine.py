@@ -34,7 +34,13 @@ No action is kept unless it is more accurate, so refinement does not lower a seg
 It ends at the floor (``"floor"``), when the time is spent (``"time"``), or when no segment under
 the floor can grow, train longer or be cut (``"ladder"``).  Stopping short, the report names the absolute PSNR,
 the floor, and the segments holding most of the error with the objects whose samples they hold
-(:func:`worst_segments`).
+(:func:`worst_segments`), and the segments worst at their own exposure (:func:`worst_exposed`): a
+room lit through its windows is dark at exposure 1, so the area-weighted figure ranks it last, while
+a view inside it is exposed for its light.  (Refinement does not act on that second list: taking its
+two worst each round as well (exposed then at their log-average, not yet the median), one scratch
+Duplex build scored 21.12 / 30.59 dB inside / outside against the recorded 21.35 / 30.71 without;
+at the median's exposure the list's head is the same kind of segment; its worst are the large segments that hold a facade's lit side and a room's
+dark one, where a network fitted in absolute terms spends itself on the lit samples.)
 
 Every fit goes through the fit cache (a refined segment's fits keyed by its samples), and the
 rounds' decisions follow from the fitted PSNRs alone, so an interrupted build resumes: the rounds
@@ -61,7 +67,7 @@ from .networks.segments import split_segment, with_margin
 from .presets import DEFAULT_QUALITY, LEAF_CAP
 
 __all__ = ["REFINE_VERSION", "MIN_GAIN_DB", "REFIT_STEPS", "MAX_STEPS", "END_RESERVE_S", "PER_ROUND", "ERROR_SHARE", "WORST_SHOWN", "light_psnr", "scene_psnr", "error_shares",
-           "plan_round", "worst_segments", "refine_build", "stop_lines", "scaled_steps"]  # fmt: skip
+           "plan_round", "worst_segments", "worst_exposed", "exposed_psnr", "exposed_order", "refine_build", "stop_lines", "scaled_steps"]  # fmt: skip
 
 REFINE_VERSION = "refine-v1"  # part of a split segment's fit-cache key
 MIN_GAIN_DB = 0.5  # a size up (or a doubling of the steps) that gains less: that axis is done for the segment
@@ -126,15 +132,42 @@ def plan_round(records: list[dict], state: dict, floor: float, ladder_size: int,
     return out
 
 
+def exposed_psnr(record: dict) -> float | None:
+    """A segment's held-out PSNR at its own samples' exposure (:func:`prt.train.networks.rightsize.exposed_psnr`:
+    what a view it fills, exposed for it, shows); None where the record has none (analytic, older records)."""
+    value = (record.get("sizing") or {}).get("exposed_psnr_db")
+    return None if value is None else float(value)
+
+
+def exposed_order(records: list[dict]) -> list[dict]:
+    """The segments that have :func:`exposed_psnr`, worst first, whatever their area."""
+    rows = [{"segment": int(r["id"]), "exposed_psnr_db": round(exposed_psnr(r), 3), "psnr_db": round(light_psnr(r), 3)}
+            for r in records if exposed_psnr(r) is not None]  # fmt: skip
+    return sorted(rows, key=lambda r: (r["exposed_psnr_db"], r["segment"]))
+
+
+def _objects(segment: int, home: np.ndarray, object_ids: np.ndarray, names: list[str]) -> list[str]:
+    """The (at most three) objects most of a segment's samples lie on, most first."""
+    ids, n = np.unique(np.asarray(object_ids)[np.asarray(home) == segment], return_counts=True)
+    order = np.argsort(-n, kind="stable")
+    return [names[int(ids[i])] if 0 <= int(ids[i]) < len(names) else str(int(ids[i])) for i in order[:3]]
+
+
 def worst_segments(records: list[dict], home: np.ndarray, object_ids: np.ndarray, names: list[str], count: int = WORST_SHOWN) -> list[dict]:
-    """The ``count`` segments holding most of the error: id, share, PSNR and the objects of their samples (most first)."""
+    """The ``count`` segments holding most of the error: id, share, PSNR (and at its own exposure, where known) and
+    the objects of their samples (most first)."""
     out = []
     for row in error_shares(records)[:count]:
-        ids, n = np.unique(np.asarray(object_ids)[np.asarray(home) == row["segment"]], return_counts=True)
-        order = np.argsort(-n, kind="stable")
-        objects = [names[int(ids[i])] if 0 <= int(ids[i]) < len(names) else str(int(ids[i])) for i in order[:3]]
-        out.append({**row, "objects": objects})
+        exposed = exposed_psnr(records[row["segment"]])
+        out.append({**row, **({"exposed_psnr_db": round(exposed, 3)} if exposed is not None else {}),
+                    "objects": _objects(row["segment"], home, object_ids, names)})  # fmt: skip
     return out
+
+
+def worst_exposed(records: list[dict], home: np.ndarray, object_ids: np.ndarray, names: list[str], count: int = WORST_SHOWN) -> list[dict]:
+    """The ``count`` segments worst at their own exposure (:func:`exposed_order`) with their objects: where a view
+    inside a dark room shows the most error, which the area-weighted :func:`worst_segments` ranks last."""
+    return [{**row, "objects": _objects(row["segment"], home, object_ids, names)} for row in exposed_order(records)[:count]]
 
 
 def stop_lines(refinement: dict) -> list[str]:
@@ -147,6 +180,10 @@ def stop_lines(refinement: dict) -> list[str]:
              "  the error is in (segment: share of the error, its PSNR, objects):"]  # fmt: skip
     for w in refinement["worst"]:
         lines.append(f"    segment {w['segment']}: {100 * w['share']:.0f} %, {w['psnr_db']:.2f} dB, {', '.join(w['objects'])}")
+    if refinement.get("worst_exposed"):
+        lines.append("  worst at their own exposure (a view they fill, exposed for them: dark rooms; segment: that PSNR, at exposure 1, objects):")
+        for w in refinement["worst_exposed"]:
+            lines.append(f"    segment {w['segment']}: {w['exposed_psnr_db']:.2f} dB, {w['psnr_db']:.2f} dB, {', '.join(w['objects'])}")
     return lines
 
 
@@ -326,6 +363,7 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
                   "actions": actions}  # fmt: skip
     if psnr < floor:
         refinement["worst"] = worst_segments(records, samples["segment"], samples["object_ids"], job.object_names)
+        refinement["worst_exposed"] = worst_exposed(records, samples["segment"], samples["object_ids"], job.object_names)
     if rounds:
         log(f"refinement: {rounds} round(s), held-out {start_psnr:.2f} -> {psnr:.2f} dB (floor {floor:g} dB), {len(records)} segments")
     return records, tree, refinement

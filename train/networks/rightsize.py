@@ -46,6 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
+from ...runtime.exposure import EPS, EXPOSURE_RANGE, KEY, LUMINANCE
 from ...runtime.sh import unshadowed_transfer
 from ...runtime.shading import tonemap
 from .fit import FitSettings, fit_segment, mean_visibility, resolve_loss, right_size, right_size_matching, shaded_error, total_transfer, transfer_error
@@ -54,7 +55,7 @@ from .grid_encoding import evaluate_numpy as grid_evaluate
 from .network import Architecture
 from .network import evaluate_numpy as freq_evaluate
 
-__all__ = ["RULES", "ENDINGS", "pooled_psnr", "scene_sizing", "RESIDUAL_MODES", "RESIDUAL_VISIBILITY", "residual_choice", "PSNR_CAP", "shaded_psnr", "predict_numpy", "candidates", "search_cheapest", "weight_bytes", "train_segment", "SegmentJob",
+__all__ = ["RULES", "ENDINGS", "pooled_psnr", "scene_sizing", "RESIDUAL_MODES", "RESIDUAL_VISIBILITY", "residual_choice", "PSNR_CAP", "shaded_psnr", "exposed_psnr", "predict_numpy", "candidates", "search_cheapest", "weight_bytes", "train_segment", "SegmentJob",
            "segment_task", "validation_split", "SCENE_LIGHT"]  # fmt: skip
 
 RULES = ("fixed", "target_mae", "match", "target_db", "vertex")
@@ -112,16 +113,43 @@ def shaded_psnr(pred, truth, lights: dict, n: int, albedo=DEFAULT_ALBEDO, exposu
     tt = total_transfer(np.asarray(truth, dtype=np.float64), n)
     out = {}
     for name, light in lights.items():
-        light = np.asarray(light, dtype=np.float64)
-        if tp.ndim == 2:
-            rp, rt = tp @ light, tt @ light
-        else:
-            rp, rt = np.einsum("mkc,kc->mc", tp, light), np.einsum("mkc,kc->mc", tt, light)
-        a = tonemap(np.maximum(rp * albedo, 0.0), exposure).astype(np.float64)
-        b = tonemap(np.maximum(rt * albedo, 0.0), exposure).astype(np.float64)
-        mse = float(np.mean((a - b) ** 2)) if a.size else 0.0
-        out[name] = PSNR_CAP if mse <= 10.0 ** (-PSNR_CAP / 10.0) else min(PSNR_CAP, float(-10.0 * np.log10(mse)))
+        rp, rt = _radiance(tp, light, albedo), _radiance(tt, light, albedo)
+        out[name] = _tonemapped_psnr(rp, rt, exposure)
     return out
+
+
+def exposed_psnr(pred, truth, light, n: int, albedo=DEFAULT_ALBEDO) -> float:
+    """:func:`shaded_psnr` under one light at the exposure that puts the median luminance of ``truth``'s
+    radiance at :data:`prt.runtime.exposure.KEY`: the samples' error as a view they filled would show
+    it, exposed for them (``prt-bench --exposure auto``).  A room lit through its windows is dark at
+    exposure 1, so its error hardly counts in the absolute figure, while a view inside it is exposed
+    5-20x brighter.  The median, not auto-exposure's log-average: area-uniform samples include the
+    black ones no view shows much of (undersides, backs against walls, the insides of cupboards), and
+    where a segment holds many of them the log-average fell so far that its lit samples saturated
+    and its near-black ones decided the figure (the Duplex's largest segment, 34.5 dB at exposure 1:
+    7.0 dB at its log-average's exposure).
+    """
+    albedo = np.asarray(albedo, dtype=np.float64).reshape(3)
+    rp = _radiance(total_transfer(np.asarray(pred, dtype=np.float64), n), light, albedo)
+    rt = _radiance(total_transfer(np.asarray(truth, dtype=np.float64), n), light, albedo)
+    median = float(np.median(rt @ np.asarray(LUMINANCE))) if len(rt) else 0.0
+    lo, hi = EXPOSURE_RANGE
+    exposure = min(max(KEY / median, lo), hi) if median > EPS else 1.0
+    return _tonemapped_psnr(rp, rt, exposure)
+
+
+def _radiance(t: np.ndarray, light, albedo: np.ndarray) -> np.ndarray:
+    """(M, 3) diffuse radiance ``max(0, a_c sum_k T_kc L_kc)`` of :func:`total_transfer`'s ``t``."""
+    light = np.asarray(light, dtype=np.float64)
+    r = t @ light if t.ndim == 2 else np.einsum("mkc,kc->mc", t, light)
+    return np.maximum(r * albedo, 0.0)
+
+
+def _tonemapped_psnr(rp: np.ndarray, rt: np.ndarray, exposure: float) -> float:
+    a = tonemap(rp, exposure).astype(np.float64)
+    b = tonemap(rt, exposure).astype(np.float64)
+    mse = float(np.mean((a - b) ** 2)) if a.size else 0.0
+    return PSNR_CAP if mse <= 10.0 ** (-PSNR_CAP / 10.0) else min(PSNR_CAP, float(-10.0 * np.log10(mse)))
 
 
 def predict_numpy(arch, arrays: dict, points, normals) -> np.ndarray:
@@ -317,7 +345,7 @@ def train_segment(spec, s, samples, valid, member_idx, archs, fit_settings, ligh
     mode = getattr(spec, "residual", "off")
     use, visibility = residual_choice(mode, t, n, spec.bands)
     base["loss"] = resolve_loss(fit_settings.loss, t, spec.bands)  # what fit_segment makes of "auto" on these samples
-    scores, done = {}, {}
+    scores, done, exposed = {}, {}, {}
 
     def fit(arch):
         if arch in done:  # fitted in this call already (the residual probe, then the sizing rule)
@@ -330,7 +358,10 @@ def train_segment(spec, s, samples, valid, member_idx, archs, fit_settings, ligh
             result = _fit(arch)
             if fits is not None:
                 fits.put(result)
-        scores[arch.label()] = psnr_of(predict_numpy(arch, result.model.arrays(), vp, vn))
+        pred = predict_numpy(arch, result.model.arrays(), vp, vn)
+        scores[arch.label()] = psnr_of(pred)
+        if SCENE_LIGHT in lights:
+            exposed[arch.label()] = round(exposed_psnr(pred, vt, lights[SCENE_LIGHT], n_coeffs, albedo), 3)
         done[arch] = result
         return result
 
@@ -460,7 +491,8 @@ def train_segment(spec, s, samples, valid, member_idx, archs, fit_settings, ligh
         "history": result.history,
         **({"vertex": vertex_record} if vertex_record is not None else {}),
         "sizing": _sizing(rule, spec, arch.label(), scores[arch.label()], met, tried, why, encoding=_encoding(arch),
-                          extra=_vertex_extra(v_psnr, budget, vertex_record["ended"]) if vertex_record else None),
+                          extra={**(_vertex_extra(v_psnr, budget, vertex_record["ended"]) if vertex_record else {}),
+                                 **({"exposed_psnr_db": exposed[arch.label()]} if arch.label() in exposed else {})}),
     }
 
 
