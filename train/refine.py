@@ -36,11 +36,10 @@ the floor can grow, train longer or be cut (``"ladder"``).  Stopping short, the 
 the floor, and the segments holding most of the error with the objects whose samples they hold
 (:func:`worst_segments`), and the segments worst at their own exposure (:func:`worst_exposed`): a
 room lit through its windows is dark at exposure 1, so the area-weighted figure ranks it last, while
-a view inside it is exposed for its light.  (Refinement does not act on that second list: taking its
-two worst each round as well (exposed then at their log-average, not yet the median), one scratch
-Duplex build scored 21.12 / 30.59 dB inside / outside against the recorded 21.35 / 30.71 without;
-at the median's exposure the list's head is the same kind of segment; its worst are the large segments that hold a facade's lit side and a room's
-dark one, where a network fitted in absolute terms spends itself on the lit samples.)
+a view inside it is exposed for its light.  Refinement does not act on that second list: its head
+on the Duplex is the large segments holding a facade's lit side and a room's dark one, and taking its
+two worst each round as well (one scratch build, exposed then at the log-average) scored 21.12 / 30.59
+dB inside / outside against the recorded 21.35 / 30.71 without.
 
 Every fit goes through the fit cache (a refined segment's fits keyed by its samples), and the
 rounds' decisions follow from the fitted PSNRs alone, so an interrupted build resumes: the rounds
@@ -67,7 +66,7 @@ from .networks.segments import split_segment, with_margin
 from .presets import DEFAULT_QUALITY, LEAF_CAP
 
 __all__ = ["REFINE_VERSION", "MIN_GAIN_DB", "REFIT_STEPS", "MAX_STEPS", "END_RESERVE_S", "PER_ROUND", "ERROR_SHARE", "WORST_SHOWN", "light_psnr", "scene_psnr", "error_shares",
-           "plan_round", "worst_segments", "worst_exposed", "exposed_psnr", "exposed_order", "refine_build", "stop_lines", "scaled_steps"]  # fmt: skip
+           "plan_round", "worst_segments", "worst_exposed", "own_exposure_psnr", "exposed_order", "refine_build", "stop_lines", "scaled_steps"]  # fmt: skip
 
 REFINE_VERSION = "refine-v1"  # part of a split segment's fit-cache key
 MIN_GAIN_DB = 0.5  # a size up (or a doubling of the steps) that gains less: that axis is done for the segment
@@ -132,7 +131,7 @@ def plan_round(records: list[dict], state: dict, floor: float, ladder_size: int,
     return out
 
 
-def exposed_psnr(record: dict) -> float | None:
+def own_exposure_psnr(record: dict) -> float | None:
     """A segment's held-out PSNR at its own samples' exposure (:func:`prt.train.networks.rightsize.exposed_psnr`:
     what a view it fills, exposed for it, shows); None where the record has none (analytic, older records)."""
     value = (record.get("sizing") or {}).get("exposed_psnr_db")
@@ -140,9 +139,9 @@ def exposed_psnr(record: dict) -> float | None:
 
 
 def exposed_order(records: list[dict]) -> list[dict]:
-    """The segments that have :func:`exposed_psnr`, worst first, whatever their area."""
-    rows = [{"segment": int(r["id"]), "exposed_psnr_db": round(exposed_psnr(r), 3), "psnr_db": round(light_psnr(r), 3)}
-            for r in records if exposed_psnr(r) is not None]  # fmt: skip
+    """The segments that have :func:`own_exposure_psnr`, worst first, whatever their area."""
+    rows = [{"segment": int(r["id"]), "exposed_psnr_db": round(own_exposure_psnr(r), 3), "psnr_db": round(light_psnr(r), 3)}
+            for r in records if own_exposure_psnr(r) is not None]  # fmt: skip
     return sorted(rows, key=lambda r: (r["exposed_psnr_db"], r["segment"]))
 
 
@@ -158,7 +157,7 @@ def worst_segments(records: list[dict], home: np.ndarray, object_ids: np.ndarray
     the objects of their samples (most first)."""
     out = []
     for row in error_shares(records)[:count]:
-        exposed = exposed_psnr(records[row["segment"]])
+        exposed = own_exposure_psnr(records[row["segment"]])
         out.append({**row, **({"exposed_psnr_db": round(exposed, 3)} if exposed is not None else {}),
                     "objects": _objects(row["segment"], home, object_ids, names)})  # fmt: skip
     return out

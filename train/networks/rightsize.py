@@ -41,12 +41,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from tqdm import tqdm
 
-from ...runtime.exposure import EPS, EXPOSURE_RANGE, KEY, LUMINANCE
+from ...runtime.exposure import LUMINANCE, exposure_from_log_mean
 from ...runtime.sh import unshadowed_transfer
 from ...runtime.shading import tonemap
 from .fit import FitSettings, fit_segment, mean_visibility, resolve_loss, right_size, right_size_matching, shaded_error, total_transfer, transfer_error
@@ -133,9 +134,7 @@ def exposed_psnr(pred, truth, light, n: int, albedo=DEFAULT_ALBEDO) -> float:
     rp = _radiance(total_transfer(np.asarray(pred, dtype=np.float64), n), light, albedo)
     rt = _radiance(total_transfer(np.asarray(truth, dtype=np.float64), n), light, albedo)
     median = float(np.median(rt @ np.asarray(LUMINANCE))) if len(rt) else 0.0
-    lo, hi = EXPOSURE_RANGE
-    exposure = min(max(KEY / median, lo), hi) if median > EPS else 1.0
-    return _tonemapped_psnr(rp, rt, exposure)
+    return _tonemapped_psnr(rp, rt, exposure_from_log_mean(math.log(median) if median > 0.0 else None))
 
 
 def _radiance(t: np.ndarray, light, albedo: np.ndarray) -> np.ndarray:
