@@ -224,7 +224,7 @@ def fit_variant(ch: dict, v: Variant, spec: DeformSpec, lights: dict, log) -> di
         return cols
 
     train, valid = stack("train", roles["train"]), stack("valid", roles["train"])
-    seg = segment_samples(train["rest"], np.zeros(len(train["rest"]), np.int64), train["transfer"], max_segments=v.segments)
+    seg = segment_samples(train["rest"], np.zeros(len(train["rest"]), np.int64), train["transfer"], normals=None, max_segments=v.segments)
     home = seg.assign(valid["rest"], np.zeros(len(valid["rest"]), np.int64))
     arch = Architecture(hidden=v.hidden, layers=v.layers, pos_freqs=spec.pos_freqs, normal_freqs=spec.normal_freqs, bands=4,
                         code_dim=code["dim"], code_freqs=v.freqs, residual=v.residual)  # fmt: skip

@@ -20,6 +20,9 @@ from prt.train.presets import LEAF_CAP, PRESETS, SAMPLES_PER_LEAF, leaf_budget, 
 
 TINY = {"samples": 3000, "validation": 1000, "rays": 24, "steps": 60, "batch": 512, "bounces": 0, "quality": "draft", "segments": 2}
 ONE_SIZE = [{"hidden": 8, "layers": 1, "pos_freqs": 2}]  # a one-size ladder: fits in a second
+# the refinement fixture's one size: too small for the ground's contact shadow, so its halves fit it clearly
+# better (+1.9 dB pooled; with f2 the split gained 0.0 - 0.5 dB, a toss-up between seeds and step counts)
+SPLIT_SIZE = [{"hidden": 8, "layers": 1, "pos_freqs": 1}]
 
 
 @pytest.fixture(scope="module")
@@ -146,7 +149,7 @@ def test_split_segment_cuts_where_the_tree_agrees_with_the_samples():
     points = np.concatenate([rng.uniform([-1, -1, 0], [1, 1, 0.0], (3000, 3)), rng.uniform([-0.3, -0.3, 0.1], [0.3, 0.3, 0.6], (1500, 3))])
     ids = np.repeat([0, 1], [3000, 1500])
     transfer = rng.normal(size=(len(points), 9))
-    seg = segment_samples(points, ids, transfer, max_segments=4, merge=False)
+    seg = segment_samples(points, ids, transfer, normals=None, max_segments=4, merge=False)
     tree = seg.to_json()
     s = int(np.argmax(np.bincount(seg.home)))
     cut = split_segment(tree, points, ids, seg.home, s, min_samples=64)
@@ -171,7 +174,7 @@ def test_split_segment_gives_back_half_of_a_merged_segments_leaves():
     points[:, 2] = 0.0
     ids = np.zeros(len(points), dtype=np.int64)
     flat = np.tile([0.28, 0.0, 0.1, 0.0], (len(points), 1))  # the same transfer everywhere: every leaf merges
-    seg = segment_samples(points, ids, flat, max_segments=8)
+    seg = segment_samples(points, ids, flat, normals=None, max_segments=8)
     assert seg.count == 1 and seg.leaves_before_merge == 8
     tree2, home = split_segment(seg.to_json(), points, ids, seg.home, 0)
     assert sorted(np.unique(home)) == [0, 1] and sum(1 for g in tree2["leaf_segment"] if g == 1) == 4
@@ -210,7 +213,7 @@ def test_an_unreachable_floor_stops_short_and_says_where(two_objects, tmp_path):
 def refined(two_objects, tmp_path_factory, request):
     """A build of a one-size ladder under a floor it cannot reach: one round (the later ones planned away) splits."""
     out = tmp_path_factory.mktemp("refined") / "scene"
-    spec = spec_from_dict({"geometry": str(two_objects), **TINY, "steps": 200, "analytic": False, "vertex_margin": 1.0, "ladder": ONE_SIZE,
+    spec = spec_from_dict({"geometry": str(two_objects), **TINY, "steps": 200, "analytic": False, "vertex_margin": 1.0, "ladder": SPLIT_SIZE,
                            "floor_db": 80.0, "build_budget": 600.0})  # fmt: skip
 
     def build():
@@ -239,7 +242,7 @@ def test_refinement_splits_where_the_error_is_and_raises_the_psnr(refined, two_o
     r = report["refinement"]
     assert r["rounds"] == 1 and r["ended"] == "ladder" and not r["met"]
     splits = [a for a in r["actions"] if a["action"] == "split" and a["kept"]]
-    assert splits and all(a["size"] == "k8-l1-f2" for a in r["actions"])  # the ladder's top: split, not grown
+    assert splits and all(a["size"] == "k8-l1-f1" for a in r["actions"])  # the ladder's top: split, not grown
     assert r["psnr_db"] > r["start_psnr_db"], r
     for a in splits:  # a split is kept where its halves together are more accurate than the whole
         halves = [s for s in report["segments"] if s["id"] in a["into"]]

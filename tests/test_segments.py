@@ -26,7 +26,7 @@ def cornell():
 
 def test_every_sample_has_one_segment_and_segments_respect_objects(cornell):
     geometry, s, t = cornell
-    seg = segment_samples(s.points, s.object_ids, t, max_segments=12, merge=False, min_samples=50)
+    seg = segment_samples(s.points, s.object_ids, t, normals=s.normals, max_segments=12, merge=False, min_samples=50)
     assert seg.count == 12
     assert seg.home.shape == (len(s),) and seg.home.min() == 0 and seg.home.max() == seg.count - 1
     for k in range(seg.count):
@@ -38,7 +38,7 @@ def test_every_sample_has_one_segment_and_segments_respect_objects(cornell):
 def test_margins_hold_neighbours_within_delta_and_nothing_farther(cornell):
     geometry, s, t = cornell
     delta = 0.05
-    seg = segment_samples(s.points, s.object_ids, t, max_segments=12, merge=False, delta=delta, min_samples=50)
+    seg = segment_samples(s.points, s.object_ids, t, normals=s.normals, max_segments=12, merge=False, delta=delta, min_samples=50)
     for k in range(seg.count):
         own = np.flatnonzero(seg.home == k)
         members = seg.members[k]
@@ -51,6 +51,55 @@ def test_margins_hold_neighbours_within_delta_and_nothing_farther(cornell):
     assert sum(len(m) for m in seg.members) > len(s)
 
 
+def _thin_wall(rng, n=3000):
+    """A wall 0.02 thick lying in y (its lit outer face, object 0, normal +y; its inner face, object 1,
+    normal -y: the layers of a BIM wall) and a partition standing on it at x = 0.3 (object 2, normal -x)."""
+    top = np.column_stack([rng.uniform(-1, 1, n), np.full(n, 0.01), rng.uniform(-1, 1, n)])
+    bottom = top * [1, -1, 1]
+    side = np.column_stack([np.full(n // 2, 0.3), rng.uniform(0.01, 0.5, n // 2), rng.uniform(-1, 1, n // 2)])
+    points = np.concatenate([top, bottom, side])
+    normals = np.concatenate([np.tile([0.0, 1, 0], (n, 1)), np.tile([0.0, -1, 0], (n, 1)), np.tile([-1.0, 0, 0], (n // 2, 1))])
+    return points, normals, np.repeat([0, 1, 2], [n, n, n // 2])
+
+
+def test_a_margin_continues_its_own_surface_and_leaves_the_far_face_of_a_thin_wall_out():
+    """A segment of a wall's outer face trained on the inner face's samples 2 cm away (the dark room
+    behind a lit facade) and on the partition standing on it: capacity spent on what its pixels never
+    show.  Its margin holds the samples of its own face across the cut, and only those."""
+    from prt.train.networks.segments import MARGIN_RULE
+
+    rng = np.random.default_rng(5)
+    points, normals, ids = _thin_wall(rng)
+    transfer = rng.normal(size=(len(points), 4))
+    delta = 0.05
+    seg = segment_samples(points, ids, transfer, normals=normals, max_segments=8, merge=False, delta=delta, min_samples=50)
+    plain = segment_samples(points, ids, transfer, normals=None, max_segments=8, merge=False, delta=delta, min_samples=50)
+    assert np.array_equal(seg.home, plain.home)  # the rule changes margins only
+    outer = [k for k in range(seg.count) if ids[seg.home == k][0] == 0]
+    assert len(outer) >= 2  # the outer face is cut, so its segments meet on it
+    for k in range(seg.count):
+        own = seg.home == k
+        extra = np.setdiff1d(seg.members[k], np.flatnonzero(own))
+        face = ids[own][0]
+        assert set(ids[extra]) <= {face}, (k, MARGIN_RULE)  # nothing across the wall, nothing round the corner
+        if len(extra):
+            gaps = np.linalg.norm(points[extra][:, None] - points[own][None], axis=2).min(axis=1)
+            assert gaps.max() <= delta + 1e-9
+    for k in outer:
+        extra = np.setdiff1d(seg.members[k], np.flatnonzero(seg.home == k))
+        plain_extra = np.setdiff1d(plain.members[k], np.flatnonzero(plain.home == k))
+        assert (ids[extra] == 0).sum() > 0  # its own face beyond the cut: the seam
+        assert (ids[plain_extra] == 0).sum() == (ids[extra] == 0).sum()  # all of it, as by distance alone
+        assert (ids[plain_extra] == 1).sum() > (ids[plain_extra] == 0).sum()  # by distance alone, mostly the far face
+    # a curved surface keeps its margin: a sphere cut in 8, by distance alone and by this rule alike
+    v = rng.normal(size=(6000, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    t = rng.normal(size=(len(v), 4))
+    sphere = segment_samples(v, np.zeros(len(v), int), t, normals=v, max_segments=8, merge=False, min_samples=50)
+    sphere_plain = segment_samples(v, np.zeros(len(v), int), t, normals=None, max_segments=8, merge=False, min_samples=50)
+    assert all(np.array_equal(a, b) for a, b in zip(sphere.members, sphere_plain.members))
+
+
 def test_unshadowed_plane_merges_into_one_segment_but_shadowed_regions_stay_apart(tmp_path):
     plane = trimesh.Trimesh([[-1, 0, -1], [1, 0, -1], [1, 0, 1], [-1, 0, 1]], [[0, 2, 1], [0, 3, 2]])
     plane.export(tmp_path / "plane.ply")
@@ -59,7 +108,7 @@ def test_unshadowed_plane_merges_into_one_segment_but_shadowed_regions_stay_apar
     up = s.normals[:, 1] > 0
     s = s.subset(np.flatnonzero(up))
     t = compute_transfer(geometry, s.points, s.normals, rays=64)
-    seg = segment_samples(s.points, s.object_ids, t, max_segments=8, min_samples=50)
+    seg = segment_samples(s.points, s.object_ids, t, normals=s.normals, max_segments=8, min_samples=50)
     assert seg.leaves_before_merge == 8
     assert seg.count == 1  # identical transfer everywhere: one network is enough
 
@@ -71,7 +120,7 @@ def test_unshadowed_plane_merges_into_one_segment_but_shadowed_regions_stay_apar
     geometry = load_geometry(str(tmp_path / "wall.ply"))
     s = sample_surface(geometry, 6000, seed=1)
     t = compute_transfer(geometry, s.points, s.normals, rays=64)
-    merged = segment_samples(s.points, s.object_ids, t, max_segments=8, min_samples=50, by_object=False)
+    merged = segment_samples(s.points, s.object_ids, t, normals=s.normals, max_segments=8, min_samples=50, by_object=False)
     assert 1 < merged.count < merged.leaves_before_merge
     assert (merged.residual_rms <= 0.01 + 1e-12).sum() >= 1
 
@@ -80,7 +129,7 @@ def test_an_object_without_samples_still_gets_a_segment(cornell):
     geometry, s, t = cornell
     light = geometry.object_names.index("light")
     keep = s.object_ids != light  # as if the small light had received no samples
-    seg = segment_samples(s.points[keep], s.object_ids[keep], t[keep], max_segments=6, min_samples=50)
+    seg = segment_samples(s.points[keep], s.object_ids[keep], t[keep], normals=s.normals[keep], max_segments=6, min_samples=50)
     assert all(len(m) > 0 for m in seg.members)
     probe = np.array([[0.0, 0.99, 0.0]])
     got = seg.assign(probe, np.array([light]))
@@ -89,9 +138,13 @@ def test_an_object_without_samples_still_gets_a_segment(cornell):
 
 def test_bad_inputs_are_rejected():
     with pytest.raises(ValueError, match="no samples"):
-        segment_samples(np.zeros((0, 3)), np.zeros(0, int), np.zeros((0, 16)))
+        segment_samples(np.zeros((0, 3)), np.zeros(0, int), np.zeros((0, 16)), normals=np.zeros((0, 3)))
     with pytest.raises(ValueError, match="NaN"):
-        segment_samples(np.full((4, 3), np.nan), np.zeros(4, int), np.zeros((4, 16)))
+        segment_samples(np.full((4, 3), np.nan), np.zeros(4, int), np.zeros((4, 16)), normals=np.zeros((4, 3)))
+    with pytest.raises(ValueError, match="NaN"):
+        segment_samples(np.zeros((4, 3)), np.zeros(4, int), np.zeros((4, 16)), normals=np.full((4, 3), np.nan))
+    with pytest.raises(ValueError, match="differ in length"):
+        segment_samples(np.zeros((4, 3)), np.zeros(4, int), np.zeros((4, 16)), normals=np.zeros((3, 3)))
 
 
 def _floor_and_column(rng, n_floor=6000, n_column=4000):
@@ -123,7 +176,7 @@ def test_fragments_a_hair_off_a_floor_take_the_floor_samples_segment():
     rng = np.random.default_rng(1)
     points = _floor_and_column(rng)
     transfer = rng.normal(size=(len(points), 4))
-    seg = segment_samples(points, np.zeros(len(points), np.int64), transfer, max_segments=2, merge=False, min_samples=50)
+    seg = segment_samples(points, np.zeros(len(points), np.int64), transfer, normals=None, max_segments=2, merge=False, min_samples=50)
     assert seg.nodes[0]["axis"] == 1  # the cut is along y, the longest side
     on_floor = points[:, 1] == -0.5
     home = np.unique(seg.home[on_floor])
@@ -160,14 +213,20 @@ def test_precompute_key_changes_only_where_the_off_plane_rule_moves_a_cut(tmp_pa
         assert any("up to date" in line for line in logs)
         keys[name] = (first["key"], bool(moved))
     assert keys["cornell"][1] is False and keys["creature"][1] is True
-    # the unmoved build's key is the one made before the rule: sha1 of geometry, settings, format
+    # the unmoved build's key is the one made before the off-plane rule: sha1 of geometry, settings, the margin's rule, format
     from dataclasses import asdict
     import hashlib
 
     from prt.train.transport.precompute import FORMAT_VERSION, _geometry_key
 
+    from prt.train.networks.segments import MARGIN_RULE
+
+    keyed = {k: v for k, v in asdict(settings).items() if k not in ("adaptive", "split", "sdf_trace")}
     plain = hashlib.sha1(json.dumps([_geometry_key(load_geometry(str(DATA / "CornellBox-Original.obj"))),
-                                     {k: v for k, v in asdict(settings).items() if k not in ("adaptive", "split", "sdf_trace")}, FORMAT_VERSION]).encode()).hexdigest()[:16]  # fmt: skip
+                                     {**keyed, "margin": MARGIN_RULE}, FORMAT_VERSION]).encode()).hexdigest()[:16]  # fmt: skip
+    # the margin's rule is keyed: fits made on the margins of an older rule are not reused
+    older = hashlib.sha1(json.dumps([_geometry_key(load_geometry(str(DATA / "CornellBox-Original.obj"))), keyed, FORMAT_VERSION]).encode()).hexdigest()[:16]
+    assert older != plain
     from prt.train.transport.precompute import precompute_key, scene_sides
 
     cornell = load_geometry(str(DATA / "CornellBox-Original.obj"))
@@ -198,8 +257,8 @@ def test_residual_split_puts_leaves_where_the_transfer_is_complex(tmp_path):
     t = compute_transfer(geometry, s.points, s.normals, rays=64)
     ids = np.zeros(len(s), int)
     common = dict(max_segments=8, min_samples=50, by_object=False, merge=False)
-    plain = segment_samples(s.points, ids, t, split="samples", **common)
-    complex_first = segment_samples(s.points, ids, t, split="residual", **common)
+    plain = segment_samples(s.points, ids, t, normals=s.normals, split="samples", **common)
+    complex_first = segment_samples(s.points, ids, t, normals=s.normals, split="residual", **common)
     assert plain.count == complex_first.count == 8
     assert np.array_equal(complex_first.assign(s.points, ids), complex_first.home)  # the runtime's rule still holds
     assert _unexplained(s.points, t, complex_first) < 0.5 * _unexplained(s.points, t, plain)
@@ -215,9 +274,9 @@ def test_residual_split_puts_leaves_where_the_transfer_is_complex(tmp_path):
 
     assert DIM_FLOOR == RELATIVE_FLOOR
     # the default is the equal-area split, and an unknown rule is refused
-    assert np.array_equal(segment_samples(s.points, ids, t, **common).home, plain.home)
+    assert np.array_equal(segment_samples(s.points, ids, t, normals=s.normals, **common).home, plain.home)
     with pytest.raises(ValueError, match="split: expected one of samples, residual"):
-        segment_samples(s.points, ids, t, split="area", **common)
+        segment_samples(s.points, ids, t, normals=s.normals, split="area", **common)
 
 
 def test_split_rule_is_keyed_only_when_not_the_default_and_reuses_the_ray_traced_transfer(tmp_path):

@@ -332,8 +332,8 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
             tree, samples["segment"] = cut
             new = len(tree["segments"]) - 1
             _reassign_validation(tree, valid, s, new)
-            members[s] = with_margin(samples["points"], samples["segment"], s, tree["delta"])
-            members.append(with_margin(samples["points"], samples["segment"], new, tree["delta"]))
+            members[s] = with_margin(samples["points"], samples["normals"], samples["segment"], s, tree["delta"])
+            members.append(with_margin(samples["points"], samples["normals"], samples["segment"], new, tree["delta"]))
             for g in (s, new):
                 tree["segments"][g]["margin_samples"] = int(len(members[g]) - tree["segments"][g]["samples"])
             arch = archs[j]

@@ -263,7 +263,8 @@ def run_deform_build(source, out_dir, spec: DeformSpec | None = None, *, name: s
         return cols
 
     train, valid = stack("train", roles["train"]), stack("valid", roles["train"])
-    seg = segment_samples(train["rest"], np.zeros(len(train["rest"]), np.int64), train["transfer"], max_segments=spec.segments)
+    seg = segment_samples(train["rest"], np.zeros(len(train["rest"]), np.int64), train["transfer"], normals=None,
+                          max_segments=spec.segments)  # posed normals at rest positions: the margin by distance
     valid_home = seg.assign(valid["rest"], np.zeros(len(valid["rest"]), np.int64))
     lights = _env_lights(spec.bands)
     arch = Architecture(hidden=spec.hidden, layers=spec.layers, pos_freqs=spec.pos_freqs, normal_freqs=spec.normal_freqs, bands=spec.bands,

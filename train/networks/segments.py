@@ -14,8 +14,12 @@
    the residual of a rank-``r`` PCA of any union of leaves costs one small eigenproblem.
    Neighbouring segments are merged greedily, cheapest union first, while the union's RMS
    residual stays under a tolerance: simple regions share a network, complex ones keep theirs.
-3. Margin: each segment also trains on the samples of its neighbours lying within ``delta``
-   of its box, so two networks agree where they meet.
+3. Margin: each segment also trains on the samples of its neighbours that continue its own
+   surface within ``delta`` of it, so two networks agree where they meet (:data:`MARGIN_RULE`).
+   A seam in an image is where one surface passes from one network to the next; a sample across
+   a corner, on a parallel surface or on the far face of a thin wall (a room on the other side,
+   the lit facade behind a dark wall) is never next to this network's pixels, and would only
+   cost it capacity: it is left out.
 
 4. Refinement (:func:`split_segment`): a build under its floor (:mod:`prt.train.refine`) cuts the
    segments where the held-out error concentrates in two after the fact: a segment of several
@@ -33,10 +37,19 @@ import numpy as np
 
 from ...runtime.segmentation import assign_segments, kd_arrays
 
-__all__ = ["Segmentation", "segment_samples", "split_segment", "with_margin", "split_value", "SPLIT_RULE", "SPLIT_BY"]
+__all__ = ["Segmentation", "segment_samples", "split_segment", "with_margin", "split_value", "SPLIT_RULE", "SPLIT_BY", "MARGIN_RULE"]
 
 SPLIT_RULE = "off-plane-v1"
 """How cuts are placed (part of the precompute's cache key): the median, moved off planes of samples."""
+
+MARGIN_RULE = "same-surface-v1"
+"""Which neighbours' samples a segment's margin holds (part of the precompute's cache key): those within ``delta``
+of one of its own samples whose normal is within 60 degrees of theirs (:data:`MARGIN_COS`) and that lie within 30
+degrees of its tangent plane (:data:`MARGIN_SLOPE`), among its :data:`MARGIN_NEIGHBOURS` nearest own samples."""
+
+MARGIN_COS = 0.5
+MARGIN_SLOPE = 0.5
+MARGIN_NEIGHBOURS = 8
 
 SPLIT_BY = ("samples", "residual")
 """Which leaf the k-d split cuts next: the most samples, or the most unexplained transfer (see above)."""
@@ -147,6 +160,7 @@ def segment_samples(
     object_ids: np.ndarray,
     transfer: np.ndarray,
     *,
+    normals: np.ndarray | None,
     max_segments: int = 8,
     by_object: bool = True,
     merge: bool = True,
@@ -163,12 +177,15 @@ def segment_samples(
     points : (N, 3) sample positions (scene units)
     object_ids : (N,) object of each sample
     transfer : (N, n) ground-truth transfer of each sample
+    normals : (N, 3) unit normal of each sample (the side it stands for): the margin holds only samples
+        that continue a segment's surface; None: every neighbour within ``delta`` (a deforming build,
+        whose samples carry their pose's normals at rest positions)
     max_segments : leaf budget of the spatial split (at least one leaf per object)
     by_object : never let a segment's tree cell span two objects before merging
     merge : merge neighbouring segments whose union stays simple
     merge_tolerance : largest RMS PCA residual a merged segment may have
     rank : PCA rank of the residual test (8 spans unshadowed transfer of 3 bands)
-    delta : margin width (scene units) sampled into neighbouring segments
+    delta : margin width (scene units) sampled into neighbouring segments (on the same surface)
     min_samples : leaves are not split below twice this count
     split : which leaf is cut next, one of :data:`SPLIT_BY`
     """
@@ -177,11 +194,12 @@ def segment_samples(
     points = np.asarray(points, dtype=np.float64)
     object_ids = np.asarray(object_ids, dtype=np.int64)
     transfer = np.asarray(transfer, dtype=np.float64)
-    if not (len(points) == len(object_ids) == len(transfer)):
-        raise ValueError("points, object_ids and transfer differ in length")
+    normals = None if normals is None else np.asarray(normals, dtype=np.float64)
+    if not (len(points) == len(object_ids) == len(transfer) == (len(points) if normals is None else len(normals))):
+        raise ValueError("points, normals, object_ids and transfer differ in length")
     if len(points) == 0:
         raise ValueError("no samples to segment")
-    if not np.isfinite(points).all() or not np.isfinite(transfer).all():
+    if not np.isfinite(points).all() or not np.isfinite(transfer).all() or (normals is not None and not np.isfinite(normals).all()):
         raise ValueError("samples contain NaN or Inf")
 
     groups = np.unique(object_ids) if by_object else np.array([-1])
@@ -275,7 +293,7 @@ def segment_samples(
     bounds = np.array([seg_box[old] for old in final_ids])
     residual = np.array([seg_moments[old].residual_rms(rank) for old in final_ids])
 
-    members = [_with_margin(points, home, s, bounds[s], delta) for s in range(len(final_ids))]
+    members = [_with_margin(points, normals, home, s, bounds[s], delta) for s in range(len(final_ids))]
     if len(final_ids) < len(leaves):
         notes.append(f"merged {len(leaves)} leaves into {len(final_ids)} segments")
     return Segmentation(
@@ -366,11 +384,11 @@ def split_segment(tree: dict, points: np.ndarray, object_ids: np.ndarray, home: 
             "count": len(segments)}, home  # fmt: skip
 
 
-def with_margin(points: np.ndarray, home: np.ndarray, segment: int, delta: float) -> np.ndarray:
-    """A segment's members (own samples and its neighbours' within ``delta``), its box from its own samples."""
+def with_margin(points: np.ndarray, normals: np.ndarray, home: np.ndarray, segment: int, delta: float) -> np.ndarray:
+    """A segment's members (own samples and its neighbours' on its surface within ``delta``), its box from its own samples."""
     own = np.asarray(points)[np.asarray(home) == segment]
     box = np.array([own.min(axis=0), own.max(axis=0)])
-    return _with_margin(np.asarray(points, dtype=np.float64), np.asarray(home), segment, box, delta)
+    return _with_margin(np.asarray(points, dtype=np.float64), np.asarray(normals, dtype=np.float64), np.asarray(home), segment, box, delta)
 
 
 def split_value(values: np.ndarray) -> float:
@@ -401,16 +419,27 @@ def split_value(values: np.ndarray) -> float:
     return median if best is None else best[1]
 
 
-def _with_margin(points: np.ndarray, home: np.ndarray, segment: int, box: np.ndarray, delta: float) -> np.ndarray:
-    """Own samples plus other segments' samples within ``delta`` of one of the own samples."""
+def _with_margin(points: np.ndarray, normals: np.ndarray | None, home: np.ndarray, segment: int, box: np.ndarray, delta: float) -> np.ndarray:
+    """Own samples plus other segments' samples that continue one of the own samples' surface within ``delta``
+    (:data:`MARGIN_RULE`)."""
     from scipy.spatial import cKDTree
 
     own = home == segment
     near_box = np.all((points >= box[0] - delta) & (points <= box[1] + delta), axis=1) & ~own
     candidates = np.flatnonzero(near_box)
     if len(candidates) and delta > 0:
-        dist, _ = cKDTree(points[own]).query(points[candidates], k=1, distance_upper_bound=delta)
-        candidates = candidates[np.isfinite(dist)]
+        own_idx = np.flatnonzero(own)
+        k = min(MARGIN_NEIGHBOURS, len(own_idx))
+        dist, idx = cKDTree(points[own_idx]).query(points[candidates], k=k, distance_upper_bound=delta)
+        dist, idx = dist.reshape(len(candidates), k), idx.reshape(len(candidates), k)
+        found = np.isfinite(dist)
+        near = own_idx[np.where(found, idx, 0)]  # (C, k) own samples next to each candidate
+        if normals is None:
+            return np.sort(np.concatenate([own_idx, candidates[found[:, 0]]]))
+        facing = np.einsum("ckj,cj->ck", normals[near], normals[candidates]) >= MARGIN_COS
+        off_plane = np.abs(np.einsum("ckj,ckj->ck", normals[near], points[candidates][:, None] - points[near]))
+        in_plane = off_plane <= MARGIN_SLOPE * np.where(found, dist, 0.0) + 1e-9
+        candidates = candidates[(found & facing & in_plane).any(axis=1)]
     else:
         candidates = candidates[:0]
     return np.sort(np.concatenate([np.flatnonzero(own), candidates]))
