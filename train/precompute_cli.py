@@ -34,7 +34,7 @@ SETTINGS_OPTIONS = (
     ("rays", "--rays", "cosine-weighted rays per sample"),
     ("bands", "--bands", "SH bands (4 -> 16 coefficients)"),
     ("segments", "--segments", "leaf budget of the spatial split before merging"),
-    ("delta", "--delta", "seam margin sampled into neighbouring segments (scene units)"),
+    ("delta", "--delta", "seam margin: neighbours' samples on a segment's own surface within this distance (scene units)"),
     ("merge_tolerance", "--merge-tolerance", "largest RMS PCA residual of a merged segment"),
     ("merge", "--no-merge", "keep every leaf of the split as its own segment"),
     ("by_object", "--no-object-split", "let segments span several objects"),
