@@ -29,7 +29,7 @@ PAGES = [
     ("build-cost", "Build cost", "Precompute, training and cluster timings; quick builds.",
      ("precompute", "train_", "cluster", "spot_quick", "creature_steps")),
     ("networks", "Networks and sizing", "Network size, encodings, residual networks, losses, sampling and segment studies.",
-     ("many_networks", "grid_encoding", "residual", "loss_weighting", "loss_l2", "adaptive", "split_rule", "segment_error_share", "daffodil")),
+     ("many_networks", "grid_encoding", "residual", "loss_weighting", "loss_l2", "adaptive", "split_rule", "segment_error_share", "segment_margin", "daffodil")),
     ("interreflection", "Interreflection", "Bounces: depth, the Cornell box, against vertex PRT with the same bounces.",
      ("bounce_depth", "cornell", "interreflection", "vertex_same_bounces", "vertex_bounces", "dering")),
     ("texture", "Texture PRT", "Transfer textures: atlases, seams, bounces.", ("texture",)),
