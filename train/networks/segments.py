@@ -433,9 +433,9 @@ def _with_margin(points: np.ndarray, normals: np.ndarray | None, home: np.ndarra
         dist, idx = cKDTree(points[own_idx]).query(points[candidates], k=k, distance_upper_bound=delta)
         dist, idx = dist.reshape(len(candidates), k), idx.reshape(len(candidates), k)
         found = np.isfinite(dist)
-        near = own_idx[np.where(found, idx, 0)]  # (C, k) own samples next to each candidate
-        if normals is None:
+        if normals is None:  # the distance rule
             return np.sort(np.concatenate([own_idx, candidates[found[:, 0]]]))
+        near = own_idx[np.where(found, idx, 0)]  # (C, k) own samples next to each candidate
         facing = np.einsum("ckj,cj->ck", normals[near], normals[candidates]) >= MARGIN_COS
         off_plane = np.abs(np.einsum("ckj,ckj->ck", normals[near], points[candidates][:, None] - points[near]))
         in_plane = off_plane <= MARGIN_SLOPE * np.where(found, dist, 0.0) + 1e-9
