@@ -4,7 +4,7 @@ usage: python studies/seam_steps.py BUILD_DIR[:LABEL] [...] --json OUT.json [--m
 
 For every training sample of a finished build that has a sample of another segment on its own
 surface within ``--radius`` (normalised units; normals within 25 degrees, the other sample within
-30 degrees of the tangent plane), both segments' networks are evaluated at the sample (the ONNX
+30 degrees of the tangent plane, the margin's ``MARGIN_SLOPE``), both segments' networks are evaluated at the sample (the ONNX
 files the runtime runs, :class:`prt.runtime.backends.onnx.OnnxTransfer`) and shaded under the
 scene's light (diffuse, the total transfer with its bounces).  Their difference relative to their
 mean is the step an image shows where the two segments meet; the truth is one value there, so the
@@ -29,13 +29,13 @@ from prt.runtime.renderer import Scene
 from prt.runtime.segmentation import segment_of
 from prt.train.build import _env_lights
 from prt.train.networks.fit import total_transfer
+from prt.train.networks.segments import MARGIN_SLOPE
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from view_error import LIGHT, shade  # noqa: E402
 
 NEIGHBOURS = 12
 SAME_NORMAL = 0.9  # cos 25 degrees
-SLOPE = 0.5  # within 30 degrees of the tangent plane
 
 
 def seam_steps(build: Path, radius: float) -> dict:
@@ -47,7 +47,7 @@ def seam_steps(build: Path, radius: float) -> dict:
     found = np.isfinite(dist)
     j = np.where(found, idx, 0)
     across = found & (seg[j] != seg[:, None]) & (np.einsum("nkc,nc->nk", normals[j], normals) > SAME_NORMAL)
-    across &= np.abs(np.einsum("nkc,nkc->nk", normals[j], points[:, None] - points[j])) <= SLOPE * np.where(found, dist, 0.0) + 1e-9
+    across &= np.abs(np.einsum("nkc,nkc->nk", normals[j], points[:, None] - points[j])) <= MARGIN_SLOPE * np.where(found, dist, 0.0) + 1e-9
     at = np.flatnonzero(across.any(axis=1))
     other = j[at, across[at].argmax(axis=1)]
     light = _env_lights(manifest.sh_bands)[LIGHT]
