@@ -271,10 +271,10 @@ def test_precompute_key_changes_only_where_the_band_tracer_traces(twins):
     from prt.train.inputs.geometry import load_geometry
     from prt.train.transport.precompute import FORMAT_VERSION, _geometry_key, precompute_key
 
-    from prt.train.networks.segments import MARGIN_RULE
+    from prt.train.networks.segments import MARGIN_RULE, MERGE_RULE
 
     def before(geometry, settings):  # the key as it was computed before the setting existed (the margin's rule keyed since)
-        keyed = {k: v for k, v in asdict(settings).items() if k not in ("adaptive", "split", "sdf_trace")} | {"margin": MARGIN_RULE}
+        keyed = {k: v for k, v in asdict(settings).items() if k not in ("adaptive", "split", "sdf_trace")} | {"margin": MARGIN_RULE, "merge": MERGE_RULE}
         return hashlib.sha1(json.dumps([_geometry_key(geometry), keyed, FORMAT_VERSION]).encode()).hexdigest()[:16]
 
     mesh = load_geometry(str(Path(__file__).parent / "data" / "ground_quad.obj"))

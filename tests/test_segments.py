@@ -125,6 +125,28 @@ def test_unshadowed_plane_merges_into_one_segment_but_shadowed_regions_stay_apar
     assert (merged.residual_rms <= 0.01 + 1e-12).sum() >= 1
 
 
+def test_dim_complex_objects_do_not_merge_past_twice_the_budgets_share():
+    """Rooms of a building: many objects whose transfer is dim, so the PCA residual of any union is
+    under the absolute tolerance, yet not explained by the subspace relative to its size.  Without
+    the share limit they all merge into one segment; with it a union holds at most MERGE_SHARE x
+    samples / budget samples (an unshadowed plane, explained exactly, still merges whole: above)."""
+    from prt.train.networks.segments import MERGE_EXACT, MERGE_SHARE, _Moments
+
+    rng = np.random.default_rng(3)
+    per, objects, budget = 200, 16, 8
+    ids = np.repeat(np.arange(objects), per)
+    points = np.column_stack([ids * 0.1 + rng.uniform(0, 0.1, len(ids)), rng.uniform(0, 0.1, (len(ids), 2))])  # a row of touching boxes
+    transfer = 0.002 * rng.standard_normal((len(ids), 16))
+    transfer[:, 0] += 0.01
+    everything = _Moments.of(transfer)
+    assert everything.residual_rms(8) < 0.01  # the absolute test alone passes the whole row
+    assert everything.residual_rms(8) > MERGE_EXACT * everything.rms()
+    seg = segment_samples(points, ids, transfer, normals=None, max_segments=budget, delta=0.02, min_samples=50)
+    counts = np.bincount(seg.home)
+    assert counts.max() <= MERGE_SHARE * len(ids) / budget
+    assert len(ids) / (MERGE_SHARE * len(ids) / budget) <= seg.count < seg.leaves_before_merge  # merges, up to the share (the old rule: 1)
+
+
 def test_an_object_without_samples_still_gets_a_segment(cornell):
     geometry, s, t = cornell
     light = geometry.object_names.index("light")
@@ -219,14 +241,15 @@ def test_precompute_key_changes_only_where_the_off_plane_rule_moves_a_cut(tmp_pa
 
     from prt.train.transport.precompute import FORMAT_VERSION, _geometry_key
 
-    from prt.train.networks.segments import MARGIN_RULE
+    from prt.train.networks.segments import MARGIN_RULE, MERGE_RULE
 
     keyed = {k: v for k, v in asdict(settings).items() if k not in ("adaptive", "split", "sdf_trace")}
     plain = hashlib.sha1(json.dumps([_geometry_key(load_geometry(str(DATA / "CornellBox-Original.obj"))),
-                                     {**keyed, "margin": MARGIN_RULE}, FORMAT_VERSION]).encode()).hexdigest()[:16]  # fmt: skip
-    # the margin's rule is keyed: fits made on the margins of an older rule are not reused
-    older = hashlib.sha1(json.dumps([_geometry_key(load_geometry(str(DATA / "CornellBox-Original.obj"))), keyed, FORMAT_VERSION]).encode()).hexdigest()[:16]
-    assert older != plain
+                                     {**keyed, "margin": MARGIN_RULE, "merge": MERGE_RULE}, FORMAT_VERSION]).encode()).hexdigest()[:16]  # fmt: skip
+    # the margin's and the merge's rules are keyed: fits made on the segments of an older rule are not reused
+    for older_keyed in (keyed, {**keyed, "margin": MARGIN_RULE}):
+        older = hashlib.sha1(json.dumps([_geometry_key(load_geometry(str(DATA / "CornellBox-Original.obj"))), older_keyed, FORMAT_VERSION]).encode()).hexdigest()[:16]
+        assert older != plain
     from prt.train.transport.precompute import precompute_key, scene_sides
 
     cornell = load_geometry(str(DATA / "CornellBox-Original.obj"))

@@ -14,6 +14,12 @@
    the residual of a rank-``r`` PCA of any union of leaves costs one small eigenproblem.
    Neighbouring segments are merged greedily, cheapest union first, while the union's RMS
    residual stays under a tolerance: simple regions share a network, complex ones keep theirs.
+   A union holds at most :data:`MERGE_SHARE` times the leaf budget's share of the samples unless
+   the subspace explains it to :data:`MERGE_EXACT` of its RMS transfer (:data:`MERGE_RULE`): the
+   residual test sees only the subspace the transfer lies in, not how it varies over the surface,
+   and on a building it passes for most of the house (dim rooms' transfer lies in a few dimensions
+   whatever their shadows do), leaving a third of a house to one small network; a plane that only
+   sees the sky is still one segment.
 3. Margin: each segment also trains on the samples of its neighbours that continue its own
    surface within ``delta`` of it, so two networks agree where they meet (:data:`MARGIN_RULE`).
    A seam in an image is where one surface passes from one network to the next; a sample across
@@ -37,7 +43,7 @@ import numpy as np
 
 from ...runtime.segmentation import assign_segments, kd_arrays
 
-__all__ = ["Segmentation", "segment_samples", "split_segment", "with_margin", "split_value", "SPLIT_RULE", "SPLIT_BY", "MARGIN_RULE"]
+__all__ = ["Segmentation", "segment_samples", "split_segment", "with_margin", "split_value", "SPLIT_RULE", "SPLIT_BY", "MARGIN_RULE", "MERGE_RULE"]
 
 SPLIT_RULE = "off-plane-v1"
 """How cuts are placed (part of the precompute's cache key): the median, moved off planes of samples."""
@@ -46,6 +52,14 @@ MARGIN_RULE = "same-surface-v1"
 """Which neighbours' samples a segment's margin holds (part of the precompute's cache key): those within ``delta``
 of one of its own samples whose normal is within 60 degrees of theirs (:data:`MARGIN_COS`) and that lie within 30
 degrees of its tangent plane (:data:`MARGIN_SLOPE`), among its :data:`MARGIN_NEIGHBOURS` nearest own samples."""
+
+MERGE_RULE = "share-2-exact-0.01"
+"""How far merging may go (part of the precompute's cache key): a union of leaves holds at most
+:data:`MERGE_SHARE` x samples / leaf budget samples, unless its PCA residual is at most
+:data:`MERGE_EXACT` x its RMS transfer."""
+
+MERGE_SHARE = 2.0
+MERGE_EXACT = 0.01
 
 MARGIN_COS = 0.5
 MARGIN_SLOPE = 0.5
@@ -80,6 +94,10 @@ class _Moments:
 
     def __add__(self, other: "_Moments") -> "_Moments":
         return _Moments(self.count + other.count, self.total + other.total, self.outer + other.outer)
+
+    def rms(self) -> float:
+        """RMS (per sample) of the transfer vectors' length."""
+        return float(np.sqrt(max(np.trace(self.outer), 0.0) / self.count)) if self.count else 0.0
 
     def residual_rms(self, rank: int) -> float:
         """RMS (per sample, over all coefficients) of what a rank-``rank`` PCA leaves out."""
@@ -183,7 +201,8 @@ def segment_samples(
     max_segments : leaf budget of the spatial split (at least one leaf per object)
     by_object : never let a segment's tree cell span two objects before merging
     merge : merge neighbouring segments whose union stays simple
-    merge_tolerance : largest RMS PCA residual a merged segment may have
+    merge_tolerance : largest RMS PCA residual a merged segment may have (and it holds at most
+        :data:`MERGE_SHARE` x ``len(points) / max_segments`` samples unless :data:`MERGE_EXACT` holds)
     rank : PCA rank of the residual test (8 spans unshadowed transfer of 3 bands)
     delta : margin width (scene units) sampled into neighbouring segments (on the same surface)
     min_samples : leaves are not split below twice this count
@@ -265,6 +284,7 @@ def segment_samples(
     seg_box = {i: leaf_box[i].copy() for i in range(len(leaves))}
     notes: list[str] = []
     if merge:
+        most = MERGE_SHARE * len(points) / max(int(max_segments), 1)
         while True:
             best = None
             ids = sorted(members_of)
@@ -272,7 +292,10 @@ def segment_samples(
                 for b in ids[a_i + 1 :]:
                     if not _boxes_touch(seg_box[a], seg_box[b], delta):
                         continue
-                    cost = (seg_moments[a] + seg_moments[b]).residual_rms(rank)
+                    union = seg_moments[a] + seg_moments[b]
+                    cost = union.residual_rms(rank)
+                    if union.count > most and cost > MERGE_EXACT * union.rms():
+                        continue
                     if cost <= merge_tolerance and (best is None or cost < best[0]):
                         best = (cost, a, b)
             if best is None:

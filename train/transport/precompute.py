@@ -29,7 +29,7 @@ from ..cache import atomic_save_npz, atomic_write_json
 from ..outdir import check_output_folder, mark_output_folder
 from ..inputs.adaptive import NEIGHBOURS, adaptive_samples
 from ..inputs.sampling import TRAIN_STREAM, VALIDATION_STREAM, SurfaceSamples, sample_surface
-from ..networks.segments import MARGIN_RULE, SPLIT_BY, SPLIT_RULE, segment_samples
+from ..networks.segments import MARGIN_RULE, MERGE_RULE, SPLIT_BY, SPLIT_RULE, segment_samples
 from ..inputs.visibility import SIDE_RULE, hidden_points, surface_sides
 from .transfer import DEFAULT_CHUNK, SDF_TRACE_CHOICES, compute_transfer, make_tracer, sdf_trace_for
 
@@ -181,6 +181,8 @@ def precompute_key(geometry, settings: PrecomputeSettings, sides=None) -> str:
 
         keyed["sdf_trace"] = TRACE_RULE
     keyed["margin"] = MARGIN_RULE  # which neighbours' samples a segment trains on (its fits are keyed by this key)
+    if settings.merge:
+        keyed["merge"] = MERGE_RULE  # how far leaves merge
     if sides is not None and sides.changed:  # samples only on reachable sides (prt.train.inputs.visibility)
         keyed["sides"] = [SIDE_RULE, hashlib.sha1(np.packbits(sides.allowed).tobytes()
                                                   + np.packbits(sides.two_sided).tobytes()).hexdigest()[:16]]
