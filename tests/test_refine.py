@@ -417,3 +417,60 @@ def test_the_build_budget_counts_from_the_commands_start(two_objects, tmp_path):
     r = report["refinement"]
     assert r["rounds"] == 0 and r["ended"] == "time" and not r["met"]
     assert report["timings"]["total_s"] >= 120.0  # the build's own clock starts with the command too
+
+
+def test_a_rounds_refits_run_as_many_at_once_as_the_build_has_threads_with_the_same_outcome(tmp_path, monkeypatch):
+    """With ``threads=2`` a round's grow and longer refits run two at a time (two stand-in fits meet at a barrier, which
+    a one-at-a-time round never passes), and the rounds decide exactly what one at a time decides."""
+    import threading
+
+    spec = spec_from_dict({"geometry": "x.obj"})  # standard: floor 35 dB, budget 1200 s
+    archs = [a for a in spec.architectures() if hasattr(a, "hidden")]
+    small = archs[0]
+
+    def arch_record(s, arch, psnr):
+        return {"id": s, "samples": 100, "validation_samples": 10, "kind": "network", "arch_label": arch.label(),
+                "arch": {"hidden": arch.hidden, "layers": arch.layers, "pos_freqs": arch.pos_freqs},
+                "sizing": {"psnr_db": {"potsdamer": psnr}, "reason": "fitted"}}  # fmt: skip
+
+    def run(threads, barrier):
+        now, fitted, names, lock = [0.0], {}, set(), threading.Lock()
+
+        def fake_fit(sub, s, samples, valid, members, ladder, settings, *args, **kwargs):
+            (arch,) = ladder
+            with lock:
+                fitted[s] = fitted.get(s, 0) + 1
+                calls = sum(fitted.values())
+                count = fitted[s]
+            if barrier is not None and calls <= 4:  # round 1's four refits: two must be running together
+                barrier.wait()
+            names.add(threading.current_thread().name)
+            with lock:
+                now[0] += 100.0
+            return arch_record(s, arch, 15.0 + s + (0.6 if s % 2 else 0.3) * count)
+
+        monkeypatch.setattr(refine, "train_segment", fake_fit)
+        records = [arch_record(s, small, 15.0 + s) for s in range(4)]
+        samples = {"segment": np.arange(4), "object_ids": np.zeros(4, dtype=np.int64)}
+        job = refine.RefineJob(spec, tmp_path / f"t{threads}", {"segments": [{"id": s} for s in range(4)]}, samples,
+                               {"segment": np.arange(4)}, [np.array([s]) for s in range(4)], spec.architectures(), spec.fit_settings(), {},
+                               None, "key", lambda *a: None, ["a"], t_start=0.0, log=lambda line: None, clock=lambda: now[0],
+                               threads=threads)  # fmt: skip
+        _, _, report = refine.refine_build(job, records)
+        return report, names
+
+    alone, names_alone = run(1, None)
+    together, names = run(2, threading.Barrier(2, timeout=10))
+    assert len(names_alone) == 1 and len(names) >= 2  # the calling thread alone / a pool's two threads
+    assert all(a["action"] in ("grow", "longer") for a in alone["actions"] if a["round"] == 1)
+    assert [a for a in together["actions"] if a["round"] == 1] == [a for a in alone["actions"] if a["round"] == 1]
+    assert [a["segment"] for a in together["actions"]] == [a["segment"] for a in alone["actions"]][: len(together["actions"])]
+    assert together["ended"] == alone["ended"] == "time"
+    assert together["elapsed_s"] + refine.END_RESERVE_S <= float(spec.build_budget)  # (the stand-in clock counts each fit's 100 s)
+
+
+def test_a_rounds_time_bound_counts_refits_run_together():
+    """The planned wall time of refits run w at a time is sum / w + max (w - 1) / w: a round of four equal refits
+    takes two refits' time on two threads, one refit's four; a long one beside short ones bounds it."""
+    assert refine.together_wall([10.0] * 4, 2) == 25.0 and refine.together_wall([10.0] * 4, 1) == 40.0
+    assert refine.together_wall([30.0, 1.0, 1.0], 2) == 31.0 and refine.together_wall([], 2) == 0.0

@@ -32,7 +32,7 @@ from ..runtime.envmaps import BUNDLED_ENVMAPS, bundled_envmap_path
 from ..runtime.errors import SpecError
 from ..runtime.files import atomic_save_npz, atomic_write_json
 from ..runtime.manifest import validate_manifest_field
-from .networks.fit import DEFAULT_LADDER, DEFAULT_LOSS, DEFAULT_STEPS, LOSSES, FitSettings
+from .networks.fit import DEFAULT_LADDER, DEFAULT_LOSS, DEFAULT_STEPS, FIT_THREADS, LOSSES, FitSettings
 from .inputs.geometry import load_geometry
 from .inputs.materials import mesh_materials, textured_geometry
 from .inputs.mixed import load_scene_geometry, parse_objects, resolve_objects
@@ -593,8 +593,14 @@ def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log
     expected = {seg["id"]: _expected_fit_work(spec, archs, fit_settings, len(members[seg["id"]])) for seg, _ in todo}
     display.plan_fits(expected, fit_settings.batch)
     display.begin("fits", f"{len(todo)} segment(s) to fit" if todo else "cached")
-    try:  # torch's thread count changes a fit's bytes: a task uses this process's, wherever it runs
-        with closing(executor.map(segment_task, job, items, task_threads=torch.get_num_threads(), exclusive=True)) as finished:
+    # Fits run FIT_THREADS torch threads each, as many at once as the executor has cores (here: threads
+    # of this process, each fit seeding under a lock, prt.train.networks.fit.seeded); a fit's bytes
+    # depend on its thread count only, not on how many run beside it or where.
+    torch_threads = torch.get_num_threads()
+    if executor.local:
+        torch.set_num_threads(FIT_THREADS)
+    try:
+        with closing(executor.map(segment_task, job, items, task_threads=FIT_THREADS)) as finished:
             for (seg, _, _), (record, new_fits, lines) in finished:
                 s = seg["id"]
                 for line in lines:
@@ -610,6 +616,7 @@ def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log
                     display.add("fits", expected[s])
                 display.segment_done(s)
     finally:
+        torch.set_num_threads(torch_threads)
         display.finish("fits")
     segments = [records[seg["id"]] for seg in seg_json["segments"]]
     train_s = time.perf_counter() - t0
@@ -619,8 +626,12 @@ def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log
     if spec.floor_db is not None and geometry.kind == "mesh":
         fit_cache = lambda pre_key, s, settings: _FitCache(fits_folder, pre_key, s, settings)  # noqa: E731
         job = RefineJob(spec, out, seg_json, samples, valid, members, archs, fit_settings, lights, vertex, data_key, fit_cache,
-                        list(geometry.object_names), t_start, log)  # fmt: skip
-        segments, seg_json, refinement = refine_build(job, segments)
+                        list(geometry.object_names), t_start, log, threads=torch_threads)  # fmt: skip
+        torch.set_num_threads(FIT_THREADS)  # its refits run torch_threads at a time
+        try:
+            segments, seg_json, refinement = refine_build(job, segments)
+        finally:
+            torch.set_num_threads(torch_threads)
     refine_s = time.perf_counter() - t0
     held_out = {"light": SCENE_LIGHT, "psnr_db": scene_psnr(segments), "floor_db": spec.floor_db}
     exported = [_with_scene_psnr(r, held_out) for r in segments]

@@ -52,6 +52,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -59,7 +60,7 @@ import numpy as np
 from ..runtime.files import atomic_save_npz, atomic_write_json
 from ..runtime.segmentation import assign_segments, kd_arrays
 from .fit_cache import fit_hash
-from .networks.fit import DEFAULT_STEPS
+from .networks.fit import DEFAULT_STEPS, FIT_THREADS
 from .networks.network import Architecture
 from .networks.rightsize import PSNR_CAP, SCENE_LIGHT, pooled_psnr, train_segment
 from .networks.segments import split_segment, with_margin
@@ -225,6 +226,7 @@ class RefineJob:
     t_start: float
     log: object = print
     clock: object = time.perf_counter
+    threads: int = 1  # refits run this many at a time (FIT_THREADS torch threads each)
 
 
 def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict, dict]:
@@ -241,18 +243,33 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
     actions, rounds, start_psnr = [], 0, scene_psnr(records)
 
     spent: dict[str, float] = {}  # per size, the most seconds per step-multiple of its refits so far (a fit at 4x the steps: its seconds / 4)
+    # A round's refits run as many at once as the build has threads, FIT_THREADS torch threads each (as the
+    # build's fit stage; each fit seeds under a lock, prt.train.networks.fit.seeded).
+    workers = max(1, job.threads // FIT_THREADS)
 
     def elapsed() -> float:
         return job.clock() - job.t_start
 
-    def left(fits: int, steps: int = 1, arch=None) -> bool:
-        """Time is left for ``fits`` more refits of ``arch`` at ``steps`` times the build's steps, each as long per
-        step as that size's longest so far (any size's, for a size not fitted yet): none is started that would end
-        past the budget.  (The mean let the orchids' build end 2.4 s past its 1200 s: its last refits, larger
-        networks on more samples, took longer than the mean.)"""
+    def cost(steps: int, arch) -> float:
+        """Seconds of one refit of ``arch`` at ``steps`` times the build's steps: as long per step as that size's
+        longest so far (any size's, for a size not fitted yet).  (The mean let the orchids' build end 2.4 s past
+        its 1200 s: its last refits, larger networks on more samples, took longer than the mean.)"""
         per = spent.get(arch.label()) if arch is not None else None
-        per = per if per is not None else max(spent.values(), default=0.0)
-        return elapsed() + fits * steps * per + END_RESERVE_S < budget
+        return steps * (per if per is not None else max(spent.values(), default=0.0))
+
+    def left(fits: int, steps: int = 1, arch=None, pending=()) -> bool:
+        """Time is left for ``fits`` more refits of ``arch`` at ``steps`` times the build's steps after the
+        ``pending`` ones (``(steps, arch)`` pairs), all run ``workers`` at a time: none is started that would end
+        past the budget (:func:`together_wall`)."""
+        costs = [cost(n, a) for n, a in pending] + [cost(steps, arch)] * fits
+        return elapsed() + together_wall(costs, workers) + END_RESERVE_S < budget
+
+    def together(calls: list) -> list:
+        """The results of ``calls`` (no-argument functions), run ``workers`` at a time, in order."""
+        if len(calls) <= 1 or workers == 1:
+            return [call() for call in calls]
+        with ThreadPoolExecutor(max_workers=min(workers, len(calls)), thread_name_prefix="prt-refit") as pool:
+            return list(pool.map(lambda call: call(), calls))
 
     def can_split(s: int) -> bool:
         return len(records) < cap and s not in unsplittable and records[s]["samples"] >= 2 * MIN_SAMPLES
@@ -300,18 +317,13 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
         rounds += 1
         log(f"refine round {rounds}: held-out {psnr:.2f} dB < floor {floor:g} dB ({elapsed():.0f} of {budget:.0f} s); "
             + ", ".join(f"{a} segment {s}" for s, a in todo))  # fmt: skip
-        ran = 0
-        for s, action in todo:
-            before = records[s]
-            st = state[s]
-            # a split's halves train half the whole's steps each (as many passes over their half of the samples)
-            steps = {"grow": max(st["steps"], REFIT_STEPS), "longer": 2 * st["steps"]}.get(action, max(1, st["steps"] // 2))
-            j = {"grow": st["next"], "longer": st["index"]}.get(action, st["index"] if st["index"] >= 0 else (len(archs) - 1) // 2)
-            if not left(2 if action == "split" else 1, steps, archs[j]):
-                continue  # not in the time left: a cheaper action of this round may be
-            ran += 1
-            if action in ("grow", "longer"):
-                record = fit(s, archs[j], steps, before, st["changed"], rounds, action)
+        ran, refits = 0, []  # refits: this round's grow and longer actions not run yet, (segment, action, rung, steps)
+
+        def run_refits() -> None:
+            """The round's pending grow / longer refits, at once; their outcomes applied in the round's order."""
+            fitted = together([lambda r=r: fit(r[0], archs[r[2]], r[3], records[r[0]], state[r[0]]["changed"], rounds, r[1]) for r in refits])
+            for (s, action, j, steps), record in zip(refits, fitted):
+                before, st = records[s], state[s]
                 gain = light_psnr(record) - light_psnr(before)
                 if action == "grow":
                     st["next"] = j + 1
@@ -323,7 +335,21 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
                     st["index"], st["steps"] = j, steps
                 actions.append({"round": rounds, "segment": s, "action": action, "to": archs[j].label(), "steps": steps, "kept": gain > 0,
                                 "psnr_db": [round(light_psnr(before), 3), round(light_psnr(record), 3)]})  # fmt: skip
+            refits.clear()
+
+        for s, action in todo:
+            before = records[s]
+            st = state[s]
+            # a split's halves train half the whole's steps each (as many passes over their half of the samples)
+            steps = {"grow": max(st["steps"], REFIT_STEPS), "longer": 2 * st["steps"]}.get(action, max(1, st["steps"] // 2))
+            j = {"grow": st["next"], "longer": st["index"]}.get(action, st["index"] if st["index"] >= 0 else (len(archs) - 1) // 2)
+            if not left(2 if action == "split" else 1, steps, archs[j], [(r[3], archs[r[2]]) for r in refits]):
+                continue  # not in the time left: a cheaper action of this round may be
+            ran += 1
+            if action in ("grow", "longer"):
+                refits.append((s, action, j, steps))
                 continue
+            run_refits()  # a split changes the samples' segments: the refits before it run first
             saved = (tree, samples["segment"], valid["segment"].copy(), members[s])
             cut = split_segment(tree, samples["points"], samples["object_ids"], samples["segment"], s, min_samples=MIN_SAMPLES)
             if cut is None:
@@ -338,7 +364,7 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
                 tree["segments"][g]["margin_samples"] = int(len(members[g]) - tree["segments"][g]["samples"])
             arch = archs[j]
             records.append(None)  # the new segment's place
-            halves = [fit(g, arch, steps, before, True, rounds, "split") for g in (s, new)]
+            halves = together([lambda g=g: fit(g, arch, steps, before, True, rounds, "split") for g in (s, new)])
             kept = scene_psnr(halves) > light_psnr(before)  # the two halves' pooled held-out PSNR against the whole's
             actions.append({"round": rounds, "segment": s, "action": "split", "into": [s, new], "size": arch.label(), "steps": steps, "kept": kept,
                             "psnr_db": [round(light_psnr(before), 3), *(round(light_psnr(h), 3) for h in halves)]})  # fmt: skip
@@ -351,6 +377,7 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
             for g, half in zip((s, new), halves):
                 records[g] = store(half)
                 state[g] = {**_fresh(st["index"], len(archs)), "steps": steps, "changed": True}
+        run_refits()
         if not ran:
             ended = "time"
             break
@@ -366,6 +393,14 @@ def refine_build(job: RefineJob, records: list[dict]) -> tuple[list[dict], dict,
     if rounds:
         log(f"refinement: {rounds} round(s), held-out {start_psnr:.2f} -> {psnr:.2f} dB (floor {floor:g} dB), {len(records)} segments")
     return records, tree, refinement
+
+
+def together_wall(costs: list[float], workers: int) -> float:
+    """A bound on the wall time of jobs of ``costs`` seconds run ``workers`` at a time in any order, each
+    started when a worker frees: ``sum / w + max (w - 1) / w`` (one worker: the sum)."""
+    if not costs:
+        return 0.0
+    return sum(costs) / workers + max(costs) * (workers - 1) / workers
 
 
 def _fresh(index: int, ladder_size: int) -> dict:

@@ -37,7 +37,7 @@ import torch
 from torch import nn
 
 from ...export.onnx_model import LEAKY_SLOPE, NORMAL_EPS
-from .fit import FitResult, FitSettings, Validation, _as_input, _predict, batch_loss, loss_weights, resolve_loss, shaded_error, transfer_error
+from .fit import FitResult, FitSettings, Validation, _as_input, _predict, batch_loss, loss_weights, resolve_loss, seeded, shaded_error, transfer_error
 from .network import layout_width, mlp_numpy, target_scaling
 
 __all__ = [
@@ -438,10 +438,9 @@ def fit_grid_segment(
     if np.shape(transfer)[1] != arch.outputs:
         raise ValueError(f"transfer has {np.shape(transfer)[1]} columns, the network {arch.outputs} outputs")
     n_coeffs = arch.bands * arch.bands  # per channel; the "direct+rgb" layout outputs 4 sets
-    torch.manual_seed(settings.seed)
     gen = torch.Generator().manual_seed(settings.seed)
     scale, offset = target_scaling(transfer)
-    model = GridTransfer(arch, bounds, scale, offset)
+    model = seeded(settings.seed, lambda: GridTransfer(arch, bounds, scale, offset))
     x = _as_input(points, normals)
     y = torch.from_numpy(np.ascontiguousarray(transfer, dtype=np.float32))
     xv = _as_input(val_points, val_normals)
