@@ -345,6 +345,7 @@ def readme_rows(root: Path) -> list[tuple[str, str, str, str]]:
             cells.append(f"{s['name']} ({s['triangles']:,} triangles, {s['objects']} objects): build {s['timing']['wall_s'] / 60:.1f} min; {groups}")
         return "; ".join(cells) or None
     add("scenes_real.json", "real scenes at the defaults, diffuse PSNR from their own cameras (exposure matched)", scenes)
+    add("scenes_real_copies.json", "the same on public copies of a house and an assembly (origin and sha1: docs/benchmarks/cameras/SOURCES.md)", scenes)
     return rows
 
 
