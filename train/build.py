@@ -17,7 +17,7 @@ import hashlib
 import json
 import math
 import time
-from contextlib import closing
+from contextlib import closing, contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -597,10 +597,8 @@ def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log
     # of this process, each fit seeding under a lock, prt.train.networks.fit.seeded); a fit's bytes
     # depend on its thread count only, not on how many run beside it or where.
     torch_threads = torch.get_num_threads()
-    if executor.local:
-        torch.set_num_threads(FIT_THREADS)
     try:
-        with closing(executor.map(segment_task, job, items, task_threads=FIT_THREADS)) as finished:
+        with _fit_threads(executor.local), closing(executor.map(segment_task, job, items, task_threads=FIT_THREADS)) as finished:
             for (seg, _, _), (record, new_fits, lines) in finished:
                 s = seg["id"]
                 for line in lines:
@@ -616,7 +614,6 @@ def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log
                     display.add("fits", expected[s])
                 display.segment_done(s)
     finally:
-        torch.set_num_threads(torch_threads)
         display.finish("fits")
     segments = [records[seg["id"]] for seg in seg_json["segments"]]
     train_s = time.perf_counter() - t0
@@ -627,11 +624,8 @@ def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log
         fit_cache = lambda pre_key, s, settings: _FitCache(fits_folder, pre_key, s, settings)  # noqa: E731
         job = RefineJob(spec, out, seg_json, samples, valid, members, archs, fit_settings, lights, vertex, data_key, fit_cache,
                         list(geometry.object_names), t_start, log, threads=torch_threads)  # fmt: skip
-        torch.set_num_threads(FIT_THREADS)  # its refits run torch_threads at a time
-        try:
+        with _fit_threads():  # its refits run torch_threads at a time
             segments, seg_json, refinement = refine_build(job, segments)
-        finally:
-            torch.set_num_threads(torch_threads)
     refine_s = time.perf_counter() - t0
     held_out = {"light": SCENE_LIGHT, "psnr_db": scene_psnr(segments), "floor_db": spec.floor_db}
     exported = [_with_scene_psnr(r, held_out) for r in segments]
@@ -694,6 +688,18 @@ def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log
     }
     atomic_write_json(out / "build.json", report)
     return report
+
+
+@contextmanager
+def _fit_threads(here: bool = True):
+    """Torch at FIT_THREADS threads in this process while fits run here (``here``), as before after."""
+    before = torch.get_num_threads()
+    if here:
+        torch.set_num_threads(FIT_THREADS)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def _expected_fit_work(spec: BuildSpec, archs, fit_settings, samples: int) -> float:
