@@ -16,8 +16,9 @@ tone-mapped PSNR, as the benchmark's own images are.
 
 The scene entry's ``mitsuba`` record: ``variant``, ``libllvm``, ``mitsuba`` (version), ``spp``,
 ``max_depth``, ``views`` (orbit indices), ``albedos`` ({object: RGB}), ``envmap`` (the band-limited
-map: ``height``, ``min_radiance``, ``clamped``, ``clamp_share``: the energy clamping its negative
-radiance removed, per channel, ``lookup_error``), ``seconds`` (Mitsuba's render time, 0 when
+map: ``height``, ``min_radiance``, ``clamped``, ``clamp_share``: the energy a map clamped at 0
+would add, per channel, ``negative_part``: the negative radiance rendered apart and subtracted
+(:func:`prt.bench.mitsuba_reference.envmap_parts`), ``lookup_error``), ``seconds`` (Mitsuba's render time, 0 when
 cached), and per size ``sizes[WxH]``: ``pixels`` (compared, all views), ``mitsuba_noise_psnr``,
 ``rows`` (per configuration: ``label``, ``transfer``, ``psnr``, ``bias``, ``bias_se``,
 ``psnr_vs_ours``: against our reference on the same pixels; our reference's row adds

@@ -15,7 +15,12 @@ renderer's conventions (docs/design.md, "Conventions"):
 - **Light**: the scene's SH lighting (rotation applied) evaluated on Mitsuba's envmap grid: a
   map that holds bands 0-3 only, so 16 coefficients represent it exactly and the renderer's
   ``dot(T, L)`` is exact for it (:func:`band_limited_envmap`).  Where the 4-band radiance is
-  negative it is clamped at 0, and the share of energy that removed is reported.  Mitsuba's
+  negative (a sharp sky's SH rings below 0), an emitter cannot hold it: the map's negative part
+  is a second map (:func:`envmap_parts`), rendered apart with the same paths per pixel and
+  subtracted pass by pass (radiance is linear in the light), so Mitsuba renders the SH lighting
+  itself, as our reference does; ``clamp_share`` reports how much energy a map clamped at 0
+  would have added (on the Duplex's potsdamer lighting 0.5-1.4 %, which showed as a -0.4 %
+  brightness bias of our reference against such a map at 4096 paths per pixel).  Mitsuba's
   envmap reads ``u = atan2(x, -z) / 2 pi`` (ours is that + 0.5), columns at texel centres and
   rows at ``v = i / (H - 1)`` (first and last rows on the poles), bilinear in between: the grid
   is made in its convention, and :func:`check_envmap` compares its lookup with the SH at random
@@ -57,7 +62,7 @@ from prt.runtime.errors import InputError, PRTError
 from prt.runtime.files import atomic_save_npz
 from prt.runtime.normals import corner_normals
 
-__all__ = ["VARIANTS", "ENVMAP_HEIGHT", "LANES", "use_variant", "band_limited_envmap", "check_envmap", "scene_albedos",
+__all__ = ["VARIANTS", "ENVMAP_HEIGHT", "LANES", "use_variant", "band_limited_envmap", "envmap_parts", "check_envmap", "scene_albedos",
            "MitsubaScene", "cached_render"]  # fmt: skip
 
 VARIANTS = ("llvm_ad_rgb", "scalar_rgb")
@@ -164,7 +169,18 @@ def _mitsuba_grid(height: int) -> np.ndarray:
 
 
 def band_limited_envmap(coeffs, height: int = ENVMAP_HEIGHT) -> tuple[np.ndarray, dict]:
-    """The radiance of SH lighting on Mitsuba's envmap grid, clamped at 0; ``(image (H, 2H, 3) float32, info)``.
+    """The radiance of SH lighting on Mitsuba's envmap grid, clamped at 0; ``(image (H, 2H, 3) float32, info)``
+    (:func:`envmap_parts`' positive part and info).
+    """
+    positive, _, info = envmap_parts(coeffs, height)
+    return positive, info
+
+
+def envmap_parts(coeffs, height: int = ENVMAP_HEIGHT) -> tuple[np.ndarray, np.ndarray | None, dict]:
+    """The radiance of SH lighting on Mitsuba's envmap grid as two maps of radiance >= 0:
+    ``(positive, negative, info)``, ``positive - negative`` = the radiance at every texel (so their
+    bilinear lookups differ by the lookup of the SH lighting itself); ``negative`` is None where no
+    texel is negative.
 
     Parameters
     ----------
@@ -174,11 +190,12 @@ def band_limited_envmap(coeffs, height: int = ENVMAP_HEIGHT) -> tuple[np.ndarray
 
     Returns
     -------
-    image : (H, 2H, 3) float32
+    positive, negative : (H, 2H, 3) float32 (negative: or None)
     info : dict
-        ``height``, ``min_radiance`` (per channel, before clamping), ``clamped`` (any negative),
-        ``clamp_share``: per channel, the energy clamping removed, ``integral max(0, -L) dw /
-        integral L dw`` (the clamped map is that much brighter in total than the SH lighting).
+        ``height``, ``min_radiance`` (per channel), ``clamped`` (any negative radiance),
+        ``clamp_share``: per channel, the energy clamping would remove, ``integral max(0, -L) dw /
+        integral L dw`` (the positive part alone is that much brighter in total than the SH
+        lighting), ``negative_part``: whether there is a negative map to subtract.
     """
     coeffs = np.asarray(coeffs, dtype=np.float64)
     if coeffs.ndim != 2 or coeffs.shape[1] != 3 or math.isqrt(coeffs.shape[0]) ** 2 != coeffs.shape[0]:
@@ -192,11 +209,16 @@ def band_limited_envmap(coeffs, height: int = ENVMAP_HEIGHT) -> tuple[np.ndarray
     share = np.divide(negative, total, out=np.full(3, np.inf), where=total > 0)
     info = {"height": int(height), "min_radiance": [round(float(v), 6) for v in fine.min(axis=(0, 1))],
             "clamped": bool((fine < 0).any()), "clamp_share": [float(v) for v in share]}  # fmt: skip
-    return np.ascontiguousarray(np.maximum(radiance, 0.0), dtype=np.float32), info
+    positive = np.ascontiguousarray(np.maximum(radiance, 0.0), dtype=np.float32)
+    negative = np.ascontiguousarray(np.maximum(-radiance, 0.0), dtype=np.float32)
+    info["negative_part"] = bool(negative.max() > 0)
+    return positive, (negative if info["negative_part"] else None), info
 
 
-def check_envmap(emitter, coeffs, count: int = 256) -> float:
-    """Mitsuba's lookup of ``emitter`` against the clamped SH radiance at ``count`` random directions.
+def check_envmap(emitter, coeffs, count: int = 256, negative=None) -> float:
+    """Mitsuba's lookup of ``emitter`` against the clamped SH radiance at ``count`` random directions;
+    with ``negative`` (the negative part's emitter, :func:`envmap_parts`), the lookup of ``emitter``
+    minus that of ``negative`` against the SH radiance itself.
 
     Returns the largest difference as a share of the mean radiance; raises PRTError above
     :data:`ENVMAP_TOLERANCE` (a Mitsuba release that reads env maps differently).
@@ -207,18 +229,23 @@ def check_envmap(emitter, coeffs, count: int = 256) -> float:
     rng = np.random.default_rng(7)
     dirs = rng.normal(size=(count, 3))
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    truth = np.maximum(sh.evaluate(np.asarray(coeffs, dtype=np.float64), dirs), 0.0)
-    if mi.variant().startswith("scalar"):
-        got = []
-        for d in dirs:
-            si = dr.zeros(mi.SurfaceInteraction3f)
-            si.wi = mi.Vector3f(*(-d))
-            got.append(np.array(emitter.eval(si)))
-        got = np.asarray(got, dtype=np.float64).reshape(count, 3)
-    else:
+    truth = sh.evaluate(np.asarray(coeffs, dtype=np.float64), dirs)
+    if negative is None:
+        truth = np.maximum(truth, 0.0)
+
+    def lookup(light) -> np.ndarray:
+        if mi.variant().startswith("scalar"):
+            got = []
+            for d in dirs:
+                si = dr.zeros(mi.SurfaceInteraction3f)
+                si.wi = mi.Vector3f(*(-d))
+                got.append(np.array(light.eval(si)))
+            return np.asarray(got, dtype=np.float64).reshape(count, 3)
         si = dr.zeros(mi.SurfaceInteraction3f, count)
         si.wi = mi.Vector3f(*(-dirs.T))
-        got = np.asarray(emitter.eval(si), dtype=np.float64).reshape(3, count).T
+        return np.asarray(light.eval(si), dtype=np.float64).reshape(3, count).T
+
+    got = lookup(emitter) - (0.0 if negative is None else lookup(negative))
     mean = max(float(np.abs(truth).mean()), 1e-12)
     error = float(np.abs(got - truth).max() / mean)
     if not error <= ENVMAP_TOLERANCE:
@@ -337,10 +364,11 @@ class MitsubaScene:
                 chosen = np.flatnonzero(keep & (object_ids == obj) & (two_sided == side))
                 if len(chosen):
                     self.shapes[f"object{obj}{'_two_sided' if side else ''}"] = self._mesh(vertices[faces[chosen]], corner[chosen], albedo[obj], side)
-        self.envmap, self.envmap_info = band_limited_envmap(coeffs, envmap_height)
-        emitter = mi.load_dict({"type": "envmap", "bitmap": mi.Bitmap(self.envmap)})
-        self.envmap_info["lookup_error"] = check_envmap(emitter, coeffs)
-        self.emitter = emitter
+        self.envmap, negative, self.envmap_info = envmap_parts(coeffs, envmap_height)
+        self.emitter = mi.load_dict({"type": "envmap", "bitmap": mi.Bitmap(self.envmap)})
+        # The negative part, rendered apart and subtracted (module docstring); None where there is none.
+        self.negative_emitter = None if negative is None else mi.load_dict({"type": "envmap", "bitmap": mi.Bitmap(negative)})
+        self.envmap_info["lookup_error"] = check_envmap(self.emitter, coeffs, negative=self.negative_emitter)
         self.sensor_type = _register_sensor(mi, dr)
         self._scenes = {}  # (width, height) -> (scene, sensor)
 
@@ -359,15 +387,16 @@ class MitsubaScene:
         params.update()
         return mesh
 
-    def _scene(self, width: int, height: int):
-        key = (int(width), int(height))
+    def _scene(self, width: int, height: int, negative: bool = False):
+        """The scene lit by the map's positive part, or by its negative part (``negative``)."""
+        key = (int(width), int(height), bool(negative))
         if key not in self._scenes:
             mi = self.mi
             film = {"type": "hdrfilm", "width": key[0], "height": key[1], "rfilter": {"type": "box"}, "pixel_format": "rgb",
                     "sample_border": False}  # fmt: skip
             path = {"type": "path", "max_depth": 2 + self.bounces, "rr_depth": 2 + self.bounces + 1, "hide_emitters": True}
             scene = mi.load_dict({
-                "type": "scene", "emitter": self.emitter, **self.shapes,
+                "type": "scene", "emitter": self.negative_emitter if negative else self.emitter, **self.shapes,
                 "sensor": {"type": self.sensor_type, "film": film, "sampler": {"type": "independent", "sample_count": 1}},
                 "integrator": {"type": "aov", "aovs": "position:position,normal:sh_normal", "path": path},
             })  # fmt: skip
@@ -384,7 +413,8 @@ class MitsubaScene:
         spp : int
             Paths per pixel (rounded up to equal passes).
         seed : int
-            Passes use the seeds ``2 ** 16 * seed + pass``.
+            Passes use the seeds ``2 ** 16 * seed + pass`` (the negative part's, where there is one,
+            ``2 ** 16 * seed + passes + pass``).
         lanes : int
             Paths per pass at most (LLVM variant).
         passes : int
@@ -394,16 +424,19 @@ class MitsubaScene:
         -------
         dict
             ``radiance`` (H, W, 3) float32 linear (mean of all passes), ``passes`` (P, H, W, 3): each
-            pass's image (independent estimates: the noise), ``position`` and ``normal`` (H, W, 3):
+            pass's image (independent estimates: the noise; each the positive part's render minus
+            the negative part's), ``position`` and ``normal`` (H, W, 3):
             the primary hit and its shading normal (as interpolated, not turned to the camera;
             zeros where none), ``spp`` (paths per pixel rendered), ``seconds``.
         """
         passes = max(2, int(passes))
         if spp < passes:
             raise InputError(f"Mitsuba reference: spp must be at least {passes} (one path per pass), got {spp}")
-        scene, sensor = self._scene(width, height)
         half_x = math.tan(math.radians(camera.fov_y) / 2.0) * width / height
-        sensor.set_camera(camera.eye, camera.forward, camera.right, camera.true_up, half_x, half_x * height / width)
+        for negative in (False, True)[: 1 + (self.negative_emitter is not None)]:
+            sensor = self._scene(width, height, negative)[1]
+            sensor.set_camera(camera.eye, camera.forward, camera.right, camera.true_up, half_x, half_x * height / width)
+        scene = self._scene(width, height)[0]
         if self.dr.is_jit_v(self.mi.Float):
             passes = max(passes, math.ceil(spp * width * height / lanes))
         passes += passes % 2
@@ -414,6 +447,9 @@ class MitsubaScene:
         for k in range(passes):
             out = np.asarray(self.mi.render(scene, spp=per_pass, seed=(2**16) * int(seed) + k), dtype=np.float32)
             images[k] = out[..., :3]
+            if self.negative_emitter is not None:
+                minus = self.mi.render(self._scene(width, height, True)[0], spp=per_pass, seed=(2**16) * int(seed) + passes + k)
+                images[k] -= np.asarray(minus, dtype=np.float32)[..., :3]
             if position is None:  # every path of a pixel starts with the same primary ray: one pass tells
                 position, normal = out[..., 3:6], out[..., 6:9]
         return {"radiance": images.mean(axis=0, dtype=np.float64).astype(np.float32), "passes": images, "position": position,
@@ -429,7 +465,7 @@ def cached_render(cache: Path | None, tag: str, scene: MitsubaScene, key: str, c
     if cache is None:
         return scene.render(camera, width, height, spp, seed)
     parts = [key, camera.eye.tolist(), camera.target.tolist(), camera.up.tolist(), camera.fov_y, width, height, spp, seed,
-             scene.info["variant"], scene.info["mitsuba"], "v2"]  # fmt: skip
+             scene.info["variant"], scene.info["mitsuba"], "v3"]  # fmt: skip
     digest = hashlib.sha1(repr(parts).encode()).hexdigest()[:12]
     path = Path(cache) / f"{tag}-mitsuba-{width}x{height}-spp{spp}-s{seed}-{digest}.npz"
     if path.is_file():

@@ -505,7 +505,7 @@ def scene_checkpoint(scene_path, settings) -> Path:
         options["exposure"] = settings.exposure
     if getattr(settings, "reference", "ours") != "ours":  # (likewise)
         options.update(reference=settings.reference, mitsuba_spp=settings.mitsuba_spp, mitsuba_views=settings.mitsuba_views,
-                       mitsuba_variant=settings.mitsuba_variant)  # fmt: skip
+                       mitsuba_variant=settings.mitsuba_variant, mitsuba_light="signed")  # fmt: skip  # signed: its negative part subtracted
     options["prt"] = _prt_version()  # a new release measures again
     options["records"] = RECORD_FORMAT  # so does a new record format
     digest.update(json.dumps(options, sort_keys=True, default=list).encode())

@@ -1,7 +1,7 @@
 """Real scenes built with the defaults and judged from their own cameras (issue 43's targets).
 
 usage: python studies/scenes_real.py SCENE.glb[:CAMERAS.json] [...] --json OUT.json [--md OUT.md] [--work DIR]
-           [--quality standard] [--size 192] [--ref-rays 512] [--mitsuba SCENE_NAME] [--extra FLAG ...]
+           [--quality standard] [--size 192] [--ref-rays 512] [--mitsuba SCENE_NAME ...] [--extra FLAG ...]
 
 For every scene file: ``prt-train SCENE -o WORK/NAME`` (``--quality``, nothing else; timed under
 ``nice`` with the load recorded, as ``studies/builds_vs_vertex.py`` times builds), the build's
@@ -11,8 +11,8 @@ default ``SCENE.cameras.json`` beside the file: ``{"views": [{"eye", "target", "
 normalised space), the views split into those whose eye lies outside the scene's bounds and those
 inside, each group at ``--exposure auto`` (scored at the exposure the reference frame gets):
 the networks, per-vertex PRT with the same bounces, the L2 SH probe grid at equal bytes and at an
-engine density, with the light-leak figure.  ``--mitsuba NAME`` adds Mitsuba 3 as the reference
-for that scene's outside views.
+engine density, with the light-leak figure.  ``--mitsuba NAME ...`` adds Mitsuba 3 as the reference
+for those scenes' outside views (:mod:`prt.bench.mitsuba_bench`; 2 views, ``--mitsuba-spp`` paths per pixel).
 
 Scene files are not part of the repository (their licences, AGPL and GPL among them, are not the
 package's): ``/work/scenes/SOURCES.md`` on the machine that made the record lists their origin,
@@ -86,9 +86,24 @@ def summarise(report: dict, group: str) -> dict:
                                         "leak": r.get("leak"), "leak_error": r.get("leak_error")}  # fmt: skip
     scene = report["scenes"][0]
     out["reference_noise_db"] = next(iter(scene["reference"]["noise_psnr"].values()))["diffuse"]
-    if "mitsuba" in scene:
-        out["mitsuba"] = scene["mitsuba"]
+    if "mitsuba" in scene:  # what it rendered and each configuration's figures against it (not the albedo table)
+        out["mitsuba"] = {k: v for k, v in scene["mitsuba"].items() if k != "albedos"}
     return out
+
+
+def mitsuba_line(name: str, group: str, m: dict) -> str:
+    """One line of the record: our reference and the networks against Mitsuba 3."""
+    rows = [(size, {r["label"]: r for r in s["rows"]}, s) for size, s in m["sizes"].items()]
+    parts = []
+    for size, by, s in rows:
+        ours, nets = by.get("our reference", {}), by.get("onnx fp32", {})
+        parts.append(f"{size}, {s['pixels']:,} pixels: our reference {ours.get('psnr')} dB against Mitsuba (joint noise "
+                     f"{ours.get('joint_noise_psnr')} dB, MSE ratio {ours.get('mse_ratio')}: "
+                     f"{'within' if ours.get('within_noise') else 'NOT within'} the joint noise; brightness bias "
+                     f"{100 * ours.get('bias', 0):+.3f} % +- {100 * ours.get('bias_se', 0):.3f}), the networks {nets.get('psnr')} dB")
+    return (f"- {name} {group}: Mitsuba 3 {m.get('mitsuba')} ({m.get('variant')}, {m.get('spp')} paths per pixel, max depth "
+            f"{m.get('max_depth')}, views {m.get('views')}, negative light subtracted: {m.get('envmap', {}).get('negative_part')}); "
+            + "; ".join(parts))
 
 
 def verdicts(groups: dict) -> dict:
@@ -130,8 +145,12 @@ def markdown(result: dict) -> str:
                          f"{'yes' if s['no_material_line'] else 'no'} | {held} ({margin}) | {group} ({g['views']}) | "
                          f"{c.get('onnx', {}).get('psnr_db')} | {c.get('vertex', {}).get('psnr_db')} | {eq.get('psnr_db')} | {en.get('psnr_db')} | "
                          f"{leaks} | {met} |")  # fmt: skip
+    judged = [mitsuba_line(s["name"], group, g["mitsuba"]) for s in result["scenes"] for group, g in s["groups"].items() if "mitsuba" in g]
+    if judged:
+        lines += ["", "Against Mitsuba 3 (diffuse, exposure matched, the pixels where both see the same point):", "", *judged]
     lines += ["", f"Bars (issue 43): outside >= {BARS['outside_db']} dB, inside >= {BARS['inside_db']} dB (exposure matched), "
-              f">= vertex PRT + {BARS['over_vertex_db']} dB, >= probe grid at equal bytes + {BARS['over_probes_db']} dB; build <= 20 min.", ""]
+              f">= vertex PRT + {BARS['over_vertex_db']} dB, >= probe grid at equal bytes + {BARS['over_probes_db']} dB; build <= 20 min; "
+              "one scene against Mitsuba 3 within the joint noise.", ""]
     return "\n".join(lines)
 
 
@@ -144,7 +163,7 @@ def main(argv=None) -> int:
     p.add_argument("--quality", default="standard")
     p.add_argument("--size", type=int, default=192)
     p.add_argument("--ref-rays", type=int, default=512)
-    p.add_argument("--mitsuba", default=None, help="the scene (file stem) whose outside views Mitsuba 3 also judges")
+    p.add_argument("--mitsuba", nargs="+", default=[], metavar="SCENE_NAME", help="the scenes (file stems) whose outside views Mitsuba 3 also judges")
     p.add_argument("--mitsuba-spp", type=int, default=256)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--extra", nargs="*", default=[])
@@ -169,7 +188,7 @@ def main(argv=None) -> int:
             triangles, objects = len(g["faces"]), int(g["object_ids"].max()) + 1
         groups = {}
         for name, views in split_views(cams, out).items():
-            report = bench_group(out, name, views, args, mitsuba=args.mitsuba == path.stem and name == "outside")
+            report = bench_group(out, name, views, args, mitsuba=path.stem in args.mitsuba and name == "outside")
             groups[name] = summarise(report, name)
             groups[name]["command"] = report.get("command")
         entry = {"name": path.stem, "file": path.name, "sha1": hashlib.sha1(path.read_bytes()).hexdigest(), "triangles": triangles,

@@ -20,7 +20,7 @@ mitsuba = pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip
 
 from prt.bench.bounce_reference import face_albedo, higher_bounce_samples  # noqa: E402
 from prt.bench.mitsuba_compare import NOISE_RATIO_LIMIT, compare, compared_pixels, diffuse_radiance, halves, pixel_objects  # noqa: E402
-from prt.bench.mitsuba_reference import MitsubaScene, band_limited_envmap, check_envmap, use_variant  # noqa: E402
+from prt.bench.mitsuba_reference import MitsubaScene, band_limited_envmap, check_envmap, envmap_parts, use_variant  # noqa: E402
 from prt.bench.quiet_reference import ReferenceSource  # noqa: E402
 from prt.export.manifest import write_manifest  # noqa: E402
 from prt.runtime import sh  # noqa: E402
@@ -110,6 +110,14 @@ def test_envmap_lookup_matches_the_sh_and_clamping_is_measured(variant):
     expected = (np.maximum(-values, 0) * weight).sum(axis=(0, 1)) / (np.sqrt(4 * np.pi) * negative[0])
     assert info["clamped"] and np.all(expected > 0.005)
     np.testing.assert_allclose(info["clamp_share"], expected, rtol=0.02)
+    # Its two parts: the lookup of the positive map minus the negative map's is the SH radiance itself.
+    positive, minus, info = envmap_parts(negative, 128)
+    assert info["negative_part"] and positive.min() >= 0 and minus.min() >= 0
+    plus_light, minus_light = (mitsuba.load_dict({"type": "envmap", "bitmap": mitsuba.Bitmap(m)}) for m in (positive, minus))
+    assert check_envmap(plus_light, negative, negative=minus_light) < 1e-3
+    with pytest.raises(PRTError, match="another convention"):  # the positive part alone is not the SH lighting
+        check_envmap(plus_light, negative, negative=mitsuba.load_dict({"type": "envmap", "bitmap": mitsuba.Bitmap(0.5 * minus)}))
+    assert envmap_parts(coeffs, 64)[1] is None  # a sky that stays positive has no negative part
 
 
 @pytest.fixture(scope="module")
@@ -133,17 +141,22 @@ def _closed_form(camera, size, coeffs, albedo):
     return np.asarray(albedo) * np.einsum("hwk,kc->hwc", t, coeffs), hit
 
 
-@pytest.mark.parametrize("sky", ["constant", "band-limited"])
+@pytest.mark.parametrize("sky", ["constant", "band-limited", "negative lobe"])
 def test_unoccluded_sphere_both_renderers_match_the_closed_form(gl_ctx, variant, sphere, sky):
     """Mitsuba, our ray-traced reference and prt-runtime (the analytic segment) against the exact
-    irradiance of an unoccluded sphere: a white furnace (constant sky: the albedo everywhere) and
-    a band-limited sky (the clamped cosine's band factors times the light)."""
+    irradiance of an unoccluded sphere: a white furnace (constant sky: the albedo everywhere), a
+    band-limited sky (the clamped cosine's band factors times the light), and a sky whose SH
+    radiance goes below 0 (Mitsuba renders its negative part apart and subtracts it: a map
+    clamped at 0 is brighter than the SH lighting)."""
     ball, camera, folder = sphere
     albedo = np.array([0.8, 0.6, 0.4])
     coeffs = np.zeros((16, 3))
     coeffs[0] = DC * 1.5
     if sky != "constant":
         coeffs = _sky()
+    if sky == "negative lobe":
+        coeffs[4:16] *= 6.0  # bands 2 and 3: the radiance rings below 0, the irradiance stays positive
+        assert min(band_limited_envmap(coeffs, 64)[1]["clamp_share"]) > 0.04  # a clamped map would be >= 4 % too bright
     n = len(ball.faces)
     scene = _write_scene(folder / sky, ball.vertices, ball.faces, np.zeros(n), np.zeros(n, bool), ["ball"], camera, coeffs)
     g = _gbuffer(gl_ctx, scene, camera)
