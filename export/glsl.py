@@ -165,6 +165,7 @@ class _Network:
     outputs: int  # vec4 blocks of output
     coefficients: int
     quad: np.ndarray | None = None  # (9, coefficients) out_normal_quad of a residual network, else None
+    log_dc: int = 0  # a log-DC head's group width (bands^2: out_linear, out_max follow out_offset), else 0
 
     @property
     def texels(self) -> int:
@@ -407,6 +408,16 @@ def _network(onnx_path) -> _Network:
         tensors.append(_Tensor(f"{prefix}_bias", "vec4", _vec4_items(arrays[f"{prefix}_bias"])))
     tensors.append(_Tensor("out_scale", "vec4", _vec4_items(arrays["out_scale"])))
     tensors.append(_Tensor("out_offset", "vec4", _vec4_items(arrays["out_offset"])))
+    log_dc = 0
+    if "out_dc_select" in arrays:  # a log-DC head: its fitted constants after out_offset; its groups must be bands^2 wide
+        log_dc = bands * bands
+        sets = coefficients // log_dc
+        select = np.zeros((coefficients, sets), np.float32)
+        select[np.arange(sets) * log_dc, np.arange(sets)] = 1.0
+        if coefficients % log_dc or not np.array_equal(arrays["out_dc_select"], select):
+            raise ValueError(f"{onnx_path}: out_dc_select is not the log-DC head of {sets} groups of {log_dc} coefficients")
+        tensors.append(_Tensor("out_linear", "vec4", _vec4_items(arrays["out_linear"])))
+        tensors.append(_Tensor("out_max", "vec4", _vec4_items(arrays["out_max"])))
     quad = arrays.get("out_normal_quad")
     if quad is not None and quad.shape != (9, coefficients):
         raise ValueError(f"{onnx_path}: out_normal_quad should be {(9, coefficients)}, found {quad.shape}")
@@ -420,7 +431,28 @@ def _network(onnx_path) -> _Network:
         outputs=math.ceil(coefficients / 4),
         coefficients=coefficients,
         quad=None if quad is None else np.asarray(quad, np.float32),
+        log_dc=log_dc,
     )
+
+
+def head_lines(network: _Network) -> list[str]:
+    """Statements that turn a log-DC head's ``t`` (each group's capped log DC, then ratios) into the
+    transfer (none for another network): ``dc_g = exp(t[DC of g])``, then every coefficient ``dc_g``
+    (its group's DC column) or ``dc_g * t`` (the others); padding stays 0."""
+    n = network.log_dc
+    if not n:
+        return []
+    lines = ["    // log-DC head: each group's DC = exp(its log), the other coefficients ratios to it"]
+    lines += [f"    float dc{g} = exp(t[{g * n // 4}].{'xyzw'[g * n % 4]});" for g in range(network.coefficients // n)]
+    for block in range(network.outputs):
+        items = []
+        for k in range(4 * block, 4 * block + 4):
+            if k >= network.coefficients:
+                items.append("0.0")
+            else:
+                items.append(f"dc{k // n}" if k % n == 0 else f"dc{k // n} * t[{block}].{'xyzw'[k % 4]}")
+        lines.append(f"    t[{block}] = vec4({', '.join(items)});")
+    return lines
 
 
 _QUAD_TERMS = ("q.x", "q.y", "q.z", "q2.x", "q2.y", "q2.z", "qx.x", "qx.y", "qx.z")  # prt.runtime.sh.QUADRATIC_TERMS
@@ -511,6 +543,10 @@ def _mat4_blocks(w: np.ndarray) -> np.ndarray:
     return blocks.reshape(n_out * n_in, 4, 4).copy()
 
 
+# The output layer's formula, linear head / log-DC head (then head_lines).
+_OUT_FORMULA = ("tanh(W^T x + b) * out_scale + out_offset", "min(tanh(W^T x + b) * out_scale + out_offset + (W^T x + b) * out_linear, out_max)")
+
+
 def _source(network: _Network, fn: str, layout: str) -> str:
     """Fill the main template: the layout's tensor storage and getters, then the network."""
     if layout == "auto":
@@ -533,17 +569,18 @@ def _source(network: _Network, fn: str, layout: str) -> str:
                 fn=fn,
                 name=name,
                 title="output layer" if last else f"hidden layer {i}",
-                formula="tanh(W^T x + b) * out_scale + out_offset" if last else "leaky_relu(W^T x + b)",
+                formula=(_OUT_FORMULA[bool(network.log_dc)]) if last else "leaky_relu(W^T x + b)",
                 n_in=n_in,
                 n_out=n_out,
                 weight=f"{name}_weight",
                 bias=f"{name}_bias",
-                activation=(f"{fn}_tanh(z) * {fn}_out_scale(o) + {fn}_out_offset(o)" if last else f"{fn}_leaky_relu(z)"),
+                activation=((f"min({fn}_tanh(z) * {fn}_out_scale(o) + {fn}_out_offset(o) + z * {fn}_out_linear(o), {fn}_out_max(o))"
+                             if network.log_dc else f"{fn}_tanh(z) * {fn}_out_scale(o) + {fn}_out_offset(o)") if last else f"{fn}_leaky_relu(z)"),
             )
         )
         if last:
             forward.append(f"    {fn}_out({x}, t);")
-            forward += residual_lines(network)
+            forward += residual_lines(network) + head_lines(network)
         else:
             forward += [f"    vec4 h{i}[{n_out}];", f"    {fn}_{name}({x}, h{i});"]
     padding = 4 * network.outputs - network.coefficients

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .glsl import _groups_doc, _literal, _network, _template, _texture, residual_lines
+from .glsl import _OUT_FORMULA, _groups_doc, _literal, _network, _template, _texture, head_lines, residual_lines
 from .grid_onnx import TABLE_WIDTH, grid_input_lines, grid_level_lines, mlp_layer_lines, table_texture
 from .onnx_model import LEAKY_SLOPE, NORMAL_EPS, POSITION_CLIP
 
@@ -110,7 +110,7 @@ def freq_source(onnx_path) -> str:
         w = offsets["out_weight" if last else f"layer{i}_weight"]
         if last:
             forward.append(f"    FN_{kind}(base + {w}, {in_bound}, outputs, {x}, t);")
-            forward += residual_lines(network)
+            forward += residual_lines(network) + head_lines(network)
         else:
             forward += [f"    vec4 h{i}[{n_out}];", f"    FN_{kind}(base + {w}, {in_bound}, hidden, {x}, h{i});"]
             x = f"h{i}"
@@ -119,10 +119,13 @@ def freq_source(onnx_path) -> str:
         layer_text.append(
             _template("mlp_compact_layer.glsl.tmpl").substitute(
                 fn="FN", name=kind, title="output layer" if last else ("first hidden layer" if kind == "first" else "hidden layer"),
-                formula="tanh(W^T x + b) * out_scale + out_offset" if last else "leaky_relu(W^T x + b)",
-                extra_doc=", out_scale and out_offset (n_out texels each)" if last else "",
+                formula=_OUT_FORMULA[bool(network.log_dc)] if last else "leaky_relu(W^T x + b)",
+                extra_doc=(", out_scale, out_offset" + (", out_linear and out_max" if network.log_dc else " and") + " (n_out texels each)")
+                          .replace(", out_offset and", " and out_offset") if last else "",
                 n_in=n_in, n_out=n_out,
-                activation="FN_tanh(z) * prt_weight(bias + n_out + o) + prt_weight(bias + 2 * n_out + o)" if last else "FN_leaky_relu(z)",
+                activation=(("min(FN_tanh(z) * prt_weight(bias + n_out + o) + prt_weight(bias + 2 * n_out + o) + z * prt_weight(bias + 3 * n_out + o), "
+                             "prt_weight(bias + 4 * n_out + o))") if network.log_dc
+                            else "FN_tanh(z) * prt_weight(bias + n_out + o) + prt_weight(bias + 2 * n_out + o)") if last else "FN_leaky_relu(z)",
             )
         )  # fmt: skip
     padding = 4 * network.outputs - network.coefficients
@@ -146,7 +149,8 @@ def freq_source(onnx_path) -> str:
         outputs=network.outputs,
         forward="\n".join(forward),
     )
-    readable = f"k{arch['hidden']}_l{layers}_p{arch['pos_freqs']}_n{arch['normal_freqs']}_o{network.coefficients}" + ("_res" if network.quad is not None else "")
+    readable = (f"k{arch['hidden']}_l{layers}_p{arch['pos_freqs']}_n{arch['normal_freqs']}_o{network.coefficients}" + ("_res" if network.quad is not None else "")
+                + ("_logdc" if network.log_dc else ""))  # fmt: skip
     return _rename(text, _name("freq", readable, text))
 
 

@@ -10,7 +10,8 @@ Graph (opset 17), one input and one output, dynamic batch ``N``:
                "direct+rgb" layout of interreflection: direct, then indirect R, G, B)
 
 The encoding is part of the graph (Split, Sub/Mul/Clip, ReduceL2/Max/Div, MatMul, Sin, Cos,
-Concat), then ``layers`` x (Gemm, LeakyRelu), Gemm, Tanh, Mul, Add; a residual network's
+Concat), then ``layers`` x (Gemm, LeakyRelu), Gemm, Tanh, Mul, Add; a log-DC head's then
+(:func:`add_log_dc_head`) Mul, Add, Min, MatMul, Exp, MatMul, Sub, Mul, Add, Mul; a residual network's
 (:class:`prt.train.networks.network.Architecture`, ``residual``) then adds ``q(n) @ out_normal_quad``
 (Mul, Gather, Mul, Concat, MatMul, Add; ``q(n) = [n, n * n, n * n.yzx]`` of the unit normal).  Initialiser names match
 :meth:`prt.train.networks.network.TransferMLP.arrays`; the GLSL generator reads the weights back from
@@ -25,13 +26,32 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["OPSET", "FORMAT", "LEAKY_SLOPE", "POSITION_CLIP", "NORMAL_EPS", "build_model", "save_model", "read_arrays", "read_metadata"]
+__all__ = ["OPSET", "FORMAT", "LEAKY_SLOPE", "POSITION_CLIP", "NORMAL_EPS", "build_model", "add_log_dc_head", "save_model", "read_arrays", "read_metadata"]
 
 OPSET = 17
 FORMAT = "prt-transfer-mlp/1"
 LEAKY_SLOPE = 0.01
 POSITION_CLIP = 2.0  # normalised positions are clipped to [-2, 2]: finite output anywhere
 NORMAL_EPS = 1e-8
+
+
+def add_log_dc_head(add, inits: list, z: str, shifted: str, output: str) -> None:
+    """A log-DC head's nodes after ``shifted`` = tanh(z) * out_scale + out_offset: + z * out_linear,
+    Min out_max, the DC columns through MatMul out_dc_select, Exp, MatMul out_dc_spread, times
+    the ratios (``u * (1 - out_dc_mask) + out_dc_mask``)."""
+    from onnx import numpy_helper
+
+    inits.append(numpy_helper.from_array(np.array(1.0, dtype=np.float32), "head_one"))
+    add("Mul", [z, "out_linear"], ["head_linear"])
+    add("Add", [shifted, "head_linear"], ["head_v"])
+    add("Min", ["head_v", "out_max"], ["head_u"])
+    add("MatMul", ["head_u", "out_dc_select"], ["head_log_dc"])
+    add("Exp", ["head_log_dc"], ["head_dc"])
+    add("MatMul", ["head_dc", "out_dc_spread"], ["head_dc_wide"])
+    add("Sub", ["head_one", "out_dc_mask"], ["head_ratio_mask"])
+    add("Mul", ["head_u", "head_ratio_mask"], ["head_ratios"])
+    add("Add", ["head_ratios", "out_dc_mask"], ["head_factors"])
+    add("Mul", ["head_dc_wide", "head_factors"], [output])
 
 
 def build_model(arrays: dict[str, np.ndarray], architecture: dict, *, name: str = "segment"):
@@ -98,7 +118,10 @@ def build_model(arrays: dict[str, np.ndarray], architecture: dict, *, name: str 
     add("Tanh", ["out_pre"], ["out_tanh"])
     add("Mul", ["out_tanh", "out_scale"], ["out_scaled"])
     residual = "out_normal_quad" in arrays
-    add("Add", ["out_scaled", "out_offset"], ["out_shifted" if residual else "transfer"])
+    log_dc = "out_dc_select" in arrays
+    add("Add", ["out_scaled", "out_offset"], ["out_shifted" if residual or log_dc else "transfer"])
+    if log_dc:  # each group's DC = exp(its capped log), the other columns ratios to it (prt.train.networks.network)
+        add_log_dc_head(add, inits, "out_pre", "out_shifted", "transfer")
     if residual:  # q(n) = [n, n * n, n * n.yzx] @ out_normal_quad: the unshadowed transfer's quadratic part
         inits.append(numpy_helper.from_array(np.array([1, 2, 0], dtype=np.int64), "quad_roll"))
         add("Mul", ["n_enc", "n_enc"], ["n_squares"])
@@ -127,7 +150,9 @@ def build_model(arrays: dict[str, np.ndarray], architecture: dict, *, name: str 
                 "normal": f"n / max(|n|, {NORMAL_EPS}); sin/cos of (n @ enc_normal_freq)",
                 "features": "[p, sin_p, cos_p, n, sin_n, cos_n]",
                 "activation": f"leaky_relu({LEAKY_SLOPE})",
-                "output": "tanh(z) * out_scale + out_offset" + (" + [n, n * n, n * n.yzx] @ out_normal_quad (residual network)" if residual else ""),
+                "output": "tanh(z) * out_scale + out_offset" + (" + [n, n * n, n * n.yzx] @ out_normal_quad (residual network)" if residual else "")
+                + ("; log-DC head: u = min(that + z * out_linear, out_max), T = (exp(u @ out_dc_select) @ out_dc_spread) * "
+                   "(u * (1 - out_dc_mask) + out_dc_mask)" if log_dc else ""),
             }
         ),
         "prt.output_scale": json.dumps(np.asarray(arrays["out_scale"]).tolist()),

@@ -11,8 +11,8 @@ are cut into blocks of ``B`` rows (the last one padded), and the model takes
 
 Each constant of the segments' files is stacked along a new first axis (``[S, ...]``) and gathered
 per block (``Gather(W, seg)``: ``[K, in, out]``), so each layer is one batched ``MatMul``
-``[K, B, in] @ [K, in, out]``; the encoding's box, the output scaling and a residual network's
-quadratic term are gathered per block the same way.  The graph repeats
+``[K, B, in] @ [K, in, out]``; the encoding's box, the output scaling, a log-DC head's constants
+and a residual network's quadratic term are gathered per block the same way.  The graph repeats
 :func:`prt.export.onnx_model.build_model`'s operations on the extra axis, so a block's rows get
 what the segment's own file gives them up to float rounding (the GEMM kernels differ).
 
@@ -42,7 +42,9 @@ NORMAL_EPS = 1e-8
 SHARED = ("enc_pos_freq", "enc_normal_freq")
 """Constants every segment of a stack must share (they are not stacked)."""
 _PER_SEGMENT = ("enc_centre", "enc_inv_half", "out_scale", "out_offset", "out_weight", "out_bias")
-_CONSTANTS = ("split_sizes", "clip_lo", "clip_hi", "normal_eps", "quad_roll")  # build_model's own
+_CONSTANTS = ("split_sizes", "clip_lo", "clip_hi", "normal_eps", "quad_roll", "head_one")  # build_model's own
+_HEAD_SEGMENT = ("out_linear", "out_max")  # a log-DC head's fitted constants: stacked
+_HEAD_SHARED = ("out_dc_select", "out_dc_spread", "out_dc_mask")  # its structure: the same in every member
 _FLOAT, _INT64 = 1, 7
 _DTYPES = {_FLOAT: np.float32, _INT64: np.int64}
 
@@ -127,13 +129,17 @@ def stack_key(arrays: dict[str, np.ndarray], meta: dict[str, str]) -> tuple | No
     while f"layer{layers}_weight" in arrays:
         layers += 1
     need = set(_PER_SEGMENT) | set(SHARED) | {f"layer{i}_{k}" for i in range(layers) for k in ("weight", "bias")}
+    head = set(_HEAD_SEGMENT) | set(_HEAD_SHARED)
+    if "out_dc_select" in arrays:  # a log-DC head: all of its arrays
+        need |= head
     optional = {"out_normal_quad"} | set(_CONSTANTS)
     if not need <= set(arrays) or not set(arrays) <= need | optional:
         return None
     if any(arrays[k].dtype != np.float32 for k in need | ({"out_normal_quad"} & set(arrays))):
         return None
     shapes = tuple(sorted((k, arrays[k].shape) for k in need | ({"out_normal_quad"} & set(arrays))))
-    return (MLP_FORMAT, layers, shapes) + tuple(arrays[k].tobytes() for k in SHARED)
+    shared = SHARED + (_HEAD_SHARED if "out_dc_select" in arrays else ())
+    return (MLP_FORMAT, layers, shapes) + tuple(arrays[k].tobytes() for k in shared)
 
 
 # -- writing the stacked model --
@@ -267,7 +273,22 @@ def stacked_model(members: list[dict[str, np.ndarray]], name: str = "stack") -> 
     g.add("Tanh", ["out_pre"], ["out_tanh"])
     g.add("Mul", ["out_tanh", stacked("out_scale", row=True)], ["out_scaled"])
     residual = "out_normal_quad" in first
-    g.add("Add", ["out_scaled", stacked("out_offset", row=True)], ["out_shifted" if residual else "transfer"])
+    log_dc = "out_dc_select" in first
+    g.add("Add", ["out_scaled", stacked("out_offset", row=True)], ["out_shifted" if residual or log_dc else "transfer"])
+    if log_dc:  # prt.export.onnx_model.add_log_dc_head's nodes, the fitted constants per block
+        for key in _HEAD_SHARED:
+            g.init(key, first[key])
+        g.init("head_one", np.array(1.0, np.float32))
+        g.add("Mul", ["out_pre", stacked("out_linear", row=True)], ["head_linear"])
+        g.add("Add", ["out_shifted", "head_linear"], ["head_v"])
+        g.add("Min", ["head_v", stacked("out_max", row=True)], ["head_u"])
+        g.add("MatMul", ["head_u", "out_dc_select"], ["head_log_dc"])
+        g.add("Exp", ["head_log_dc"], ["head_dc"])
+        g.add("MatMul", ["head_dc", "out_dc_spread"], ["head_dc_wide"])
+        g.add("Sub", ["head_one", "out_dc_mask"], ["head_ratio_mask"])
+        g.add("Mul", ["head_u", "head_ratio_mask"], ["head_ratios"])
+        g.add("Add", ["head_ratios", "out_dc_mask"], ["head_factors"])
+        g.add("Mul", ["head_dc_wide", "head_factors"], ["transfer"])
     if residual:  # q(n) = [n, n * n, n * n.yzx] @ out_normal_quad, per block (one matrix where all share it)
         g.init("quad_roll", np.eye(3, dtype=np.float32)[:, [1, 2, 0]])  # n @ it = n.yzx, exactly
         g.add("Mul", ["n_enc", "n_enc"], ["n_squares"])

@@ -20,7 +20,7 @@ from prt.export.glsl import (
     weight_texture,
 )
 from prt.export.onnx_model import build_model, save_model
-from prt.train.networks.network import Architecture, TransferMLP, frequency_matrix
+from prt.train.networks.network import Architecture, TransferMLP, frequency_matrix, head_terms
 
 SNAPSHOTS = Path(__file__).parent / "snapshots"
 BOUNDS = np.array([[-1.0, 0.5, -2.0], [1.5, 2.0, 0.25]])
@@ -33,6 +33,10 @@ CASES = {
     "k12-l1-f6-n2-bands3": (Architecture(hidden=12, layers=1, pos_freqs=6, normal_freqs=2, bands=3), ("const", "texture")),
     "k64-l4-f6-n2": (Architecture(hidden=64, layers=4, pos_freqs=6, normal_freqs=2), ("auto", "texture")),
     "k18-l3-f1-n1-residual": (Architecture(hidden=18, layers=3, pos_freqs=1, normal_freqs=1, residual=True), ("const", "texture")),
+    # log-DC heads: exp of each group's DC, the rest times it (groups of 9 at 3 bands: DC columns off the vec4 grid)
+    "k18-l3-f1-n1-logdc": (Architecture(hidden=18, layers=3, pos_freqs=1, normal_freqs=1, head="log-dc"), ("const", "texture")),
+    "k12-l1-bands3-direct+rgb-logdc": (Architecture(hidden=12, layers=1, pos_freqs=6, normal_freqs=2, bands=3, layout="direct+rgb", head="log-dc"),
+                                       ("const", "texture")),
 }
 
 
@@ -41,7 +45,12 @@ def export_random(path: Path, arch: Architecture, seed: int = 0) -> Path:
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     n = arch.outputs
-    model = TransferMLP(arch, BOUNDS, rng.uniform(0.05, 0.6, n), rng.uniform(-0.3, 0.3, n))
+    if arch.head == "log-dc":  # DC columns: log DC = 1.5 z + offset, capped (some rows reach the cap); the rest ratios
+        mask = head_terms(arch)["out_dc_mask"]
+        model = TransferMLP(arch, BOUNDS, rng.uniform(0.05, 0.6, n) * (1 - mask), np.where(mask > 0, rng.uniform(-3, -1, n), 0.0),
+                            1.5 * mask, np.where(mask > 0, rng.uniform(-1.5, 0.0, n), 1e4))  # fmt: skip
+    else:
+        model = TransferMLP(arch, BOUNDS, rng.uniform(0.05, 0.6, n), rng.uniform(-0.3, 0.3, n))
     with torch.no_grad():  # the init zeroes biases, which would leave them untested
         for layer in [*model.hidden, model.out]:
             layer.bias.uniform_(-0.3, 0.3)

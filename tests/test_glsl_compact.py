@@ -31,6 +31,9 @@ FREQ = {
     # residual networks: + q(n) @ out_normal_quad (the direct part only with bounces; 9 coefficients at 3 bands)
     "k18-l3-residual": Architecture(hidden=18, layers=3, pos_freqs=1, normal_freqs=1, residual=True),
     "k12-l1-bands3-direct+rgb-residual": Architecture(hidden=12, layers=1, pos_freqs=6, normal_freqs=2, bands=3, layout="direct+rgb", residual=True),
+    # log-DC heads: out_linear and out_max after out_offset, then exp of each group's DC (groups of 9 at 3 bands)
+    "k16-l2-direct+rgb-logdc": Architecture(hidden=16, layers=2, pos_freqs=6, normal_freqs=2, layout="direct+rgb", head="log-dc"),
+    "k12-l1-bands3-direct+rgb-logdc": Architecture(hidden=12, layers=1, pos_freqs=6, normal_freqs=2, bands=3, layout="direct+rgb", head="log-dc"),
 }
 
 

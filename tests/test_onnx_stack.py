@@ -20,11 +20,12 @@ from prt.export.onnx_model import build_model
 from prt.runtime.backends.onnx import OnnxTransfer
 from prt.runtime.onnx_stack import block_layout, read_network, stack_key, stacked_model
 from prt.runtime.renderer import Renderer, Scene
+from prt.train.networks.network import Architecture, evaluate_numpy, head_terms
 
 TOL = 1e-5
 
 
-def _arrays(rng, hidden: int, layers: int, pos_freqs: int = 2, residual: bool = False, outputs: int = 16) -> dict:
+def _arrays(rng, hidden: int, layers: int, pos_freqs: int = 2, residual: bool = False, outputs: int = 16, log_dc: bool = False) -> dict:
     from math import pi
 
     def freq(k):
@@ -44,13 +45,22 @@ def _arrays(rng, hidden: int, layers: int, pos_freqs: int = 2, residual: bool = 
         out[f"{key}_bias"] = rng.normal(size=b).astype(np.float32) * 0.1
     if residual:
         out["out_normal_quad"] = rng.normal(size=(9, outputs)).astype(np.float32) * 0.3
+    if log_dc:  # a log-DC head (prt.train.networks.network) over groups of 16
+        arch = Architecture(hidden=hidden, layers=layers, pos_freqs=pos_freqs, layout="direct" if outputs == 16 else "direct+rgb", head="log-dc")
+        out.update(head_terms(arch))
+        mask = out["out_dc_mask"]
+        out["out_scale"] = (out["out_scale"] * (1 - mask)).astype(np.float32)
+        out["out_offset"] = np.where(mask > 0, rng.uniform(-4, -1, outputs), 0).astype(np.float32)
+        out["out_linear"] = (1.5 * mask).astype(np.float32)
+        out["out_max"] = np.where(mask > 0, rng.uniform(-1.5, 0.5, outputs), 1e4).astype(np.float32)
     return out
 
 
 def _model(arrays: dict, fmt: str | None = None) -> bytes:
     layers = sum(k.startswith("layer") and k.endswith("_weight") for k in arrays)
     arch = {"hidden": arrays["out_weight"].shape[0], "layers": layers, "pos_freqs": arrays["enc_pos_freq"].shape[1] // 3,
-            "normal_freqs": 2, "bands": 4, "input_dim": arrays["layer0_weight"].shape[0] if layers else 0}  # fmt: skip
+            "normal_freqs": 2, "bands": 4, "input_dim": arrays["layer0_weight"].shape[0] if layers else 0,
+            "outputs": arrays["out_bias"].shape[0]}  # fmt: skip
     model = build_model(arrays, arch)
     if fmt is not None:
         onnx.helper.set_model_props(model, {"prt.format": fmt})
@@ -167,6 +177,31 @@ def test_mixed_architectures_stack_apart_and_the_rest_falls_back(tmp_path):
         assert _close(ref, bound.infer_sorted(x, offsets)) <= TOL and len(calls) == 2  # one call per stack
     finally:
         bound.close()
+
+
+def test_log_dc_heads_stack_apart_from_linear_ones_and_match_their_files(tmp_path):
+    """A log-DC head (issue 43): its segments' stack gives their own sessions' rows (and the numpy
+    twin's), and a linear network of the same size is not stacked with them."""
+    rng = np.random.default_rng(6)
+    heads = [_arrays(rng, 16, 2, outputs=64, log_dc=True) for _ in range(4)]
+    models = [_model(a) for a in heads] + [_model(_arrays(rng, 16, 2, outputs=64)) for _ in range(2)]
+    manifest = _manifest(tmp_path, models)
+    manifest.transfer_width = 64
+    engine = OnnxTransfer(manifest, threads=2, slice_rows=200, block_rows=8, stack_below=1000)
+    try:
+        assert sorted(sorted(int(s) for s in st.segments) for st in engine.stacks) == [[0, 1, 2, 3], [4, 5]] and not engine.stack_notes
+        counts = np.array([5, 40, 1, 90, 12, 30])
+        x, offsets = _rows(rng, counts)
+        ref, got = _both(engine, x, offsets)
+        assert _close(ref, got) <= TOL
+        for s, a in enumerate(heads):  # the file's graph is the numpy twin's head
+            rows = slice(offsets[s], offsets[s + 1])
+            twin = evaluate_numpy(a, x[rows, :3], x[rows, 3:])
+            assert np.abs(ref[rows] - twin).max() <= 1e-5 * max(1.0, float(np.abs(twin).max()))
+            dc = ref[rows][:, ::16]
+            assert (dc > 0).all() and (dc <= np.exp(a["out_max"][::16]) * (1 + 1e-5)).all()  # exp of the capped log DC
+    finally:
+        engine.close()
 
 
 def test_a_stacked_model_that_disagrees_is_not_used(tmp_path, monkeypatch):

@@ -49,7 +49,7 @@ from .transport.vertex_estimate import estimate_vertex_prt
 from .presets import resolve as resolve_preset
 from .transport.interreflection import BOUNCE_RAYS, SMOOTH_NEIGHBOURS, SMOOTH_RULE, bounce_stage, smooth_indirect
 from .transport.bounce_depth import auto_bounces
-from .networks.rightsize import RESIDUAL_MODES, SCENE_LIGHT, SegmentJob, candidates, scene_sizing, segment_task
+from .networks.rightsize import HEAD_MODES, RESIDUAL_MODES, SCENE_LIGHT, SegmentJob, candidates, scene_sizing, segment_task
 from .transport.precompute import SPEC_LIMITS, DamagedPrecompute, PrecomputeSettings, SpecLimits, check_settings, load_precompute, run_precompute
 
 __all__ = ["BuildSpec", "SpecLimits", "SPEC_LIMITS", "load_spec", "spec_from_dict", "run_build", "ENV_LIGHTS"]
@@ -89,6 +89,9 @@ class BuildSpec:
     # frequency networks learn the direct transfer's residual from the unshadowed transfer of the
     # normal (prt.train.networks.network): "auto" per segment by its mean visibility (prt.train.networks.rightsize), "on", "off"
     residual: str = "auto"
+    # frequency networks' output head (prt.train.networks.network.HEADS): "auto" per segment by its mean
+    # visibility (prt.train.networks.rightsize.HEAD_MODES), "linear", "log-dc"
+    head: str = "auto"
     # validation coefficient MAE a right-sized network must reach (None: DEFAULT_TARGET; a spec
     # that names no sizing rule gets its preset's vertex_margin, prt.train.presets)
     target: float | None = None
@@ -336,6 +339,10 @@ def spec_from_dict(data: dict) -> BuildSpec:
         raise SpecError(f"loss: expected one of {', '.join(map(repr, LOSSES))}, got {spec.loss!r}")
     if spec.residual not in RESIDUAL_MODES:
         raise SpecError(f"residual: expected one of {', '.join(map(repr, RESIDUAL_MODES))}, got {spec.residual!r}")
+    if spec.head not in HEAD_MODES:
+        raise SpecError(f"head: expected one of {', '.join(map(repr, HEAD_MODES))}, got {spec.head!r}")
+    if spec.head == "log-dc" and spec.residual == "on":
+        raise SpecError("head: 'log-dc' and residual: 'on' exclude each other (a residual network's head is linear)")
     if spec.residual == "on" and spec.bands > 4:
         raise SpecError(f"residual: 'on' needs at most 4 SH bands (the unshadowed transfer is then a quadratic of the normal), not {spec.bands}")
     if spec.encoding not in ("freq", "grid", "auto"):
@@ -571,6 +578,7 @@ def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log
         s = seg["id"]
         key = _hash(data_key, s, fit_settings.cache_key(), [a.as_dict() for a in archs], spec.target, spec.analytic, TRAIN_FORMAT,
                     *([spec.residual] if spec.residual != "off" else []),
+                    *([("head", spec.head)] if spec.head != "linear" else []),
                     *([spec.match, spec.match_tolerance] if spec.match is not None else []),
                     *([spec.target_db, spec.material] if spec.target_db is not None else []),
                     *([spec.vertex_margin, spec.material, VERTEX_RULE_VERSION] if spec.vertex_rule() else []))  # fmt: skip

@@ -17,6 +17,21 @@ it back (``c0`` folded into ``out_offset``, ``W_u`` the constant ``out_normal_qu
 Where little is occluded the residual is small and smooth, and the network spends its capacity
 on the shadows instead of the cosine lobe (``docs/benchmarks/residual_fit.md``).
 
+A *log-DC* network (``Architecture.head = "log-dc"``, ``prt-train --head``) outputs each group of
+``bands^2`` coefficients (the direct transfer; each indirect channel) as its DC coefficient times
+ratios, the DC in log space:
+
+    v  = tanh(z) * out_scale + z * out_linear + out_offset      z = W_out h + b_out
+    u  = min(v, out_max)
+    dc = exp(u @ out_dc_select)                                 (N, groups): each group's DC
+    T  = (dc @ out_dc_spread) * (u * (1 - out_dc_mask) + out_dc_mask)
+
+The DC columns have ``out_scale`` 0 and ``out_linear`` :data:`LOG_DC_SLOPE` (``u`` is the log DC,
+linear in ``z``, capped by ``out_max``); the others ``out_linear`` 0 (``u`` is the ratio to the
+group's DC, tanh-bounded).  An error of the network is then relative to the group's brightness:
+a dim wall beside bright samples is neither negative nor lifted (issue 43's inside views: the
+plain head fitted a wall at 0.001 as -0.004, black, beside samples at 0.3).
+
 With interreflection (``layout = "direct+rgb"``, ``prt-train --bounces N``) the output is
 ``4 bands^2`` wide: the direct transfer, then the indirect transfer of the R, G and B channels
 (``bands^2`` each): ``[T_direct, T_ind_R, T_ind_G, T_ind_B]``.
@@ -43,12 +58,18 @@ from ...runtime.deformation import code_features, code_frequencies
 from ...runtime.sh import unshadowed_quadratic
 
 __all__ = ["Architecture", "TransferMLP", "evaluate_numpy", "mlp_numpy", "frequency_matrix", "target_scaling", "TARGET_RANGE", "LAYOUTS", "layout_width",
-           "residual_terms", "normal_quadratic"]
+           "residual_terms", "normal_quadratic", "HEADS", "LOG_DC_SLOPE", "head_terms", "log_dc_scaling", "log_dc_head_numpy"]
 
 TARGET_RANGE = 0.9  # scaled targets live in [-0.9, 0.9], where tanh' >= 0.19
 # Output layouts: "direct" (bands^2, the paper's), "direct+rgb" (direct + indirect R, G, B:
 # 4 bands^2, interreflection) and "rgb" (three total transfers, 3 bands^2: measured, not built).
 LAYOUTS = {"direct": 1, "direct+rgb": 4, "rgb": 3}
+
+
+# Output heads: "linear" (tanh(z) * out_scale + out_offset) and "log-dc" (module docstring).
+HEADS = ("linear", "log-dc")
+LOG_DC_SLOPE = 1.5  # d(log DC) / dz of a log-DC head: z ~ 1 spans a factor of 4.5
+LOG_DC_RATIO_CAP = 4.0  # |ratio| bound of a log-DC head's other coefficients (out_scale at most this)
 
 
 def layout_width(layout: str, bands: int) -> int:
@@ -69,6 +90,7 @@ class Architecture:
     code_dim: int = 0  # deformable scenes: the shape code's dimensions (prt.runtime.deformation)
     code_freqs: int = 0  # sin/cos frequencies of each code component
     residual: bool = False  # learns T - U(n), the graph adds U back (module docstring); up to 4 bands
+    head: str = "linear"  # see HEADS; "log-dc": each group's DC in log space, the rest as ratios to it (module docstring)
 
     @property
     def input_dim(self) -> int:
@@ -110,12 +132,70 @@ class Architecture:
             del out["code_dim"], out["code_freqs"]
         if not self.residual:  # nor a plain one's before residual networks
             del out["residual"]
+        if self.head == "linear":  # nor a linear head's before log-DC heads
+            del out["head"]
         return out
 
     def label(self) -> str:
         code = f"-c{self.code_dim}f{self.code_freqs}" if self.code_dim else ""
         return (f"k{self.hidden}-l{self.layers}-f{self.pos_freqs}" + ("" if self.layout == "direct" else f"-{self.layout}") + code
-                + ("-res" if self.residual else ""))  # fmt: skip
+                + ("-res" if self.residual else "") + ("-logdc" if self.head == "log-dc" else ""))  # fmt: skip
+
+    def __post_init__(self):
+        if self.head not in HEADS:
+            raise ValueError(f"head must be one of {', '.join(HEADS)}, got {self.head!r}")
+        if self.head == "log-dc" and self.residual:
+            raise ValueError("a network is residual or has a log-DC head, not both")
+
+
+def head_terms(arch: Architecture) -> dict[str, np.ndarray]:
+    """A log-DC head's constant arrays (float32): ``out_dc_select`` (outputs, groups): 1 at each
+    group's DC column; ``out_dc_spread`` (groups, outputs): 1 over each group's columns;
+    ``out_dc_mask`` (outputs,): 1 at the DC columns.  Groups: ``bands^2`` consecutive outputs."""
+    n = arch.bands * arch.bands
+    groups = arch.outputs // n
+    select = np.zeros((arch.outputs, groups), np.float32)
+    select[np.arange(groups) * n, np.arange(groups)] = 1.0
+    spread = np.kron(np.eye(groups, dtype=np.float32), np.ones((1, n), np.float32))
+    return {"out_dc_select": select, "out_dc_spread": spread, "out_dc_mask": select.sum(axis=1).astype(np.float32)}
+
+
+def log_dc_scaling(transfer: np.ndarray, n: int) -> dict[str, np.ndarray]:
+    """A log-DC head's fitted constants from a segment's targets (N, groups * n): ``out_scale``,
+    ``out_offset``, ``out_linear``, ``out_max`` (outputs,) float32.  Per group: the DC column
+    starts at the log of the median positive DC (``out_offset``) and is capped at 1.5 x the
+    largest (``out_max``); each other column's ratio bound is its largest |T_k / DC| over the
+    samples brighter than 5 % of the group's largest DC, over :data:`TARGET_RANGE` (at most
+    :data:`LOG_DC_RATIO_CAP`)."""
+    t = np.asarray(transfer, np.float64)
+    groups = t.shape[1] // n
+    t = t.reshape(len(t), groups, n)
+    dc = np.maximum(t[:, :, 0], 0.0)
+    top = dc.max(axis=0, initial=0.0)
+    scale, offset = np.zeros((groups, n)), np.zeros((groups, n))
+    linear, cap = np.zeros((groups, n)), np.full((groups, n), 1e4)
+    for g in range(groups):
+        positive = dc[:, g][dc[:, g] > 0]
+        offset[g, 0] = math.log(max(float(np.median(positive)), 1e-6)) if len(positive) else math.log(1e-3)
+        cap[g, 0] = math.log(max(float(top[g]), 1e-6) * 1.5)
+        linear[g, 0] = LOG_DC_SLOPE
+        bright = dc[:, g] > 0.05 * top[g]
+        if bright.any() and n > 1:
+            ratio = np.abs(t[bright, g, 1:]) / dc[bright, g][:, None]
+            scale[g, 1:] = np.clip(ratio.max(axis=0) / TARGET_RANGE, 0.05, LOG_DC_RATIO_CAP)
+        else:
+            scale[g, 1:] = 1.0
+    flat = lambda a: a.reshape(-1).astype(np.float32)  # noqa: E731
+    return {"out_scale": flat(scale), "out_offset": flat(offset), "out_linear": flat(linear), "out_max": flat(cap)}
+
+
+def log_dc_head_numpy(z: np.ndarray, arrays: dict[str, np.ndarray]) -> np.ndarray:
+    """The plain numpy twin of a log-DC head (module docstring) on the output layer's ``z`` (N, outputs)."""
+    z = np.asarray(z, np.float32)
+    u = np.minimum(np.tanh(z) * arrays["out_scale"] + z * arrays["out_linear"] + arrays["out_offset"], arrays["out_max"])
+    dc = np.exp(u @ arrays["out_dc_select"]) @ arrays["out_dc_spread"]
+    mask = arrays["out_dc_mask"]
+    return (dc * (u * (1 - mask) + mask)).astype(np.float32)
 
 
 def residual_terms(arch: Architecture) -> tuple[np.ndarray, np.ndarray]:
@@ -152,8 +232,10 @@ class TransferMLP(nn.Module):
     """One segment's network.  ``forward(x)`` takes ``x`` (N, 6) = [position, normal], or with a
     shape code (``arch.code_dim`` = d > 0) ``x`` (N, 6 + d) = [rest position, deformed normal, theta]."""
 
-    def __init__(self, arch: Architecture, bounds: np.ndarray, out_scale: np.ndarray, out_offset: np.ndarray):
-        """``out_offset``: the whole output's (a residual network's includes ``c0`` of :func:`residual_terms`)."""
+    def __init__(self, arch: Architecture, bounds: np.ndarray, out_scale: np.ndarray, out_offset: np.ndarray,
+                 out_linear: np.ndarray | None = None, out_max: np.ndarray | None = None):
+        """``out_offset``: the whole output's (a residual network's includes ``c0`` of :func:`residual_terms`);
+        ``out_linear``, ``out_max``: a log-DC head's (:func:`log_dc_scaling`)."""
         super().__init__()
         self.arch = arch
         bounds = np.asarray(bounds, dtype=np.float64)
@@ -167,6 +249,13 @@ class TransferMLP(nn.Module):
         self.register_buffer("out_offset", torch.tensor(out_offset, dtype=torch.float32))
         if arch.residual:
             self.register_buffer("out_normal_quad", torch.from_numpy(residual_terms(arch)[1]))
+        if arch.head == "log-dc":
+            if out_linear is None or out_max is None:
+                raise ValueError("a log-DC head needs out_linear and out_max (log_dc_scaling)")
+            self.register_buffer("out_linear", torch.tensor(out_linear, dtype=torch.float32))
+            self.register_buffer("out_max", torch.tensor(out_max, dtype=torch.float32))
+            for key, value in head_terms(arch).items():
+                self.register_buffer(key, torch.from_numpy(value))
         if arch.code_dim and arch.layers < 1:
             raise ValueError("a shape-conditioned network needs at least one hidden layer (the code enters its bias)")
         if arch.code_dim:
@@ -204,8 +293,23 @@ class TransferMLP(nn.Module):
         """Network output before tanh."""
         return self.trunk(self.encode(x))
 
+    def head(self, z: torch.Tensor) -> torch.Tensor:
+        """The output layer's ``z`` to the network's output (the module docstring's last lines)."""
+        if self.arch.head != "log-dc":
+            return torch.tanh(z) * self.out_scale + self.out_offset
+        return self.log_dc_head(*self.log_dc_parts(z))
+
+    def log_dc_parts(self, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """A log-DC head's ``u`` before the cap (N, outputs) and after it."""
+        v = torch.tanh(z) * self.out_scale + z * self.out_linear + self.out_offset
+        return v, torch.minimum(v, self.out_max)
+
+    def log_dc_head(self, v: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        dc = torch.exp(u @ self.out_dc_select) @ self.out_dc_spread
+        return dc * (u * (1 - self.out_dc_mask) + self.out_dc_mask)
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        out = torch.tanh(self.preactivation(x)) * self.out_scale + self.out_offset
+        out = self.head(self.preactivation(x))
         if self.arch.residual:
             out = out + self.unshadowed_part(x)
         return out
@@ -230,6 +334,9 @@ class TransferMLP(nn.Module):
         }
         if self.arch.residual:
             out["out_normal_quad"] = self.out_normal_quad
+        if self.arch.head == "log-dc":
+            for key in ("out_linear", "out_max", "out_dc_select", "out_dc_spread", "out_dc_mask"):
+                out[key] = getattr(self, key)
         for i, layer in enumerate(self.hidden):
             out[f"layer{i}_weight"] = layer.weight.T  # (in, out): x @ W
             out[f"layer{i}_bias"] = layer.bias
@@ -267,7 +374,8 @@ def evaluate_numpy(arrays: dict[str, np.ndarray], points: np.ndarray, normals: n
 
 def mlp_numpy(arrays: dict[str, np.ndarray], features: np.ndarray) -> np.ndarray:
     """The MLP of a network's arrays on encoded ``features`` in numpy (float32): LeakyReLU layers
-    ``layer{i}_weight/bias``, then ``tanh(out) * out_scale + out_offset`` (frequency and grid alike)."""
+    ``layer{i}_weight/bias``, then ``tanh(out) * out_scale + out_offset`` (frequency and grid alike),
+    or a log-DC head's (:func:`log_dc_head_numpy`) where the arrays hold one."""
     h = np.asarray(features, dtype=np.float32)
     i = 0
     while f"layer{i}_weight" in arrays:
@@ -275,6 +383,8 @@ def mlp_numpy(arrays: dict[str, np.ndarray], features: np.ndarray) -> np.ndarray
         h = np.where(h > 0, h, np.float32(LEAKY_SLOPE) * h)
         i += 1
     z = h @ arrays["out_weight"] + arrays["out_bias"]
+    if "out_dc_select" in arrays:
+        return log_dc_head_numpy(z, arrays)
     return (np.tanh(z) * arrays["out_scale"] + arrays["out_offset"]).astype(np.float32)
 
 

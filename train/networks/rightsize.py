@@ -50,13 +50,13 @@ from tqdm import tqdm
 from ...runtime.exposure import LUMINANCE, exposure_from_log_mean
 from ...runtime.sh import unshadowed_transfer
 from ...runtime.shading import tonemap
-from .fit import FitSettings, fit_segment, mean_visibility, resolve_loss, right_size, right_size_matching, shaded_error, total_transfer, transfer_error
+from .fit import LOSS_VISIBILITY, FitSettings, fit_segment, mean_visibility, resolve_loss, right_size, right_size_matching, shaded_error, total_transfer, transfer_error
 from .grid_encoding import GridArchitecture, fit_grid_segment
 from .grid_encoding import evaluate_numpy as grid_evaluate
 from .network import Architecture
 from .network import evaluate_numpy as freq_evaluate
 
-__all__ = ["RULES", "ENDINGS", "pooled_psnr", "scene_sizing", "RESIDUAL_MODES", "RESIDUAL_VISIBILITY", "residual_choice", "PSNR_CAP", "shaded_psnr", "exposed_psnr", "predict_numpy", "candidates", "search_cheapest", "weight_bytes", "train_segment", "SegmentJob",
+__all__ = ["RULES", "ENDINGS", "pooled_psnr", "scene_sizing", "RESIDUAL_MODES", "RESIDUAL_VISIBILITY", "residual_choice", "HEAD_MODES", "head_choice", "PSNR_CAP", "shaded_psnr", "exposed_psnr", "predict_numpy", "candidates", "search_cheapest", "weight_bytes", "train_segment", "SegmentJob",
            "segment_task", "validation_split", "SCENE_LIGHT"]  # fmt: skip
 
 RULES = ("fixed", "target_mae", "match", "target_db", "vertex")
@@ -70,6 +70,11 @@ DEFAULT_ALBEDO = (0.7, 0.7, 0.7)  # the spec's default material
 # view-independent bound, not a prediction of a view's PSNR.
 SCENE_LIGHT = "potsdamer"
 RESIDUAL_MODES = ("auto", "on", "off")
+# Output heads of frequency networks (prt.train.networks.network.HEADS): "auto" gives a segment
+# the log-DC head where its samples see less than LOSS_VISIBILITY of their cosine lobe on average
+# (rooms lit through windows, shadowed sides: brightness spans decades within one segment) and
+# the linear head elsewhere (open surfaces, where residual networks serve).
+HEAD_MODES = ("auto", "linear", "log-dc")
 RESIDUAL_VISIBILITY = 0.8
 """``residual: "auto"``: a segment whose samples see at least this share of their cosine lobe on
 average is fitted both ways at one size (the ``match`` reference, else the first frequency size),
@@ -95,6 +100,18 @@ def residual_choice(mode: str, transfer: np.ndarray, normals: np.ndarray, bands:
     if mode == "off" or bands > 4:
         return False, visibility
     return visibility >= RESIDUAL_VISIBILITY, visibility
+
+
+def head_choice(mode: str, visibility: float, residual: bool) -> str:
+    """A segment's output head (:data:`HEAD_MODES`): "log-dc" or "linear"; a residual segment's is linear."""
+    if residual or mode == "linear":
+        return "linear"
+    return "log-dc" if mode == "log-dc" or visibility < LOSS_VISIBILITY else "linear"
+
+
+def _with_head(arch, head: str):
+    """``arch`` with output ``head`` where it is a frequency network (grids keep theirs)."""
+    return dataclasses.replace(arch, head=head) if isinstance(arch, Architecture) and arch.head != head else arch
 
 
 def _as_residual(arch, use: bool):
@@ -410,6 +427,12 @@ def train_segment(spec, s, samples, valid, member_idx, archs, fit_settings, ligh
         reference = None if reference is None else _as_residual(reference, True)
         if rule == "vertex":
             allowed = [_as_residual(a, True) for a in allowed]
+    base["head"] = head_choice(getattr(spec, "head", "linear"), visibility, base["residual"]["used"])
+    if base["head"] != "linear":
+        archs = [_with_head(a, base["head"]) for a in archs]
+        reference = None if reference is None else _with_head(reference, base["head"])
+        if rule == "vertex":
+            allowed = [_with_head(a, base["head"]) for a in allowed]
 
     vertex_record = None
     if rule == "vertex":
