@@ -89,9 +89,10 @@ class BuildSpec:
     # frequency networks learn the direct transfer's residual from the unshadowed transfer of the
     # normal (prt.train.networks.network): "auto" per segment by its mean visibility (prt.train.networks.rightsize), "on", "off"
     residual: str = "auto"
-    # frequency networks' output head (prt.train.networks.network.HEADS): "auto" per segment by its mean
-    # visibility (prt.train.networks.rightsize.HEAD_MODES), "linear", "log-dc"
-    head: str = "auto"
+    # frequency networks' output head (prt.train.networks.network.HEADS): "linear", "log-dc", or "auto":
+    # log-DC where a segment's mean visibility is under 0.8 (prt.train.networks.rightsize.HEAD_MODES).
+    # Not the default: built so, the Duplex and AS1 copies came out worse (docs/guides/build.md)
+    head: str = "linear"
     # validation coefficient MAE a right-sized network must reach (None: DEFAULT_TARGET; a spec
     # that names no sizing rule gets its preset's vertex_margin, prt.train.presets)
     target: float | None = None

@@ -166,7 +166,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--head", choices=("auto", "linear", "log-dc"), default=None,
                    help="frequency networks' output head: log-dc (each group's DC coefficient in log space, the others as ratios to it: "
                         "errors relative to the local brightness), linear (tanh, scaled), or auto: log-dc where a segment's samples see "
-                        "< 80 %% of their cosine lobe on average (rooms lit through windows), else linear [auto]")
+                        "< 80 %% of their cosine lobe on average (rooms lit through windows), else linear [linear]")
     g.add_argument("--no-analytic", action="store_true", help="give every segment a network, even unshadowed ones")
     g.add_argument("--bf16", action="store_true", help="train the MLP layers under bf16 autocast (about 2x faster where the CPU has native bf16, slightly less accurate)")
 

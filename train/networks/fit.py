@@ -293,13 +293,13 @@ def loss_numpy(pred: np.ndarray, truth: np.ndarray, loss: str = DEFAULT_LOSS, we
     return weighted_l1_numpy(pred, truth, weights)
 
 
-def batch_loss(out: torch.Tensor, target_scaled: torch.Tensor, scale: torch.Tensor, weights: torch.Tensor | None = None,
+def batch_loss(out: torch.Tensor, target_scaled: torch.Tensor, scale: torch.Tensor | None, weights: torch.Tensor | None = None,
                loss: str = DEFAULT_LOSS) -> torch.Tensor:
     """The fitting loss of a batch on the transfer itself (``out`` and ``target_scaled`` are in the
-    network's scaled units, ``scale`` (outputs,) maps them back): the squared error ("l2"), or the
-    absolute error, each sample's row times its weight ((B, 1), :func:`loss_weights`) where given.
-    :func:`loss_numpy` is its plain twin."""
-    diff = (out - target_scaled) * scale
+    network's scaled units, ``scale`` (outputs,) maps them back; None: they are the transfer): the
+    squared error ("l2"), or the absolute error, each sample's row times its weight ((B, 1),
+    :func:`loss_weights`) where given.  :func:`loss_numpy` is its plain twin."""
+    diff = out - target_scaled if scale is None else (out - target_scaled) * scale
     if loss == "l2":
         return diff.square().mean()
     if weights is None:
@@ -476,14 +476,12 @@ def fit_segment(
         features = model.encode(x[idx])  # fp32: sin/cos of 2^k pi x needs the precision
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
             pre = model.trunk(features)
-        if log_dc:
-            v, u = model.log_dc_parts(pre.float())
-            out = model.log_dc_head(v, u)
+        if log_dc:  # the transfer itself; each group's log DC against the target's: a gradient however dim the group
+            log_dc_pred, ratios = model.log_dc_split(pre.float())
+            loss = batch_loss(model.log_dc_combine(log_dc_pred, ratios), y[idx], None, None if w is None else w[idx], settings.loss)
+            loss = loss + ((log_dc_pred - log_target[idx]).square() * log_weight).mean()
         else:
-            out = torch.tanh(pre.float())
-        loss = batch_loss(out, y_scaled[idx], scale_t, None if w is None else w[idx], settings.loss)
-        if log_dc:  # each group's log DC against the target's: a gradient however dim the group (module note)
-            loss = loss + (((v @ model.out_dc_select) - log_target[idx]).square() * log_weight).mean()
+            loss = batch_loss(torch.tanh(pre.float()), y_scaled[idx], scale_t, None if w is None else w[idx], settings.loss)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

@@ -254,6 +254,10 @@ class TransferMLP(nn.Module):
                 raise ValueError("a log-DC head needs out_linear and out_max (log_dc_scaling)")
             self.register_buffer("out_linear", torch.tensor(out_linear, dtype=torch.float32))
             self.register_buffer("out_max", torch.tensor(out_max, dtype=torch.float32))
+            dc = head_terms(arch)["out_dc_mask"] > 0
+            bound = np.abs(np.asarray(out_scale, np.float64)) + np.abs(np.asarray(out_offset, np.float64))
+            if np.any(np.asarray(out_scale)[dc] != 0) or np.any(np.asarray(out_linear)[~dc] != 0) or np.any(np.asarray(out_max)[~dc] < bound[~dc]):
+                raise ValueError("a log-DC head's DC columns take no tanh term, the others no linear term and no reachable cap")
             for key, value in head_terms(arch).items():
                 self.register_buffer(key, torch.from_numpy(value))
         if arch.code_dim and arch.layers < 1:
@@ -297,16 +301,23 @@ class TransferMLP(nn.Module):
         """The output layer's ``z`` to the network's output (the module docstring's last lines)."""
         if self.arch.head != "log-dc":
             return torch.tanh(z) * self.out_scale + self.out_offset
-        return self.log_dc_head(*self.log_dc_parts(z))
+        return self.log_dc_combine(*self.log_dc_split(z))
 
-    def log_dc_parts(self, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """A log-DC head's ``u`` before the cap (N, outputs) and after it."""
-        v = torch.tanh(z) * self.out_scale + z * self.out_linear + self.out_offset
-        return v, torch.minimum(v, self.out_max)
+    # A log-DC head in torch, by groups (the fast path of fits; log_dc_head_numpy and the ONNX graph
+    # are the module docstring's formula over all columns): the DC columns' tanh term and the other
+    # columns' cap are left out, exact where out_scale is 0 at the DC columns and out_max is above
+    # |out_scale| + |out_offset| elsewhere (log_dc_scaling's constants; checked at construction).
+    def log_dc_split(self, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(log DC before its cap (N, groups), ratios (N, groups, bands^2 - 1))``."""
+        n = self.arch.bands * self.arch.bands
+        z = z.reshape(len(z), -1, n)
+        lin, off, scale = (t.reshape(-1, n) for t in (self.out_linear, self.out_offset, self.out_scale))
+        return torch.addcmul(off[:, 0], z[:, :, 0], lin[:, 0]), torch.addcmul(off[:, 1:], torch.tanh(z[:, :, 1:]), scale[:, 1:])
 
-    def log_dc_head(self, v: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        dc = torch.exp(u @ self.out_dc_select) @ self.out_dc_spread
-        return dc * (u * (1 - self.out_dc_mask) + self.out_dc_mask)
+    def log_dc_combine(self, log_dc: torch.Tensor, ratios: torch.Tensor) -> torch.Tensor:
+        n = self.arch.bands * self.arch.bands
+        dc = torch.exp(torch.minimum(log_dc, self.out_max.reshape(-1, n)[:, 0])).unsqueeze(2)
+        return torch.cat([dc, dc * ratios], dim=2).reshape(len(log_dc), -1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         out = self.head(self.preactivation(x))

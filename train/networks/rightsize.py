@@ -73,7 +73,8 @@ RESIDUAL_MODES = ("auto", "on", "off")
 # Output heads of frequency networks (prt.train.networks.network.HEADS): "auto" gives a segment
 # the log-DC head where its samples see less than LOSS_VISIBILITY of their cosine lobe on average
 # (rooms lit through windows, shadowed sides: brightness spans decades within one segment) and
-# the linear head elsewhere (open surfaces, where residual networks serve).
+# the linear head elsewhere (open surfaces, where residual networks serve).  The build's default
+# is "linear" (BuildSpec.head: "auto" built the Duplex and AS1 copies worse).
 HEAD_MODES = ("auto", "linear", "log-dc")
 RESIDUAL_VISIBILITY = 0.8
 """``residual: "auto"``: a segment whose samples see at least this share of their cosine lobe on
