@@ -120,8 +120,8 @@ def freq_source(onnx_path) -> str:
             _template("mlp_compact_layer.glsl.tmpl").substitute(
                 fn="FN", name=kind, title="output layer" if last else ("first hidden layer" if kind == "first" else "hidden layer"),
                 formula=_OUT_FORMULA[bool(network.log_dc)] if last else "leaky_relu(W^T x + b)",
-                extra_doc=(", out_scale, out_offset" + (", out_linear and out_max" if network.log_dc else " and") + " (n_out texels each)")
-                          .replace(", out_offset and", " and out_offset") if last else "",
+                extra_doc=(", out_scale, out_offset, out_linear and out_max (n_out texels each)" if network.log_dc
+                           else ", out_scale and out_offset (n_out texels each)") if last else "",
                 n_in=n_in, n_out=n_out,
                 activation=(("min(FN_tanh(z) * prt_weight(bias + n_out + o) + prt_weight(bias + 2 * n_out + o) + z * prt_weight(bias + 3 * n_out + o), "
                              "prt_weight(bias + 4 * n_out + o))") if network.log_dc

@@ -258,8 +258,6 @@ class TransferMLP(nn.Module):
             bound = np.abs(np.asarray(out_scale, np.float64)) + np.abs(np.asarray(out_offset, np.float64))
             if np.any(np.asarray(out_scale)[dc] != 0) or np.any(np.asarray(out_linear)[~dc] != 0) or np.any(np.asarray(out_max)[~dc] < bound[~dc]):
                 raise ValueError("a log-DC head's DC columns take no tanh term, the others no linear term and no reachable cap")
-            for key, value in head_terms(arch).items():
-                self.register_buffer(key, torch.from_numpy(value))
         if arch.code_dim and arch.layers < 1:
             raise ValueError("a shape-conditioned network needs at least one hidden layer (the code enters its bias)")
         if arch.code_dim:
@@ -346,8 +344,8 @@ class TransferMLP(nn.Module):
         if self.arch.residual:
             out["out_normal_quad"] = self.out_normal_quad
         if self.arch.head == "log-dc":
-            for key in ("out_linear", "out_max", "out_dc_select", "out_dc_spread", "out_dc_mask"):
-                out[key] = getattr(self, key)
+            out.update(out_linear=self.out_linear, out_max=self.out_max)
+            out.update({k: torch.from_numpy(v) for k, v in head_terms(self.arch).items()})  # constants of the architecture
         for i, layer in enumerate(self.hidden):
             out[f"layer{i}_weight"] = layer.weight.T  # (in, out): x @ W
             out[f"layer{i}_bias"] = layer.bias
