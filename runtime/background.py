@@ -4,8 +4,10 @@ The renderer composites it into a frame's uncovered pixels when the background i
 (:meth:`prt.runtime.renderer.Renderer.set_background`; a manifest's ``lighting.background``),
 before tone mapping, so both backends and every display path tone-map it the same way.  The
 map follows the light: the same file and the same rotation as the lighting.  One full-screen
-pass (``shaders/background.frag``) draws it; it is redrawn only when the camera, the map or its
-rotation changes.
+pass (``shaders/background.frag``) draws it; it is redrawn only when the camera, the map, its
+rotation or the G-buffer (its ``generation``) changes.  A frame shaded on the CPU draws it right
+after the G-buffer's pass (:meth:`EnvmapBackground.draw_layer`), so one wait on the GL finishes
+both, and reads it back when the frame is assembled (:meth:`EnvmapBackground.image`).
 
 Given the G-buffer's depth target, the pass shades only the pixels no geometry covers: its
 triangle lies on the far plane and a depth test ``<=`` against that target (1 where nothing was
@@ -42,7 +44,8 @@ class EnvmapBackground:
         self._depth = None
         self._envmap_key = None
         self._envmap: moderngl.Texture | None = None
-        self._drawn_key = None
+        self._drawn_key = None  # the layer drawn and read back into _image
+        self._pending_key = None  # the layer drawn into the target, not read back yet
         self._image = np.zeros((height, width, 3), dtype=np.float32)  # as GL reads it: row 0 at the bottom
 
     def set_envmap(self, path, key: str) -> None:
@@ -58,41 +61,56 @@ class EnvmapBackground:
         texture.repeat_x, texture.repeat_y = True, False
         if self._envmap is not None:
             self._envmap.release()
-        self._envmap, self._envmap_key, self._drawn_key = texture, key, None
+        self._envmap, self._envmap_key, self._drawn_key, self._pending_key = texture, key, None, None
 
     @property
     def has_envmap(self) -> bool:
         return self._envmap is not None
 
-    def image(self, camera, rotation, depth: moderngl.Texture | None = None) -> np.ndarray:
+    def draw_layer(self, camera, rotation, depth: moderngl.Texture | None = None, generation: int = 0) -> None:
+        """Draw the layer :meth:`image` returns for the same arguments into this object's target now,
+        without reading it back (nothing is drawn when it is drawn already).  ``generation``: the
+        G-buffer's, so a new G-buffer behind the same camera (a deformed pose) is drawn again."""
+        key = self._key(camera, rotation, depth, generation)
+        if key in (self._drawn_key, self._pending_key):
+            return
+        self._set_view(camera, self._rotation(rotation))
+        if depth is None:
+            draw_fullscreen(self.ctx, self.fbo, self.vao, [(self._envmap, 0)])
+        else:
+            self._draw_behind(self._fbo_with(self.target, depth))
+        self._pending_key = key
+        self._camera = camera  # keeps id(camera) from being reused while the key holds it
+
+    def image(self, camera, rotation, depth: moderngl.Texture | None = None, generation: int = 0) -> np.ndarray:
         """(H, W, 3) float32 radiance of the map seen by ``camera``, row 0 at the top.
 
         ``depth``: the G-buffer's depth texture for this camera (same size); only the pixels
         where it is 1 (nothing drawn) are drawn, the others keep whatever an earlier call left
-        there (the caller overwrites them: no clear).  None: every pixel.  The array is a view
+        there (the caller overwrites them: no clear).  None: every pixel.  ``generation``: see
+        :meth:`draw_layer` (a layer it drew is read back, not drawn again).  The array is a view
         of this object's buffer (rows flipped), overwritten by the next call that redraws.
         """
-        rotation = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
-        key = (id(camera), self._envmap_key, rotation.tobytes(), None if depth is None else id(depth))
+        key = self._key(camera, rotation, depth, generation)
         if key != self._drawn_key:
-            self._set_view(camera, rotation)
-            if depth is None:
-                draw_fullscreen(self.ctx, self.fbo, self.vao, [(self._envmap, 0)])
-            else:
-                self._draw_behind(self._fbo_with(self.target, depth))
+            self.draw_layer(camera, rotation, depth, generation)
             self.fbo.read_into(self._image, components=3, dtype="f4")
-            self._drawn_key = key
-            self._camera = camera  # keeps id(camera) from being reused while the key holds it
+            self._drawn_key, self._pending_key = key, None
         return self._image[::-1]
+
+    def _key(self, camera, rotation, depth, generation: int) -> tuple:
+        return (id(camera), self._envmap_key, self._rotation(rotation).tobytes(), None if depth is None else id(depth), generation)
+
+    @staticmethod
+    def _rotation(rotation) -> np.ndarray:
+        return np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
 
     def draw_into(self, target: moderngl.Texture, camera, rotation, depth: moderngl.Texture) -> None:
         """Draw the map into ``target`` (a frame shaded on the GPU, the size of this layer) where
         ``depth`` is 1, as :meth:`image` draws it into its own layer; nothing is read back, the
         pixels under geometry keep the frame."""
-        rotation = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
-        self._set_view(camera, rotation)
+        self._set_view(camera, self._rotation(rotation))
         self._draw_behind(self._fbo_with(target, depth))
-        self._drawn_key = None  # this layer's own target was not drawn
 
     def _set_view(self, camera, rotation: np.ndarray) -> None:
         half_y = math.tan(math.radians(camera.fov_y) / 2.0)

@@ -51,7 +51,7 @@ from typing import Callable
 
 import numpy as np
 
-from .segmentation import segment_sort
+from .segmentation import scatter_rows, segment_sort, take_rows
 
 __all__ = [
     "TransferInterpolator",
@@ -179,7 +179,8 @@ def _fill(transfer: np.ndarray, inferred: np.ndarray, which: np.ndarray, inputs,
         ids = segment[which]
         order, offsets = segment_sort(ids, int(ids.max()) + 1)
         which = which[order]
-        transfer[which] = infer(inputs[which], offsets)
+        out = np.asarray(infer(take_rows(inputs, which), offsets), dtype=transfer.dtype)
+        scatter_rows(transfer, which, np.ascontiguousarray(out))
         inferred[which] = True
 
 

@@ -2,7 +2,9 @@
 
 A frame runs three stages, each timed (milliseconds in :attr:`Renderer.timings`):
 
-1. G-buffer (``gbuffer``): position, normal, segment id per pixel (rasterised or sphere traced).
+1. G-buffer (``gbuffer``): position, normal, segment id per pixel (rasterised or sphere traced);
+   for a frame shaded on the CPU the env-map background's pass is drawn with it (read back later,
+   ``background``: the read-back and copy).
 2. Transfer, by the backend chosen by name (:mod:`prt.runtime.backends`; its stages timed as
    it names them):
    - ``"onnx"`` (the analogue of the paper's CUDA path): read the G-buffer back (``readback``),
@@ -61,6 +63,7 @@ from .gl import ShaderCompileError, bind_framebuffer, compile_program, create_co
 from .manifest import Manifest, load_manifest
 from .interpolation import check_tolerance
 from .resources import RendererResources, make_current
+from .segmentation import scatter_rows
 from .albedo_textures import AlbedoTextures
 from .materials import MaterialTable, load_albedo_textures, object_materials, shade_objects
 from .shading import GLSL_DEFINES, GLSL_FILES, Lighting, Material, diffuse_light_matrix, shade, shader_uniforms, to_srgb8
@@ -246,6 +249,7 @@ class Renderer:
         self._envmap_rotation = lighting.rotation
         self.background = bool(lighting.background)
         self._background: EnvmapBackground | None = None
+        self._gbuffer_generation = 0  # G-buffer renders so far: the background layer is redrawn on a new one
         mat = m.material
         self.material = Material(kind=mat.type, **{k: getattr(mat, k) for k in ("albedo", "specular", "exponent") if getattr(mat, k) is not None})
         # One material per object (runtime/materials.py); self.material is the scene-wide one.
@@ -525,16 +529,20 @@ class Renderer:
     def _background_on(self) -> bool:
         return self.background and self._envmap_path is not None
 
-    def _background_layer(self, into: moderngl.Texture | None = None) -> np.ndarray | None:
+    def _background_layer(self, into: moderngl.Texture | None = None, draw_only: bool = False) -> np.ndarray | None:
         """(H, W, 3) the env map seen by the camera where the G-buffer has no geometry, 0 elsewhere
         (drawn there only: the G-buffer's depth for this camera masks the rest); cached, not a copy.
-        ``into``: drawn into that texture instead (a frame shaded on the GPU), nothing read back."""
+        ``into``: drawn into that texture instead (a frame shaded on the GPU), nothing read back.
+        ``draw_only``: drawn into the layer's own target now, read back by the next call."""
         if self._background is None:
             self._background = self._resources.keep(EnvmapBackground(self.ctx, self.width, self.height))
         self._background.set_envmap(self._envmap_path, str(self._envmap_path))
+        view = (self.camera, self._envmap_rotation, self.gbuffer.depth_texture)
         if into is not None:
-            return self._background.draw_into(into, self.camera, self._envmap_rotation, self.gbuffer.depth_texture)
-        return self._background.image(self.camera, self._envmap_rotation, self.gbuffer.depth_texture)
+            return self._background.draw_into(into, *view)
+        if draw_only:
+            return self._background.draw_layer(*view, generation=self._gbuffer_generation)
+        return self._background.image(*view, generation=self._gbuffer_generation)
 
     def _background_base(self, timings: dict) -> np.ndarray:
         """A fresh (H * W, 3) image to scatter shaded rows into: the background layer, or 0."""
@@ -601,10 +609,13 @@ class Renderer:
 
     def _compute_transfer(self, timings: dict) -> None:
         t0 = time.perf_counter()
+        backend = self._backend()
         self.gbuffer.render(self.camera)
+        self._gbuffer_generation += 1
+        if backend.on_cpu and self._background_on():  # its pass with the G-buffer's, one wait for both
+            self._background_layer(draw_only=True)
         self.ctx.finish()
         t1 = time.perf_counter()
-        backend = self._backend()
         result = backend.run(self.gbuffer, self._t_fbo)
         timings.update({"gbuffer": 1e3 * (t1 - t0), **backend.timings})
         self.stats["network_fraction"] = float(getattr(backend, "fraction", 1.0))
@@ -772,16 +783,6 @@ def _check_allocation(ctx: moderngl.Context, width: int, height: int) -> None:
 def all_finite(values: np.ndarray) -> bool:
     """``np.isfinite(values).all()`` in two reductions and no temporary: min and max propagate NaN."""
     return values.size == 0 or bool(np.isfinite(np.min(values)) and np.isfinite(np.max(values)))
-
-
-def scatter_rows(image: np.ndarray, rows: np.ndarray, values: np.ndarray) -> None:
-    """``image[rows] = values`` for C-contiguous float32 (P, C) and (M, C): each row moved as one
-    C * 4-byte item (a plain 2-D fancy assignment moves element by element, 3x slower)."""
-    width = image.shape[1] * image.itemsize
-    if image.flags.c_contiguous and values.flags.c_contiguous and values.dtype == image.dtype and len(values):
-        image.view(f"V{width}").reshape(-1)[rows] = values.view(f"V{width}").reshape(-1)
-    else:
-        image[rows] = values
 
 
 @functools.lru_cache(maxsize=1)

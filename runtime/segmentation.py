@@ -29,7 +29,7 @@ from .errors import InputError
 if TYPE_CHECKING:
     from .manifest import Manifest
 
-__all__ = ["kd_arrays", "assign_segments", "segment_of", "segment_sort", "segment_sort_reference", "face_segments", "FACE_MARGIN"]
+__all__ = ["kd_arrays", "assign_segments", "segment_of", "segment_sort", "segment_sort_reference", "scatter_rows", "take_rows", "face_segments", "FACE_MARGIN"]
 
 FACE_MARGIN = (1e-4, 1.0 / 16.0)
 """A triangle takes a side of a split only when all of it lies at least ``1e-4 + extent / 16`` from the
@@ -137,6 +137,23 @@ def segment_sort(segment: np.ndarray, n_segments: int) -> tuple[np.ndarray, np.n
     order = np.argsort(seg.astype(small), kind="stable")
     offsets = np.searchsorted(seg[order], np.arange(n_segments + 1)).astype(np.int64)
     return covered[order], offsets
+
+
+def scatter_rows(image: np.ndarray, rows: np.ndarray, values: np.ndarray) -> None:
+    """``image[rows] = values`` for C-contiguous (P, C) and (M, C) of one dtype: each row moved as one
+    C * itemsize-byte item (a plain 2-D fancy assignment moves element by element, 3x slower)."""
+    width = image.shape[1] * image.itemsize
+    if image.flags.c_contiguous and values.flags.c_contiguous and values.dtype == image.dtype and len(values):
+        image.view(f"V{width}").reshape(-1)[rows] = values.view(f"V{width}").reshape(-1)
+    else:
+        image[rows] = values
+
+
+def take_rows(array: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``array[rows]`` (a new (M, C) array) for a C-contiguous (P, C) array, each row taken as one item."""
+    if array.ndim != 2 or not array.flags.c_contiguous or array.shape[1] == 0:
+        return array[rows]
+    return array.view(f"V{array.shape[1] * array.itemsize}").reshape(-1)[rows].view(array.dtype).reshape(len(rows), array.shape[1])
 
 
 def segment_sort_reference(segment: np.ndarray, n_segments: int) -> tuple[np.ndarray, np.ndarray]:

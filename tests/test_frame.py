@@ -15,7 +15,7 @@
   of such a triangle has that segment by :func:`segment_of`;
 - the env-map background drawn only where the G-buffer's depth says no geometry is equals the
   full-screen layer there, and a frame built on it equals the frame composited the old way;
-- ``all_finite`` and ``scatter_rows`` equal ``np.isfinite(...).all()`` and ``image[rows] = values``.
+- ``all_finite``, ``scatter_rows`` and ``take_rows`` equal ``np.isfinite(...).all()``, ``image[rows] = values`` and ``array[rows]``.
 """
 
 from __future__ import annotations
@@ -29,7 +29,8 @@ from prt.runtime import InputError
 from prt.runtime.camera import Camera
 from prt.runtime.backends.onnx import OnnxTransfer, segment_sort, segment_sort_reference
 from prt.runtime.gbuffer import PACKED_COLUMNS, PACKED_SEGMENT
-from prt.runtime.renderer import Renderer, Scene, all_finite, demo_scene_path, scatter_rows
+from prt.runtime.renderer import Renderer, Scene, all_finite, demo_scene_path
+from prt.runtime.segmentation import scatter_rows, take_rows
 from prt.runtime.shading import shade
 
 SIZE = 80
@@ -237,6 +238,39 @@ def test_background_drawn_only_where_nothing_is_covered(gl_ctx, demo):
             assert np.array_equal(r._background_layer()[~covered], full[~covered])  # what the renderer uses
 
 
+def test_background_drawn_with_the_gbuffer_is_read_back_once_and_redrawn_for_a_new_gbuffer(gl_ctx, demo, monkeypatch):
+    """An ONNX frame draws the layer right after the G-buffer's pass and reads it back when it is assembled:
+    one draw per G-buffer, the same pixels as drawing at assembly; a new G-buffer (a deformed pose behind the
+    same camera) is drawn again, never a stale layer."""
+    with Renderer(demo, SIZE, SIZE, ctx=gl_ctx) as r:
+        r.set_background(True)
+        background_draws, events = [], []
+        r.render()
+        background, backend = r._background, r._backend()
+        original, run = background._draw_behind, backend.run
+        monkeypatch.setattr(background, "_draw_behind", lambda fbo: (background_draws.append(1), events.append("background"), original(fbo)))
+        monkeypatch.setattr(backend, "run", lambda *a: (events.append("network"), run(*a))[1])
+        for step in range(2):
+            r.set_camera_object(r.camera.orbit(0.9 + step))
+            before = len(background_draws)
+            events.clear()
+            image = r.render()
+            assert events == ["background", "network"]  # drawn with the G-buffer, before the networks run
+            assert len(background_draws) == before + 1  # read back without a second draw
+            covered = r.gbuffer_image().covered
+            full = background.image(r.camera, r._envmap_rotation).copy()
+            assert np.array_equal(image[~covered], full[~covered])
+        view = (r.camera, r._envmap_rotation, r.gbuffer.depth_texture)
+        before = len(background_draws)
+        background.draw_layer(*view, generation=99)
+        background.draw_layer(*view, generation=99)  # drawn already: nothing
+        first = background.image(*view, generation=99).copy()
+        assert len(background_draws) == before + 1
+        background.image(*view, generation=100)  # the same camera, a new G-buffer: drawn again
+        assert len(background_draws) == before + 2
+        assert np.array_equal(background.image(*view, generation=99), first)  # and back
+
+
 @pytest.mark.parametrize("backend", ["onnx", "glsl"])
 def test_frame_with_background_equals_the_old_composite(gl_ctx, demo, backend):
     with Renderer(demo, 40, 36, backend=backend, ctx=gl_ctx) as r:
@@ -279,6 +313,19 @@ def test_scatter_rows_equals_fancy_assignment():
             scatter_rows(got, rows, vals)
             want[rows] = vals
             assert np.array_equal(got, want)
+
+
+def test_take_rows_equals_fancy_take():
+    rng = np.random.default_rng(2)
+    for pixels, m, c in [(1000, 300, 6), (64, 0, 6), (500, 500, 64), (100, 10, 1)]:
+        rows = rng.integers(0, pixels, m)  # repeats allowed, any order
+        for array in (rng.standard_normal((pixels, c)).astype(np.float32), rng.standard_normal((pixels, c)),
+                      np.asfortranarray(rng.standard_normal((pixels, c)).astype(np.float32)), rng.standard_normal((pixels, 2 * c))[:, ::2]):
+            got = take_rows(array, rows)
+            assert got.dtype == array.dtype and got.shape == (m, c) and np.array_equal(got, array[rows])
+            if m:
+                got[0] += 1.0  # a copy: the array is not touched
+                assert not np.array_equal(got[0], array[rows[0]])
 
 
 def test_compute_refuses_unknown_segments(gl_ctx, demo):

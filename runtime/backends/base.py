@@ -77,6 +77,8 @@ class TransferBackend(ABC):
     """
 
     name: str = ""
+    on_cpu: bool = False
+    """Whether :meth:`run` returns the transfer on the CPU (the frame is then shaded there)."""
 
     def __init__(self, ctx: moderngl.Context, manifest: Manifest, *, providers=None, threads: int | None = None, interpolate: float | None = None):
         self.ctx = ctx

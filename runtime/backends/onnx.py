@@ -482,6 +482,7 @@ class OnnxBackend(TransferBackend):
     """
 
     name = "onnx"
+    on_cpu = True
 
     def __init__(self, ctx, manifest, *, providers=None, threads: int | None = None, interpolate: float | None = None):
         super().__init__(ctx, manifest)
