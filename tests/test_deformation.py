@@ -179,6 +179,27 @@ def test_both_backends_agree_and_follow_the_pose(bent_scene):
     assert np.abs(images["onnx", 0] - images["onnx", 6]).mean() > 1e-3  # the pose changed the frame
 
 
+def test_a_new_pose_behind_a_still_camera_redraws_the_background(bent_scene):
+    """The background layer where the bar was and is no more: the env map, not what the layer held before."""
+    from prt.runtime import Renderer, Scene
+    from prt.runtime.envmaps import bundled_envmap_path
+
+    scene = Scene.load(bent_scene[0])
+    with Renderer(scene, 64, 64) as r:
+        r.set_envmap(bundled_envmap_path("studio"))
+        r.set_background(True)
+        r.set_camera(eye=(2.0, 1.4, 2.4), target=(0, 0, 0))
+        covered = {}
+        for key in (0, 6):
+            r.set_deformation(frame=key)
+            image = r.render()
+            covered[key] = r.covered_mask()
+        uncovered = covered[0] & ~covered[6]
+        assert uncovered.sum() > 20  # the bend moved the bar off these pixels
+        full = r._background.image(r.camera, r._envmap_rotation)  # the map at every pixel, drawn afresh
+        assert np.array_equal(image[uncovered], full[uncovered])
+
+
 def test_gbuffer_carries_the_rest_position(bent_scene):
     from prt.runtime import Renderer, Scene
 
