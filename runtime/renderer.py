@@ -250,6 +250,9 @@ class Renderer:
         self.background = bool(lighting.background)
         self._background: EnvmapBackground | None = None
         self._gbuffer_generation = 0  # G-buffer renders so far: the background layer is redrawn on a new one
+        self.background_with_gbuffer = True
+        """A frame shaded on the CPU draws the background's pass right after the G-buffer's, one wait on the
+        GL for both (False: when the frame is assembled, as before; ``studies/demo_fps.py`` compares them)."""
         mat = m.material
         self.material = Material(kind=mat.type, **{k: getattr(mat, k) for k in ("albedo", "specular", "exponent") if getattr(mat, k) is not None})
         # One material per object (runtime/materials.py); self.material is the scene-wide one.
@@ -612,7 +615,7 @@ class Renderer:
         backend = self._backend()
         self.gbuffer.render(self.camera)
         self._gbuffer_generation += 1
-        if backend.on_cpu and self._background_on():  # its pass with the G-buffer's, one wait for both
+        if self.background_with_gbuffer and backend.on_cpu and self._background_on():  # one wait for both passes
             self._background_layer(draw_only=True)
         self.ctx.finish()
         t1 = time.perf_counter()

@@ -5,11 +5,13 @@ with interpolation (the default tolerance) and every pixel, as ratios in one run
 usage: python studies/demo_fps.py [--scene scene.json] [--size 512] [--frames 30] [--rounds 3]
                                         [--json OUT] [--md OUT]
 
-Five configurations take turns, round after round, each a whole :func:`render_orbit` of
+Six configurations take turns, round after round, each a whole :func:`render_orbit` of
 ``--frames`` PNG frames into a temporary folder (``make demo``'s call): tolerance 0.1 or 0 (every
 covered pixel runs its network), frames held or written one by one (``HOLD_BYTES`` = 1, what
-``prt-runtime --headless`` did before), and the default with the G-buffer's reference twin (every
-fragment descends the k-d tree, :attr:`GBufferPass.known_segments` off: the pass before issue 44).
+``prt-runtime --headless`` did before), the default with the G-buffer's reference twin (every
+fragment descends the k-d tree, :attr:`GBufferPass.known_segments` off: the pass before issue 44),
+and the default with the background's pass drawn when the frame is assembled
+(``Renderer.background_with_gbuffer`` off: the frame before its pass joined the G-buffer's).
 Reported per configuration: the median over rounds of
 the orbit's median frame time, FPS, stage times, the share of the frame outside the network
 (everything but ``inference``) and seconds spent writing.  Then the PNG
@@ -49,24 +51,28 @@ def main(argv=None) -> int:
     scene = Scene.load(args.scene)
     ctx = create_context()
     load_start, wall_start = busy_seconds(), time.perf_counter()
-    configs = [(tol, hold, True) for tol in (DEFAULT_TOLERANCE, None) for hold in ("held", "each")]
-    configs.append((DEFAULT_TOLERANCE, "held", False))  # the G-buffer's reference twin
+    configs = [(tol, hold, True, True) for tol in (DEFAULT_TOLERANCE, None) for hold in ("held", "each")]
+    configs.append((DEFAULT_TOLERANCE, "held", False, True))  # the G-buffer's reference twin
+    configs.append((DEFAULT_TOLERANCE, "held", True, False))  # the background's pass when the frame is assembled
     renderers = {tol: Renderer(scene, args.size, args.size, ctx=ctx, interpolate=tol) for tol in (DEFAULT_TOLERANCE, None)}
     runs: dict[str, list[dict]] = {}
     default_hold = orbit.HOLD_BYTES
     with tempfile.TemporaryDirectory() as tmp:
         for k in range(args.rounds):
-            for tol, hold, known in configs:
-                name = f"interpolate {tol or 0} / {hold}" + ("" if known else " / G-buffer twin (per-fragment segments)")
+            for tol, hold, known, early in configs:
+                name = (f"interpolate {tol or 0} / {hold}" + ("" if known else " / G-buffer twin (per-fragment segments)")
+                        + ("" if early else " / background drawn at assembly"))  # fmt: skip
                 orbit.HOLD_BYTES = default_hold if hold == "held" else 1
                 gbuffer = renderers[tol].gbuffer
                 before = gbuffer.known_segments
                 gbuffer.known_segments = known and before
+                renderers[tol].background_with_gbuffer = early
                 try:
-                    s = orbit.render_orbit(renderers[tol], args.frames, Path(tmp) / f"{k}-{tol}-{hold}-{known}")
+                    s = orbit.render_orbit(renderers[tol], args.frames, Path(tmp) / f"{k}-{tol}-{hold}-{known}-{early}")
                 finally:
                     orbit.HOLD_BYTES = default_hold
                     gbuffer.known_segments = before
+                    renderers[tol].background_with_gbuffer = True
                 runs.setdefault(name, []).append({"median_ms": s.median_ms, "write_s": s.write_s})
                 print(f"round {k + 1}: {name}: {s.fps:.1f} FPS, wrote in {s.write_s:.2f} s", flush=True)
     png = {}
