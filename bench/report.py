@@ -212,8 +212,10 @@ def _mitsuba_lines(scene: dict) -> list[str]:
     if not mi:
         return []
     env = mi["envmap"]
-    clamp = (f"clamping its negative radiance removed {', '.join(f'{100 * c:.2f}' for c in env['clamp_share'])} % of the energy (R, G, B)"
-             if env["clamped"] else "non-negative, nothing clamped")  # fmt: skip
+    shares = ", ".join(f"{100 * c:.2f}" for c in env["clamp_share"]) if env["clamped"] else ""
+    clamp = ("non-negative, nothing clamped" if not env["clamped"] else
+             f"negative in places ({shares} % of the energy, R, G, B): that part rendered apart and subtracted" if env.get("negative_part") else
+             f"clamping its negative radiance removed {shares} % of the energy (R, G, B)")  # fmt: skip
     lines = [f"- **against Mitsuba 3** {mi['mitsuba']} ({mi['variant']}, {mi['spp']} paths per pixel, max_depth {mi['max_depth']}, "
              f"views {mi['views']}); the band-limited sky is {clamp}; diffuse, per-object albedos; PSNR and bias over the "
              f"compared pixels of those views pooled (the hardest view weighs most, unlike the mean of per-view PSNRs above):"]  # fmt: skip

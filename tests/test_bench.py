@@ -309,3 +309,19 @@ def test_vertex_baseline_normals_are_the_g_buffers_smooth_normals():
     np.testing.assert_array_equal(corner[smooth], per_vertex[faces][smooth])
     used = np.unique(faces)
     np.testing.assert_allclose(np.linalg.norm(per_vertex[used], axis=1), 1.0, atol=1e-12)
+
+
+def test_the_mitsuba_lines_say_how_the_skys_negative_part_was_handled():
+    """A sky that is negative in places: subtracted (the negative part rendered apart) or, in older records, clamped."""
+    row = {"label": "our reference", "transfer": "5 bounces", "psnr": 30.0, "bias": -0.01, "bias_se": 0.001, "psnr_vs_ours": None,
+           "ours_noise_psnr": 31.0, "joint_noise_psnr": 29.0, "mse_ratio": 1.1, "within_noise": True, "bias_within": False}
+    size = {"pixels": 100, "mitsuba_noise_psnr": 30.0, "rows": [row]}
+
+    def lines(envmap):
+        mi = {"mitsuba": "3.9.1", "variant": "llvm_ad_rgb", "spp": 64, "max_depth": 7, "views": [0], "envmap": envmap, "sizes": {"8x8": size}}
+        return "\n".join(report_format._mitsuba_lines({"scene": "s", "mitsuba": mi}))
+
+    share = {"clamped": True, "clamp_share": [0.005, 0.011, 0.014]}
+    assert "0.50, 1.10, 1.40 % of the energy, R, G, B): that part rendered apart and subtracted" in lines({**share, "negative_part": True})
+    assert "clamping its negative radiance removed 0.50, 1.10, 1.40 %" in lines({**share, "negative_part": False})
+    assert "non-negative, nothing clamped" in lines({"clamped": False, "clamp_share": [0.0, 0.0, 0.0], "negative_part": False})
