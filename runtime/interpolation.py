@@ -179,8 +179,7 @@ def _fill(transfer: np.ndarray, inferred: np.ndarray, which: np.ndarray, inputs,
         ids = segment[which]
         order, offsets = segment_sort(ids, int(ids.max()) + 1)
         which = which[order]
-        out = np.asarray(infer(take_rows(inputs, which), offsets), dtype=transfer.dtype)
-        scatter_rows(transfer, which, np.ascontiguousarray(out))
+        scatter_rows(transfer, which, infer(take_rows(inputs, which), offsets))  # (a plain assignment where it must)
         inferred[which] = True
 
 
