@@ -80,6 +80,8 @@ class Geometry:
     dropped_nonfinite: int = 0
     mixed: object | None = None
     see_through: list = field(default_factory=list)  # glTF parts left out as glass (gltf_scene.is_see_through)
+    cut_out: dict = field(default_factory=dict)  # glTF parts cut along their alpha: name -> (pieces, triangles before)
+    cut_away: list = field(default_factory=list)  # glTF parts whose alpha leaves nothing, left out
 
     @property
     def kind(self) -> str:
@@ -124,12 +126,22 @@ class Geometry:
         low, high = (", ".join(f"{x:.4g}" for x in corner) for corner in self.source_bounds())
         dropped = f", {self.dropped_nonfinite} triangles with NaN/Inf vertices dropped" if self.dropped_nonfinite else ""
         if self.see_through:
-            shown = ", ".join(self.see_through[:3]) + (f" and {len(self.see_through) - 3} more" if len(self.see_through) > 3 else "")
-            dropped += f"; {len(self.see_through)} see-through (glass) parts left out, light passes them: {shown}"
+            dropped += f"; {len(self.see_through)} see-through (glass) parts left out, light passes them: {_listed(self.see_through)}"
+        if self.cut_out:
+            before, after = sum(v[1] for v in self.cut_out.values()), sum(v[0] for v in self.cut_out.values())
+            dropped += (f"; {len(self.cut_out)} alpha-masked parts cut along their texture's alpha ({before} triangles -> {after}): "
+                        f"{_listed(list(self.cut_out))}")  # fmt: skip
+        if self.cut_away:
+            dropped += f"; {len(self.cut_away)} parts left out, wholly clear under their alpha cutoff: {_listed(self.cut_away)}"
         return (
             f"{self.source} [{self.kind}]: {n_faces} triangles, {len(self.mesh.vertices)} vertices, "
             f"{self.n_objects} objects, {closed}, bounds [{low}]..[{high}] (source units){dropped}"
         )
+
+
+def _listed(names: list, shown: int = 3) -> str:
+    """The first ``shown`` names, and how many more."""
+    return ", ".join(names[:shown]) + (f" and {len(names) - shown} more" if len(names) > shown else "")
 
 
 def load_geometry(source, *, normalise: bool = True, sdf_resolution: int = 128) -> Geometry:
@@ -173,7 +185,8 @@ def load_geometry(source, *, normalise: bool = True, sdf_resolution: int = 128) 
         if _extension(name) in ("glb", "gltf"):
             from .gltf_scene import read_gltf_scene
 
-            geometry.see_through = read_gltf_scene(name).transparent
+            scene = read_gltf_scene(name)
+            geometry.see_through, geometry.cut_out, geometry.cut_away = scene.transparent, scene.cut, scene.cut_away
         return geometry
     if _extension(name) in MESH_EXTENSIONS or os.sep in name or (os.altsep and os.altsep in name):
         raise GeometryError(f"{name}: no such file")

@@ -35,8 +35,9 @@ import numpy as np
 
 from ...runtime.errors import GeometryError
 from ..deform.gltf_animation import GltfFile, malformed_gltf, read_gltf, trs_matrix
+from .cutout import DEFAULT_CUTOFF
 
-__all__ = ["GltfPart", "GltfScene", "read_gltf_scene", "unique_names", "albedo_texture_info", "SPEC_GLOSS"]
+__all__ = ["GltfPart", "GltfScene", "read_gltf_scene", "unique_names", "albedo_texture_info", "SPEC_GLOSS", "alpha_cutoff", "cut_parts"]
 
 SPEC_GLOSS = "KHR_materials_pbrSpecularGlossiness"
 
@@ -71,6 +72,10 @@ class GltfPart:
     vertices: np.ndarray
     faces: np.ndarray
     attributes: dict = field(default_factory=dict)
+    # Cut along its material's alpha (:func:`cut_parts`): (the primitive's faces, each piece's face index
+    # in them, each piece's corners as barycentric weights, the primitive's vertex count); then
+    # ``vertices`` and ``faces`` are the pieces' (three vertices each).
+    remap: tuple | None = None
 
 
 @dataclass
@@ -81,6 +86,8 @@ class GltfScene:
     parts: list
     _images: dict = field(default_factory=dict)
     transparent: list = field(default_factory=list)  # names of the parts left out as see-through (is_see_through)
+    cut: dict = field(default_factory=dict)  # name -> (pieces, triangles before) of the parts cut along their alpha
+    cut_away: list = field(default_factory=list)  # names of the parts whose alpha leaves nothing (left out)
 
     @property
     def path(self) -> str:
@@ -107,9 +114,14 @@ class GltfScene:
             return None
         with malformed_gltf(self.path):
             uv = self.gltf.accessor(part.attributes[key])[:, :2].astype(np.float64)
-        if len(uv) != len(part.vertices):
-            raise GeometryError(f"{self.path}: mesh {part.mesh} primitive {part.primitive}: {key} has {len(uv)} values for {len(part.vertices)} vertices")
-        return np.stack([uv[:, 0], 1.0 - uv[:, 1]], axis=1)
+        count = len(part.vertices) if part.remap is None else part.remap[3]
+        if len(uv) != count:
+            raise GeometryError(f"{self.path}: mesh {part.mesh} primitive {part.primitive}: {key} has {len(uv)} values for {count} vertices")
+        uv = np.stack([uv[:, 0], 1.0 - uv[:, 1]], axis=1)
+        if part.remap is not None:  # the pieces' corners, each interpolated in its triangle
+            faces, face, bary, _ = part.remap
+            uv = np.einsum("kcj,kjd->kcd", bary, uv[faces[face]]).reshape(-1, 2)
+        return uv
 
     def mean_vertex_colour(self, part: GltfPart) -> np.ndarray | None:
         """The mean linear RGB of ``part``'s ``COLOR_0`` over its vertices, or None without one."""
@@ -226,7 +238,100 @@ def read_gltf_scene(path, stem: str | None = None) -> GltfScene:
         parts = [p for p in parts if not any(p is c for c in clear)]
     else:
         clear = []
-    return GltfScene(gltf=gltf, parts=parts, transparent=[p.name for p in clear])
+    scene = GltfScene(gltf=gltf, parts=parts, transparent=[p.name for p in clear])
+    cut_parts(scene)
+    return scene
+
+
+# Pieces the alpha cut-outs of one scene may make in all; past it every part is cut one level coarser.
+CUT_BUDGET = 500_000
+
+
+def alpha_cutoff(material: dict) -> float | None:
+    """The alpha below which a glTF material has no surface: ``alphaCutoff`` (0.5 by default) for
+    ``alphaMode`` MASK; :data:`SEE_THROUGH_ALPHA` for BLEND (its clear texels let light through, as
+    a clear blended material does: :func:`is_see_through`); None for OPAQUE."""
+    if not isinstance(material, dict):
+        return None
+    mode = material.get("alphaMode", "OPAQUE")
+    if mode == "MASK":
+        cutoff = material.get("alphaCutoff", DEFAULT_CUTOFF)
+        return float(cutoff) if isinstance(cutoff, (int, float)) and np.isfinite(cutoff) else DEFAULT_CUTOFF
+    return SEE_THROUGH_ALPHA if mode == "BLEND" else None
+
+
+def factor_alpha(material: dict) -> float:
+    """The alpha of a material's base colour factor (the spec-gloss extension's ``diffuseFactor``
+    where present), 1 where it gives none."""
+    gloss = (material.get("extensions") or {}).get(SPEC_GLOSS)
+    factor = (gloss or {}).get("diffuseFactor") if gloss is not None else (material.get("pbrMetallicRoughness") or {}).get("baseColorFactor")
+    if isinstance(factor, list) and len(factor) == 4 and isinstance(factor[3], (int, float)):
+        return float(factor[3])
+    return 1.0
+
+
+def alpha_image(scene: GltfScene, part: GltfPart) -> np.ndarray | None:
+    """The alpha channel of ``part``'s colour texture, (H, W) float64 in [0, 1], row 0 at the top;
+    None when it has no such texture, no alpha channel, no UVs for it or its file is missing (the
+    materials' reader says so)."""
+    info = albedo_texture_info(scene.document, part.material)
+    if info is None or scene.texcoords(part, int(info.get("texCoord", 0))) is None:
+        return None
+    image = scene.image(int(info["index"]))
+    if image is None or image.shape[2] not in (2, 4):
+        return None
+    return image[:, :, -1].astype(np.float64) / float(np.iinfo(image.dtype).max)
+
+
+def cut_parts(scene: GltfScene, budget: int = CUT_BUDGET) -> None:
+    """Cut every part of an alpha-masked material (:func:`alpha_cutoff`) along its alpha
+    (:func:`prt.train.inputs.cutout.cut_triangles`), in place: a part whose alpha leaves nothing
+    is left out (``scene.cut_away``), one cut into pieces gets them as its triangles (``scene.cut``).
+    The alpha is the factor's times the colour texture's; without a texture alpha a part is
+    whole or wholly gone."""
+    from .cutout import MAX_DEPTH, cut_triangles
+
+    materials = scene.document.get("materials", [])
+    jobs = []  # (part, cutoff, alpha image or None, factor)
+    for part in scene.parts:
+        if part.material is None or not 0 <= part.material < len(materials):
+            continue
+        cutoff = alpha_cutoff(materials[part.material])
+        if cutoff is None:
+            continue
+        with malformed_gltf(scene.path):
+            jobs.append((part, cutoff, alpha_image(scene, part), factor_alpha(materials[part.material])))
+    if not jobs:
+        return
+    results = {}
+    for depth in range(MAX_DEPTH, -1, -1):
+        results, pieces = {}, 0
+        for k, (part, cutoff, image, factor) in enumerate(jobs):
+            if image is None:
+                results[k] = None if factor >= cutoff else (np.zeros(0, np.int64), np.zeros((0, 3, 3)))
+                continue
+            uv = scene.texcoords(part, int(albedo_texture_info(scene.document, part.material).get("texCoord", 0)))
+            results[k] = cut_triangles(uv[part.faces], factor * image, cutoff, depth)
+            pieces += len(results[k][0])
+        if pieces <= budget:
+            break
+    gone = {id(jobs[k][0]) for k, r in results.items() if r is not None and not len(r[0])}
+    if len(gone) == len(scene.parts):  # nothing would be left: keep the file as it is drawn opaque
+        return
+    for k, result in results.items():
+        part = jobs[k][0]
+        if result is None or id(part) in gone:
+            continue
+        face, bary = result
+        if len(face) == len(part.faces) and np.array_equal(bary, np.broadcast_to(np.eye(3), bary.shape)):
+            continue  # every triangle opaque
+        scene.cut[part.name] = (len(face), len(part.faces))
+        corners = np.einsum("kcj,kjd->kcd", bary, part.vertices[part.faces[face]])
+        part.remap = (part.faces, face, bary, len(part.vertices))
+        part.vertices = corners.reshape(-1, 3)
+        part.faces = np.arange(3 * len(face), dtype=np.int64).reshape(-1, 3)
+    scene.cut_away = [p.name for p in scene.parts if id(p) in gone]
+    scene.parts = [p for p in scene.parts if id(p) not in gone]
 
 
 # Glass: a blended material this transparent, or one that transmits this much, lets light through.

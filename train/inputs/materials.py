@@ -279,7 +279,17 @@ def _albedo_texture(scene, part, info, where: str, warn) -> tuple[np.ndarray | N
         return None, None
     rgb = image[:, :, :3] if image.shape[2] >= 3 else np.repeat(image[:, :, :1], 3, axis=2)
     rgb8 = rgb if rgb.dtype == np.uint8 else np.round(_unit(rgb) * 255.0).astype(np.uint8)
-    return np.ascontiguousarray(rgb8), srgb_to_linear(rgb8 / 255.0).mean(axis=(0, 1))
+    linear = srgb_to_linear(rgb8 / 255.0)
+    # A cut-out's clear texels are not surface (gltf_scene.cut_parts): its colour is its opaque texels'.
+    from .gltf_scene import alpha_cutoff, factor_alpha
+
+    spec = scene.document["materials"][part.material]
+    cutoff = alpha_cutoff(spec)
+    if cutoff is not None and image.shape[2] in (2, 4):
+        opaque = factor_alpha(spec) * _unit(image[:, :, -1]) >= cutoff
+        if opaque.any():
+            return np.ascontiguousarray(rgb8), linear[opaque].mean(axis=0)
+    return np.ascontiguousarray(rgb8), linear.mean(axis=(0, 1))
 
 
 def pbr_material(base_color, roughness, metallic, texture_mean=None) -> Material:
