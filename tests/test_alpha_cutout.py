@@ -7,7 +7,8 @@ part left out and named, the opaque part untouched, the same file gives the same
 cut card's texture coordinates are found again on the built geometry, and the rays traced
 against the built geometry are blocked exactly where an alpha test at the ray's crossing of the
 card (bilinear, as the GL samples) says the card is opaque: the per-ray reference, computed from
-the texture without the cut.
+the texture without the cut.  The same card as OBJ (``map_d``) is cut the same way and a pane with
+``d 0.2`` is left out as glass.
 """
 
 from __future__ import annotations
@@ -226,3 +227,42 @@ def test_a_cut_cards_texture_mean_is_its_opaque_texels(card_scene):
     _, leaf = _albedo_texture(scene, parts["leaf"], info, "leaf", print)
     _, sign = _albedo_texture(scene, parts["sign"], info, "sign", print)
     assert np.allclose(leaf, [0, green, 0], atol=1e-6) and np.allclose(sign, [0, green / 2, 0], atol=1e-6)
+
+
+def write_card_obj(folder):
+    """The leaf card and ground as OBJ: the card's material has the checker as ``map_d`` (and as
+    ``map_Kd``); a pane with ``d 0.2`` (glass) and one with ``Tr 0.1`` (d 0.9, opaque) beside it."""
+    import imageio.v3 as iio
+
+    iio.imwrite(folder / "leaf_mask.png", _checker()[:, :, 3])  # a grey map: its first channel
+    iio.imwrite(folder / "leaf.png", _checker()[:, :, :3])
+    (folder / "cards.mtl").write_text("newmtl leaf\nKd 1 1 1\nmap_Kd leaf.png\nmap_d -clamp on leaf_mask.png\n"
+                                      "newmtl soil\nKd 0.5 0.4 0.3\nnewmtl glass\nKd 0.9 0.9 0.9\nd 0.2\nnewmtl film\nTr 0.1\n")
+    lines = ["mtllib cards.mtl", "v 0 0.5 0", "v 1 0.5 0", "v 1 0.5 1", "v 0 0.5 1", "vt 0 0", "vt 1 0", "vt 1 1", "vt 0 1",
+             "o leaf", "usemtl leaf", "f 1/1 3/3 2/2", "f 1/1 4/4 3/3",
+             "v -2 0 -2", "v 3 0 -2", "v 3 0 3", "v -2 0 3", "o ground", "usemtl soil", "f 5 8 7 6",
+             "v 1.5 0.5 0", "v 2.5 0.5 0", "v 2.5 0.5 1", "o pane", "usemtl glass", "f 9 11 10",
+             "v -1.5 0.5 0", "v -0.5 0.5 0", "v -0.5 0.5 1", "o film", "usemtl film", "f 12 14 13"]  # fmt: skip
+    (folder / "cards.obj").write_text("\n".join(lines) + "\n")
+    return folder / "cards.obj"
+
+
+def test_obj_map_d_cuts_and_d_leaves_glass_out(tmp_path):
+    from prt.train.inputs.albedo_uv import match_corner_uvs
+    from prt.train.inputs.materials import corner_uvs
+
+    path = write_card_obj(tmp_path)
+    geometry = load_geometry(path)
+    assert geometry.object_names == ["leaf", "ground", "film"] and geometry.see_through == ["pane"]
+    assert list(geometry.cut_out) == ["leaf"] and geometry.cut_out["leaf"][1] == 2
+    leaf = np.flatnonzero(geometry.object_ids == 0)
+    area = _area(np.asarray(geometry.mesh.vertices)[np.asarray(geometry.mesh.faces)[leaf]] * geometry.to_source[0, 0]).sum()
+    assert area == pytest.approx(0.5, rel=1e-6)
+    albedo_uv, unmatched = match_corner_uvs(geometry, *corner_uvs(str(path)))
+    assert unmatched == 0
+    alpha = _checker()[:, :, 3].astype(np.float32)[:, :, None] / 255
+    assert (sample_bilinear(alpha, albedo_uv[leaf].mean(axis=1))[:, 0] >= 0.5).all()
+    again = load_geometry(path)
+    assert np.array_equal(again.mesh.vertices, geometry.mesh.vertices) and np.array_equal(again.mesh.faces, geometry.mesh.faces)
+    summary = geometry.summary()
+    assert "1 see-through (glass) parts left out, light passes them: pane" in summary and "cut along their texture's alpha" in summary

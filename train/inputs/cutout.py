@@ -26,7 +26,8 @@ import numpy as np
 
 from ...runtime.albedo_textures import sample_bilinear
 
-__all__ = ["OpaqueCounter", "cut_triangles", "cut_triangles_reference", "MAX_DEPTH", "TEXELS_PER_PIECE", "DEFAULT_CUTOFF"]
+__all__ = ["OpaqueCounter", "cut_triangles", "cut_triangles_reference", "cut_within_budget", "cut_corners", "MAX_DEPTH", "TEXELS_PER_PIECE",
+           "DEFAULT_CUTOFF", "CUT_BUDGET"]
 
 DEFAULT_CUTOFF = 0.5
 """glTF's ``alphaCutoff`` where a MASK material gives none."""
@@ -36,6 +37,9 @@ MAX_DEPTH = 8
 
 TEXELS_PER_PIECE = 2.0
 """Splitting stops once a piece covers at most this many texels (its area in texel units)."""
+
+CUT_BUDGET = 500_000
+"""Pieces the cut-outs of one scene may make in all; past it every cut is made one level coarser."""
 
 
 class OpaqueCounter:
@@ -176,3 +180,50 @@ def cut_triangles_reference(uv: np.ndarray, alpha: np.ndarray, cutoff: float, ma
         out_face += [f] * len(pieces)
         out_bary += [p[1] for p in pieces]
     return np.asarray(out_face, dtype=np.int64), np.asarray(out_bary, dtype=np.float64).reshape(-1, 3, 3)
+
+
+def cut_within_budget(jobs: list, budget: int = CUT_BUDGET) -> list:
+    """:func:`cut_triangles` on every ``(uv, alpha, cutoff)`` of ``jobs``, all at the deepest
+    level (at most :data:`MAX_DEPTH`) whose pieces number ``budget`` or fewer in all (at least
+    one level: 0)."""
+    for depth in range(MAX_DEPTH, -1, -1):
+        results = [cut_triangles(uv, alpha, cutoff, depth) for uv, alpha, cutoff in jobs]
+        if sum(len(face) for face, _ in results) <= budget:
+            break
+    return results
+
+
+def cut_corners(positions: np.ndarray, uvs: np.ndarray, owner: np.ndarray, masks: dict, budget: int = CUT_BUDGET):
+    """Triangles given by their corners, those of the masked owners replaced by their opaque pieces.
+
+    Parameters
+    ----------
+    positions : (T, 3, 3) float64
+    uvs : (T, 3, 2) float64
+    owner : (T,) int, the object of each triangle
+    masks : dict of owner -> (alpha (H, W), cutoff)
+
+    Returns
+    -------
+    positions (T', 3, 3), uvs (T', 3, 2), owner (T',), source (T',) int64
+        Each kept triangle or piece in the order of the triangles it comes from; ``source``: that
+        triangle's index.
+    """
+    owner = np.asarray(owner, dtype=np.int64)
+    cut = [np.flatnonzero(owner == o) for o in masks]
+    results = cut_within_budget([(uvs[rows], alpha, cutoff) for rows, (alpha, cutoff) in zip(cut, masks.values())], budget)
+    keep = np.ones(len(owner), dtype=bool)
+    source, bary = [], []
+    for rows in cut:
+        keep[rows] = False
+    whole = np.flatnonzero(keep)
+    source.append(whole)
+    bary.append(np.broadcast_to(np.eye(3), (len(whole), 3, 3)))
+    for rows, (face, weights) in zip(cut, results):
+        source.append(rows[face])
+        bary.append(weights)
+    source, bary = np.concatenate(source), np.concatenate(bary)
+    order = np.argsort(source, kind="stable")
+    source, bary = source[order], bary[order]
+    interpolate = lambda corners: np.einsum("kcj,kjd->kcd", bary, corners[source])  # noqa: E731
+    return interpolate(np.asarray(positions, np.float64)), interpolate(np.asarray(uvs, np.float64)), owner[source], source

@@ -79,9 +79,10 @@ class Geometry:
     sdf: object | None = None
     dropped_nonfinite: int = 0
     mixed: object | None = None
-    see_through: list = field(default_factory=list)  # glTF parts left out as glass (gltf_scene.is_see_through)
-    cut_out: dict = field(default_factory=dict)  # glTF parts cut along their alpha: name -> (pieces, triangles before)
-    cut_away: list = field(default_factory=list)  # glTF parts whose alpha leaves nothing, left out
+    see_through: list = field(default_factory=list)  # parts left out as glass (gltf_scene.is_see_through; OBJ d < 0.5)
+    cut_out: dict = field(default_factory=dict)  # parts cut along their alpha (glTF MASK, OBJ map_d): name -> (pieces, triangles before)
+    cut_away: list = field(default_factory=list)  # parts whose alpha leaves nothing, left out
+    uncut: list = field(default_factory=list)  # OBJ objects whose map_d could not be applied (UVs not lined up)
 
     @property
     def kind(self) -> str:
@@ -133,6 +134,8 @@ class Geometry:
                         f"{_listed(list(self.cut_out))}")  # fmt: skip
         if self.cut_away:
             dropped += f"; {len(self.cut_away)} parts left out, wholly clear under their alpha cutoff: {_listed(self.cut_away)}"
+        if self.uncut:
+            dropped += f"; WARNING: {len(self.uncut)} objects' map_d not applied (their texture coordinates could not be read), drawn opaque: {_listed(self.uncut)}"
         return (
             f"{self.source} [{self.kind}]: {n_faces} triangles, {len(self.mesh.vertices)} vertices, "
             f"{self.n_objects} objects, {closed}, bounds [{low}]..[{high}] (source units){dropped}"
@@ -180,13 +183,11 @@ def load_geometry(source, *, normalise: bool = True, sdf_resolution: int = 128) 
     if os.path.isfile(name) and name.lower().endswith(".sdf.onnx"):  # a neural SDF (prt.train.sdf.neural)
         return _load_neural_sdf(name, sdf_resolution)
     if os.path.exists(name):
-        vertices, faces, object_ids, object_names = _read_mesh_file(name)
+        report: dict = {}
+        vertices, faces, object_ids, object_names = _read_mesh_file(name, report=report)
         geometry = _build_geometry(vertices, faces, object_ids, object_names, name, normalise=normalise)
-        if _extension(name) in ("glb", "gltf"):
-            from .gltf_scene import read_gltf_scene
-
-            scene = read_gltf_scene(name)
-            geometry.see_through, geometry.cut_out, geometry.cut_away = scene.transparent, scene.cut, scene.cut_away
+        geometry.see_through, geometry.cut_out = report.get("see_through", []), report.get("cut", {})
+        geometry.cut_away, geometry.uncut = report.get("cut_away", []), report.get("unaligned", [])
         return geometry
     if _extension(name) in MESH_EXTENSIONS or os.sep in name or (os.altsep and os.altsep in name):
         raise GeometryError(f"{name}: no such file")
@@ -204,7 +205,7 @@ def _one_line(error: BaseException) -> str:
     return f"{type(error).__name__}: {text}" if text else type(error).__name__
 
 
-def _read_mesh_file(path: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
+def _read_mesh_file(path: str, *, report: dict | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
     """Read triangles and object ids of a mesh file, in source units.
 
     Parameters
@@ -238,12 +239,20 @@ def _read_mesh_file(path: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, list
         # A file without groups is one object: name it after the file rather than "default".
         if object_names == [DEFAULT_OBJECT]:
             object_names = [stem]
+        from .materials import obj_cut  # dissolved materials: glass left out, map_d cut-outs cut
+
+        vertices, faces, object_ids, cut_report, _ = obj_cut(path, vertices, faces, object_ids, object_names)
+        if report is not None:
+            report.update(cut_report)
         return vertices, faces, object_ids, object_names
     if extension in ("glb", "gltf"):  # our reader: deterministic object names (gltf_scene)
         from .gltf_scene import read_gltf_scene
 
         try:
-            return read_gltf_scene(path, stem).arrays()
+            scene = read_gltf_scene(path, stem)
+            if report is not None:
+                report.update(see_through=scene.transparent, cut=scene.cut, cut_away=scene.cut_away)
+            return scene.arrays()
         except GeometryError as error:
             detail = str(error).removeprefix(f"{path}: ")
             raise GeometryError(f"{path}: cannot read {extension.upper()} file, corrupt or not {extension.upper()} ({detail})") from None

@@ -35,7 +35,7 @@ import numpy as np
 
 from ...runtime.errors import GeometryError
 from ..deform.gltf_animation import GltfFile, malformed_gltf, read_gltf, trs_matrix
-from .cutout import DEFAULT_CUTOFF
+from .cutout import CUT_BUDGET, DEFAULT_CUTOFF, cut_within_budget
 
 __all__ = ["GltfPart", "GltfScene", "read_gltf_scene", "unique_names", "albedo_texture_info", "SPEC_GLOSS", "alpha_cutoff", "cut_parts"]
 
@@ -243,10 +243,6 @@ def read_gltf_scene(path, stem: str | None = None) -> GltfScene:
     return scene
 
 
-# Pieces the alpha cut-outs of one scene may make in all; past it every part is cut one level coarser.
-CUT_BUDGET = 500_000
-
-
 def alpha_cutoff(material: dict) -> float | None:
     """The alpha below which a glTF material has no surface: ``alphaCutoff`` (0.5 by default) for
     ``alphaMode`` MASK; :data:`SEE_THROUGH_ALPHA` for BLEND (its clear texels let light through, as
@@ -270,6 +266,10 @@ def factor_alpha(material: dict) -> float:
     return 1.0
 
 
+def _uv_set(scene: GltfScene, part: GltfPart) -> int:
+    return int(albedo_texture_info(scene.document, part.material).get("texCoord", 0))
+
+
 def alpha_image(scene: GltfScene, part: GltfPart) -> np.ndarray | None:
     """The alpha channel of ``part``'s colour texture, (H, W) float64 in [0, 1], row 0 at the top;
     None when it has no such texture, no alpha channel, no UVs for it or its file is missing (the
@@ -289,8 +289,6 @@ def cut_parts(scene: GltfScene, budget: int = CUT_BUDGET) -> None:
     is left out (``scene.cut_away``), one cut into pieces gets them as its triangles (``scene.cut``).
     The alpha is the factor's times the colour texture's; without a texture alpha a part is
     whole or wholly gone."""
-    from .cutout import MAX_DEPTH, cut_triangles
-
     materials = scene.document.get("materials", [])
     jobs = []  # (part, cutoff, alpha image or None, factor)
     for part in scene.parts:
@@ -303,18 +301,13 @@ def cut_parts(scene: GltfScene, budget: int = CUT_BUDGET) -> None:
             jobs.append((part, cutoff, alpha_image(scene, part), factor_alpha(materials[part.material])))
     if not jobs:
         return
-    results = {}
-    for depth in range(MAX_DEPTH, -1, -1):
-        results, pieces = {}, 0
-        for k, (part, cutoff, image, factor) in enumerate(jobs):
-            if image is None:
-                results[k] = None if factor >= cutoff else (np.zeros(0, np.int64), np.zeros((0, 3, 3)))
-                continue
-            uv = scene.texcoords(part, int(albedo_texture_info(scene.document, part.material).get("texCoord", 0)))
-            results[k] = cut_triangles(uv[part.faces], factor * image, cutoff, depth)
-            pieces += len(results[k][0])
-        if pieces <= budget:
-            break
+    textured = [k for k, job in enumerate(jobs) if job[2] is not None]
+    cuts = cut_within_budget([(scene.texcoords(jobs[k][0], _uv_set(scene, jobs[k][0]))[jobs[k][0].faces], jobs[k][3] * jobs[k][2], jobs[k][1])
+                              for k in textured], budget)  # fmt: skip
+    results = dict(zip(textured, cuts))
+    for k, (_, cutoff, image, factor) in enumerate(jobs):
+        if image is None:  # the factor alone: all or nothing
+            results[k] = None if factor >= cutoff else (np.zeros(0, np.int64), np.zeros((0, 3, 3)))
     gone = {id(jobs[k][0]) for k, r in results.items() if r is not None and not len(r[0])}
     if len(gone) == len(scene.parts):  # nothing would be left: keep the file as it is drawn opaque
         return

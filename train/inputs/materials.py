@@ -9,8 +9,9 @@ Rules
 - MTL: ``Kd`` is the albedo.  ``Ks`` above zero makes the material glossy with specular ``Ks``
   and Phong exponent ``Ns`` (at least 1); otherwise it is diffuse.  ``map_Kd`` is recorded as
   the object's albedo texture (multiplied by ``Kd``, as the MTL format defines it); a missing
-  texture file is a warning (``Kd`` alone is used), an unreadable one a one-line error.  ``Ka``,
-  ``Ke``, ``Ni``, ``d`` and ``illum`` are ignored (no emission: lights are the env map).
+  texture file is a warning (``Kd`` alone is used), an unreadable one a one-line error.  ``d``
+  (or ``1 - Tr``) and ``map_d`` make an object glass or a cut-out (:func:`obj_cut`; the geometry,
+  not the material).  ``Ka``, ``Ke``, ``Ni`` and ``illum`` are ignored (no emission: lights are the env map).
 - glTF (objects and names of :mod:`prt.train.inputs.gltf_scene`: one per node and triangle
   primitive, so every primitive keeps its own material).  Metallic-roughness: with ``base`` =
   ``baseColorFactor`` (linear RGB) times the primitive's mean ``COLOR_0``, ``m`` =
@@ -53,7 +54,7 @@ from ...runtime.materials import ObjectMaterial
 from ...runtime.shading import Material
 from .objfile import DEFAULT_OBJECT
 
-__all__ = ["read_mtl", "obj_material_names", "mesh_materials", "pbr_material", "spec_gloss_material", "gltf_part_material",
+__all__ = ["read_mtl", "obj_material_names", "obj_alpha_masks", "obj_cut", "corner_uvs", "mesh_materials", "pbr_material", "spec_gloss_material", "gltf_part_material",
            "roughness_to_exponent", "MAX_EXPONENT"]
 
 # Phong exponents above this are all "mirror" to 4 SH bands (their band factors are ~1).
@@ -110,8 +111,12 @@ def read_mtl(path: str) -> dict[str, dict]:
             current[key] = tuple(values[:3])
         elif key == "Ns":
             current["Ns"] = _numbers(path, number, key, parts[1:2])[0] if len(parts) > 1 else 0.0
-        elif key == "map_Kd" and len(parts) > 1:
-            current["map_Kd"] = os.path.join(folder, parts[-1])  # options (-s, -o ...) come before the name
+        elif key in ("map_Kd", "map_d") and len(parts) > 1:
+            current[key] = os.path.join(folder, parts[-1])  # options (-s, -o ...) come before the name
+        elif key in ("d", "Tr") and len(parts) > 1:
+            value = min(_numbers(path, number, key, parts[1:2])[0], 1.0)
+            if key == "d" or "d" not in current:  # Tr is 1 - d; d wins where both are given
+                current["d"] = value if key == "d" else 1.0 - value
     return materials
 
 
@@ -156,6 +161,50 @@ def obj_material_names(path: str) -> tuple[dict[str, Counter], list[str]]:
         elif key == "mtllib":
             libraries.extend(os.path.join(os.path.dirname(path), name) for name in parts[1:])
     return (by_group if has_groups else by_material), libraries
+
+
+def obj_alpha_masks(path: str, object_names: list[str]) -> dict[str, tuple[np.ndarray | None, float]]:
+    """The objects of an OBJ file whose material (the most used one, as for their colour) is not
+    opaque: name -> (its ``map_d`` image's alpha (its alpha channel, else its first channel) as
+    (H, W) float64 in [0, 1], None without one; its dissolve ``d``, 1 where not given).  A
+    ``map_d`` that is missing or does not decode counts as none."""
+    uses, libraries = obj_material_names(path)
+    library: dict[str, dict] = {}
+    for mtl in libraries:
+        if os.path.isfile(mtl):
+            for name, entry in read_mtl(mtl).items():
+                library.setdefault(name, entry)
+    if len(object_names) == 1 and object_names[0] not in uses and len(uses) == 1:
+        uses = {object_names[0]: next(iter(uses.values()))}  # a file without groups, named after the file
+    out = {}
+    for name in object_names:
+        counts = uses.get(name, Counter())
+        entry = library.get(counts.most_common(1)[0][0] if counts else None)
+        if entry is None or (entry.get("d", 1.0) >= 1.0 and "map_d" not in entry):
+            continue
+        alpha = None
+        if "map_d" in entry and os.path.isfile(entry["map_d"]):
+            alpha = _dissolve_image(entry["map_d"])
+        if alpha is not None or entry.get("d", 1.0) < 1.0:
+            out[name] = (alpha, float(entry.get("d", 1.0)))
+    return out
+
+
+def _dissolve_image(path: str) -> np.ndarray | None:
+    import warnings
+
+    import imageio.v3 as iio
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            image = np.asarray(iio.imread(path))
+    except Exception:  # not an image: treated as no map (the object is opaque but for its d)
+        return None
+    if image.dtype.kind != "u" or image.ndim not in (2, 3) or min(image.shape[:2]) < 1:
+        return None
+    channel = image if image.ndim == 2 else image[:, :, -1] if image.shape[2] in (2, 4) else image[:, :, 0]
+    return channel.astype(np.float64) / float(np.iinfo(image.dtype).max)
 
 
 def _mtl_material(entry: dict, default: Material) -> tuple[Material, str | None]:
@@ -381,11 +430,11 @@ def textured_geometry(path: str, geometry, materials: list[ObjectMaterial], log=
     """
     import dataclasses
 
-    from .albedo_uv import file_corner_uvs, match_corner_uvs
+    from .albedo_uv import match_corner_uvs
 
     if not any(m.albedo_texture is not None for m in materials):
         return materials, None
-    found = file_corner_uvs(path)
+    found = corner_uvs(path)
     if found is None:
         log(f"warning: {path}: albedo textures need texture coordinates and the file has none; using the colours alone")
         return [dataclasses.replace(m, albedo_texture=None) for m in materials], None
@@ -393,3 +442,63 @@ def textured_geometry(path: str, geometry, materials: list[ObjectMaterial], log=
     if unmatched:
         log(f"warning: {path}: {unmatched} triangles matched no triangle of the file; their texture coordinates are 0")
     return materials, albedo_uv
+
+
+def obj_cut(path: str, vertices, faces, object_ids, object_names, found=None):
+    """An OBJ file's triangles with its dissolved objects applied (:func:`obj_alpha_masks`):
+    an object whose ``d`` is under 0.5 without a ``map_d`` is left out as glass (as glTF's clear
+    blended parts), one with a ``map_d`` is cut where ``d`` times the map's alpha is under 0.5
+    (:func:`prt.train.inputs.cutout.cut_corners`).  ``found``: the file's corner UVs
+    (:func:`prt.train.inputs.albedo_uv.file_corner_uvs`, read here when None).
+
+    Returns
+    -------
+    vertices, faces, object_ids : the triangles (as corners, three vertices each, where anything was cut)
+    report : dict with ``see_through`` (names), ``cut`` (name -> (pieces, triangles before)),
+        ``cut_away`` (names), ``unaligned`` (names whose map could not be applied)
+    found : the corner UVs of the result, (positions, uvs), or None
+    """
+    from .albedo_uv import _obj_corner_uvs
+    from .cutout import cut_corners
+
+    report = {"see_through": [], "cut": {}, "cut_away": [], "unaligned": []}
+    masks = obj_alpha_masks(path, object_names)
+    if not masks:
+        return vertices, faces, object_ids, report, found
+    index = {name: k for k, name in enumerate(object_names)}
+    glass = [name for name, (alpha, d) in masks.items() if alpha is None and d < 0.5]
+    textured = {index[name]: (d * alpha, 0.5) for name, (alpha, d) in masks.items() if alpha is not None}
+    keep = ~np.isin(object_ids, [index[name] for name in glass])
+    if len(glass) == len(object_names):
+        return vertices, faces, object_ids, report, found
+    report["see_through"] = glass
+    if found is None and textured:
+        found = _obj_corner_uvs(path)
+    corners = np.asarray(vertices, np.float64)[np.asarray(faces, np.int64)]
+    if textured and (found is None or found[0].shape != corners.shape or not np.allclose(found[0], corners)):
+        report["unaligned"], textured = [object_names[o] for o in textured], {}
+    uvs = found[1] if found is not None and found[1].shape[0] == len(corners) else np.zeros(corners.shape[:2] + (2,))
+    positions, uvs, owner, _ = cut_corners(corners[keep], uvs[keep], np.asarray(object_ids)[keep], textured)
+    for o in textured:
+        before, after = int(np.count_nonzero(np.asarray(object_ids) == o)), int(np.count_nonzero(owner == o))
+        if after == 0:
+            report["cut_away"].append(object_names[o])
+        elif after != before or not np.array_equal(positions[owner == o], corners[np.asarray(object_ids) == o]):
+            report["cut"][object_names[o]] = (after, before)
+    faces = np.arange(3 * len(positions), dtype=np.int64).reshape(-1, 3)
+    return positions.reshape(-1, 3), faces, owner, report, (positions, uvs) if found is not None else None
+
+
+def corner_uvs(path: str):
+    """The file's triangles with their corner UVs (:func:`prt.train.inputs.albedo_uv.file_corner_uvs`)
+    as :func:`prt.train.inputs.geometry.load_geometry` has the triangles: an OBJ's cut-outs cut
+    (:func:`obj_cut`; glTF's are cut by its reader)."""
+    from .albedo_uv import file_corner_uvs
+    from .objfile import read_obj
+
+    found = file_corner_uvs(path)
+    if found is None or os.path.splitext(path)[1].lower() != ".obj":
+        return found
+    vertices, faces, object_ids, names = read_obj(path)
+    names = [os.path.splitext(os.path.basename(path))[0]] if names == [DEFAULT_OBJECT] else names  # as load_geometry names it
+    return obj_cut(path, vertices, faces, object_ids, names, found)[4]
