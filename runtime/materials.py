@@ -251,10 +251,10 @@ def shade_objects(transfer, object_ids, normals, view_dirs, lighting, table: Mat
         if layer >= 0 and uv is not None:  # per-pixel albedo (shade() with the albedo of each row)
             texel = table.textures.sample(layer, np.asarray(uv)[rows]).astype(np.float64) * np.asarray(material.albedo)
             t, indirect = split_transfer(np.asarray(transfer[rows], dtype=np.float64), n)
-            incident = t @ lighting.sh
+            received = t @ lighting.sh  # these rows' own (``incident`` holds every row's, for the objects after)
             if indirect is not None:  # interreflected light: diffuse, scaled by the receiver's albedo
-                incident += np.einsum("pcn,nc->pc", indirect, lighting.sh)
-            radiance = texel * incident
+                received += np.einsum("pcn,nc->pc", indirect, lighting.sh)
+            radiance = texel * received
             if material.kind == "glossy":
                 radiance += np.asarray(material.specular) * _specular(t, normals[rows], view_dirs[rows], lighting, material)
             out[rows] = np.maximum(radiance, 0.0)

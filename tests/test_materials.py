@@ -165,6 +165,33 @@ def test_shade_objects_matches_shade_per_object():
         assert np.allclose(got[rows], want, atol=1e-5)
 
 
+
+def test_shade_objects_with_a_texture_and_bounces_shades_every_object_by_its_own_rows():
+    """RGB (interreflected) transfer, a textured object listed before untextured diffuse ones: each
+    object's rows shaded as if alone (the textured branch once overwrote the rows' shared incident
+    light, and the next object indexed the textured object's rows: an IndexError or, where the
+    sizes allowed, another object's light)."""
+    from prt.runtime.albedo_textures import AlbedoTextures, sample_bilinear
+    from prt.runtime.shading import split_transfer
+
+    rng = np.random.default_rng(1)
+    t = rng.normal(size=(60, 64)) * 0.05
+    t[:, 0] += 1.0
+    ids = np.repeat([0, 1, 2], [10, 25, 25])  # the textured object has fewer rows than the others
+    uv = rng.random((60, 2))
+    light = Lighting.from_sh(rng.normal(size=(16, 3)) * 0.3 + np.eye(16, 3)[:, :1] * 2)
+    image = rng.random((4, 4, 3)).astype(np.float32)
+    mats = [Material("diffuse", albedo=(0.5, 0.5, 0.5)), Material("diffuse", albedo=(1, 0, 0)), Material("diffuse", albedo=(0, 0, 1))]
+    per_object = [ObjectMaterial(x, m, albedo_texture=Path("t.png") if x == "a" else None) for x, m in zip("abc", mats)]
+    table = MaterialTable(["a", "b", "c"], Material(), per_object, textures=AlbedoTextures([image]))
+    got = shade_objects(t, ids, None, None, light, table, uv)
+    direct, indirect = split_transfer(t, 16)
+    received = direct @ light.sh + np.einsum("pcn,nc->pc", indirect, light.sh)
+    albedo = np.asarray([m.albedo for m in mats])[ids]
+    albedo[ids == 0] *= sample_bilinear(image, uv[ids == 0])
+    assert np.allclose(got, np.maximum(albedo * received, 0), atol=1e-4)
+
+
 # --------------------------------------------------------------------------- rendering
 
 
