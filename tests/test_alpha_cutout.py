@@ -230,14 +230,19 @@ def test_a_cut_cards_texture_mean_is_its_opaque_texels(card_scene):
 
 
 def write_card_obj(folder):
-    """The leaf card and ground as OBJ: the card's material has the checker as ``map_d`` (and as
-    ``map_Kd``); a pane with ``d 0.2`` (glass) and one with ``Tr 0.1`` (d 0.9, opaque) beside it."""
+    """The leaf card and ground as OBJ: the card's material has the checker as ``map_d`` (a grey
+    map, named with Windows' backslash; and as ``map_Kd``); a pane with ``d 0.2`` and ``illum 4``
+    (glass) and one with ``d 0`` and ``illum 2`` (opaque: the Crytek Sponza's MTL writes that on
+    every wall) beside it; the ground has ``Tr 0.9`` and ``illum 9`` (d 0.1, but Tr is read only
+    where d is not given: here d 1, opaque)."""
     import imageio.v3 as iio
 
-    iio.imwrite(folder / "leaf_mask.png", _checker()[:, :, 3])  # a grey map: its first channel
+    (folder / "textures").mkdir()
+    iio.imwrite(folder / "textures" / "leaf_mask.png", _checker()[:, :, 3])  # a grey map: its first channel
     iio.imwrite(folder / "leaf.png", _checker()[:, :, :3])
-    (folder / "cards.mtl").write_text("newmtl leaf\nKd 1 1 1\nmap_Kd leaf.png\nmap_d -clamp on leaf_mask.png\n"
-                                      "newmtl soil\nKd 0.5 0.4 0.3\nnewmtl glass\nKd 0.9 0.9 0.9\nd 0.2\nnewmtl film\nTr 0.1\n")
+    (folder / "cards.mtl").write_text("newmtl leaf\nKd 1 1 1\nmap_Kd leaf.png\nmap_d -clamp on textures\\leaf_mask.png\n"
+                                      "newmtl soil\nKd 0.5 0.4 0.3\nd 1.0\nTr 0.9\nillum 9\nnewmtl glass\nKd 0.9 0.9 0.9\nd 0.2\nillum 4\n"
+                                      "newmtl film\nd 0.000000\nillum 2\n")
     lines = ["mtllib cards.mtl", "v 0 0.5 0", "v 1 0.5 0", "v 1 0.5 1", "v 0 0.5 1", "vt 0 0", "vt 1 0", "vt 1 1", "vt 0 1",
              "o leaf", "usemtl leaf", "f 1/1 3/3 2/2", "f 1/1 4/4 3/3",
              "v -2 0 -2", "v 3 0 -2", "v 3 0 3", "v -2 0 3", "o ground", "usemtl soil", "f 5 8 7 6",

@@ -112,12 +112,30 @@ def read_mtl(path: str) -> dict[str, dict]:
         elif key == "Ns":
             current["Ns"] = _numbers(path, number, key, parts[1:2])[0] if len(parts) > 1 else 0.0
         elif key in ("map_Kd", "map_d") and len(parts) > 1:
-            current[key] = os.path.join(folder, parts[-1])  # options (-s, -o ...) come before the name
+            current[key] = _texture_path(folder, parts[-1])  # options (-s, -o ...) come before the name
         elif key in ("d", "Tr") and len(parts) > 1:
             value = min(_numbers(path, number, key, parts[1:2])[0], 1.0)
             if key == "d" or "d" not in current:  # Tr is 1 - d; d wins where both are given
                 current["d"] = value if key == "d" else 1.0 - value
+        elif key == "illum" and len(parts) > 1 and parts[1].isdigit():
+            current["illum"] = int(parts[1])
     return materials
+
+
+def _texture_path(folder: str, name: str) -> str:
+    """A texture named in an MTL file, beside it: Windows' backslashes read as separators where the
+    name as written is not a file (MTL files written on Windows: ``map_Kd textures\\bricks.tga``)."""
+    path = os.path.join(folder, name)
+    if "\\" in name and not os.path.isfile(path):
+        return os.path.join(folder, *name.split("\\"))
+    return path
+
+
+# MTL illumination models with transparency (the format's 4, 6, 7 and 9): only these make ``d`` (or
+# ``Tr``) a dissolve.  Exporters write ``d 0`` beside ``illum 2`` on opaque materials (the Crytek
+# Sponza's MTL as Blender exports it: every wall and column), which taken at its word leaves the
+# building out.
+TRANSPARENT_ILLUM = (4, 6, 7, 9)
 
 
 def _numbers(path: str, number: int, key: str, tokens: list[str]) -> list[float]:
@@ -166,8 +184,9 @@ def obj_material_names(path: str) -> tuple[dict[str, Counter], list[str]]:
 def obj_alpha_masks(path: str, object_names: list[str]) -> dict[str, tuple[np.ndarray | None, float]]:
     """The objects of an OBJ file whose material (the most used one, as for their colour) is not
     opaque: name -> (its ``map_d`` image's alpha (its alpha channel, else its first channel) as
-    (H, W) float64 in [0, 1], None without one; its dissolve ``d``, 1 where not given).  A
-    ``map_d`` that is missing or does not decode counts as none."""
+    (H, W) float64 in [0, 1], None without one; its dissolve ``d``: 1 where not given or where
+    its ``illum`` is not one with transparency, :data:`TRANSPARENT_ILLUM`).  A ``map_d`` that is
+    missing or does not decode counts as none."""
     uses, libraries = obj_material_names(path)
     library: dict[str, dict] = {}
     for mtl in libraries:
@@ -180,13 +199,12 @@ def obj_alpha_masks(path: str, object_names: list[str]) -> dict[str, tuple[np.nd
     for name in object_names:
         counts = uses.get(name, Counter())
         entry = library.get(counts.most_common(1)[0][0] if counts else None)
-        if entry is None or (entry.get("d", 1.0) >= 1.0 and "map_d" not in entry):
+        if entry is None:
             continue
-        alpha = None
-        if "map_d" in entry and os.path.isfile(entry["map_d"]):
-            alpha = _dissolve_image(entry["map_d"])
-        if alpha is not None or entry.get("d", 1.0) < 1.0:
-            out[name] = (alpha, float(entry.get("d", 1.0)))
+        d = float(entry.get("d", 1.0)) if entry.get("illum") in TRANSPARENT_ILLUM else 1.0
+        alpha = _dissolve_image(entry["map_d"]) if "map_d" in entry and os.path.isfile(entry["map_d"]) else None
+        if alpha is not None or d < 1.0:
+            out[name] = (alpha, d)
     return out
 
 
