@@ -271,3 +271,33 @@ def test_corrupt_embedded_image_is_one_line(tmp_path):
     with pytest.raises(GeometryError, match=r"bad\.glb: image 0: cannot decode the image") as info:
         mesh_materials(str(tmp_path / "bad.glb"), ["bad"], DEFAULT, print)
     assert "\n" not in str(info.value)
+
+
+def test_texture_transform_moves_the_albedo_uvs(tmp_path):
+    """KHR_texture_transform (offset, rotation, scale; its own texCoord) on the colour texture: the
+    UVs the build carries are the transformed ones, by the extension's formula written out per
+    coordinate (glTF's v, then OBJ's flip)."""
+    from prt.train.inputs.albedo_uv import file_corner_uvs
+
+    uv0 = np.array([[0.1, 0.9], [0.7, 0.8], [0.6, 0.2], [0.2, 0.3]], np.float32)
+    views, accessors, binary = pack_accessors([QUAD_V, QUAD_F.reshape(-1, 1), QUAD_UV, uv0])
+    png = _png(TEXTURE)
+    views.append({"buffer": 0, "byteOffset": len(binary), "byteLength": len(png)})
+    binary += png + b"\0" * ((-len(png)) % 4)
+    transform = {"offset": [0.25, -0.5], "rotation": 0.3, "scale": [2.0, 3.0], "texCoord": 1}
+    document = {
+        "asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"name": "tile", "mesh": 0}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 2, "TEXCOORD_1": 3}, "indices": 1, "material": 0}]}],
+        "materials": [{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0, "texCoord": 0, "extensions": {"KHR_texture_transform": transform}}}}],
+        "textures": [{"source": 0}], "images": [{"bufferView": 4, "mimeType": "image/png"}],
+        "extensionsUsed": ["KHR_texture_transform"], "bufferViews": views, "accessors": accessors,
+    }  # fmt: skip
+    path = tmp_path / "tile.glb"
+    write_glb(path, document, binary)
+    positions, uvs = file_corner_uvs(str(path))
+    c, s = np.cos(0.3), np.sin(0.3)
+    u, v = uv0[:, 0].astype(np.float64), uv0[:, 1].astype(np.float64)  # the extension's texCoord: set 1
+    moved_u = c * 2.0 * u + s * 3.0 * v + 0.25
+    moved_v = -s * 2.0 * u + c * 3.0 * v - 0.5
+    want = np.stack([moved_u, 1.0 - moved_v], axis=1)[QUAD_F.astype(np.int64)]
+    assert np.allclose(uvs, want, atol=1e-6)

@@ -43,7 +43,8 @@ __all__ = [
 _COMPONENTS = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
 _WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
 _GLB_MAGIC, _JSON_CHUNK, _BIN_CHUNK = 0x46546C67, 0x4E4F534A, 0x004E4942
-# Extensions that change nothing this reader uses (quantized accessors are read like any other).
+# Extensions this reader reads or that change nothing it uses (quantized accessors are read like any other;
+# texture transforms: prt.train.inputs.gltf_scene.GltfScene.texture_coords).
 _HARMLESS_EXTENSIONS = {"KHR_mesh_quantization", "KHR_materials_pbrSpecularGlossiness", "KHR_texture_transform"}
 
 

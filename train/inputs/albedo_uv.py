@@ -84,7 +84,7 @@ def _gltf_corner_uvs(path: str, extension: str):
     positions, uvs, any_uv = [], [], False
     for part in scene.parts:
         info = albedo_texture_info(scene.document, part.material)
-        uv = scene.texcoords(part, int(info.get("texCoord", 0)) if info else 0)
+        uv = scene.texture_coords(part, info)
         any_uv |= uv is not None
         uv = np.zeros((len(part.vertices), 2)) if uv is None else uv
         positions.append(part.vertices[part.faces])

@@ -123,6 +123,22 @@ class GltfScene:
             uv = np.einsum("kcj,kjd->kcd", bary, uv[faces[face]]).reshape(-1, 2)
         return uv
 
+    def texture_coords(self, part: GltfPart, info: dict | None) -> np.ndarray | None:
+        """The UVs a texture reference ``info`` (a ``textureInfo``) reads on ``part``, in OBJ's
+        convention: its ``texCoord`` set, through its ``KHR_texture_transform`` where it has one
+        (:func:`texture_transform`; the extension's own ``texCoord`` wins); None without that set."""
+        info = info or {}
+        transform = (info.get("extensions") or {}).get(TEXTURE_TRANSFORM)
+        index = int((transform or {}).get("texCoord", info.get("texCoord", 0)))
+        uv = self.texcoords(part, index)
+        if uv is None or not transform:
+            return uv
+        with malformed_gltf(self.path):
+            matrix = texture_transform(transform)
+        gltf_uv = np.stack([uv[:, 0], 1.0 - uv[:, 1]], axis=1)  # back to glTF's v, where the transform is defined
+        moved = gltf_uv @ matrix[:2, :2].T + matrix[:2, 2]
+        return np.stack([moved[:, 0], 1.0 - moved[:, 1]], axis=1)
+
     def mean_vertex_colour(self, part: GltfPart) -> np.ndarray | None:
         """The mean linear RGB of ``part``'s ``COLOR_0`` over its vertices, or None without one."""
         if "COLOR_0" not in part.attributes:
@@ -176,6 +192,21 @@ class GltfScene:
             return None, None
         with open(external, "rb") as handle:
             return handle.read(), os.path.splitext(external)[1].lower() or suffix
+
+
+TEXTURE_TRANSFORM = "KHR_texture_transform"
+
+
+def texture_transform(spec: dict) -> np.ndarray:
+    """The 3x3 UV matrix of a ``KHR_texture_transform`` (glTF's UV convention): translation times
+    rotation times scale, as the extension defines it (``offset``, ``rotation`` in radians,
+    ``scale``)."""
+    ox, oy = (float(v) for v in spec.get("offset", [0.0, 0.0]))
+    sx, sy = (float(v) for v in spec.get("scale", [1.0, 1.0]))
+    c, s = np.cos(float(spec.get("rotation", 0.0))), np.sin(float(spec.get("rotation", 0.0)))
+    translation = np.array([[1.0, 0.0, ox], [0.0, 1.0, oy], [0.0, 0.0, 1.0]])
+    rotation = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    return translation @ rotation @ np.diag([sx, sy, 1.0])
 
 
 def albedo_texture_info(document: dict, material: int | None) -> dict | None:
@@ -266,8 +297,8 @@ def factor_alpha(material: dict) -> float:
     return 1.0
 
 
-def _uv_set(scene: GltfScene, part: GltfPart) -> int:
-    return int(albedo_texture_info(scene.document, part.material).get("texCoord", 0))
+def _albedo_info(scene: GltfScene, part: GltfPart) -> dict | None:
+    return albedo_texture_info(scene.document, part.material)
 
 
 def alpha_image(scene: GltfScene, part: GltfPart) -> np.ndarray | None:
@@ -275,7 +306,7 @@ def alpha_image(scene: GltfScene, part: GltfPart) -> np.ndarray | None:
     None when it has no such texture, no alpha channel, no UVs for it or its file is missing (the
     materials' reader says so)."""
     info = albedo_texture_info(scene.document, part.material)
-    if info is None or scene.texcoords(part, int(info.get("texCoord", 0))) is None:
+    if info is None or scene.texture_coords(part, info) is None:
         return None
     image = scene.image(int(info["index"]))
     if image is None or image.shape[2] not in (2, 4):
@@ -302,7 +333,7 @@ def cut_parts(scene: GltfScene, budget: int = CUT_BUDGET) -> None:
     if not jobs:
         return
     textured = [k for k, job in enumerate(jobs) if job[2] is not None]
-    cuts = cut_within_budget([(scene.texcoords(jobs[k][0], _uv_set(scene, jobs[k][0]))[jobs[k][0].faces], jobs[k][3] * jobs[k][2], jobs[k][1])
+    cuts = cut_within_budget([(scene.texture_coords(jobs[k][0], _albedo_info(scene, jobs[k][0]))[jobs[k][0].faces], jobs[k][3] * jobs[k][2], jobs[k][1])
                               for k in textured], budget)  # fmt: skip
     results = dict(zip(textured, cuts))
     for k, (_, cutoff, image, factor) in enumerate(jobs):

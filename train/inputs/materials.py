@@ -29,8 +29,8 @@ Rules
   (both times the means of the ``specularGlossinessTexture``'s RGB and A), the same exponent
   rule; too rough for a lobe, albedo ``c_diff + specular`` (the specular over the diffuse
   texture's mean, at most 1).  ``baseColorTexture`` / ``diffuseTexture`` (embedded or beside
-  the file, by its ``texCoord`` set) is the object's albedo texture, multiplying the albedo; the
-  other textures enter as their means, ``KHR_texture_transform`` and emission are ignored.  A
+  the file, by its ``texCoord`` set and ``KHR_texture_transform``) is the object's albedo texture,
+  multiplying the albedo; the other textures enter as their means, emission is ignored.  A
   missing image file is a warning (the factors alone), an undecodable one a one-line error.
 - Missing: objects with no material (no ``mtllib``, an unknown ``usemtl`` name, a missing MTL
   file, a glTF primitive without ``material``, PLY/STL files) take the scene-wide material; one
@@ -338,7 +338,7 @@ def _albedo_texture(scene, part, info, where: str, warn) -> tuple[np.ndarray | N
     """The base colour (diffuse) texture as (H, W, 3) uint8 sRGB and its mean linear colour, or (None, None)."""
     if info is None:
         return None, None
-    if scene.texcoords(part, int(info.get("texCoord", 0))) is None:
+    if scene.texture_coords(part, info) is None:
         warn(f"{where}: its colour texture needs TEXCOORD_{int(info.get('texCoord', 0))}, which the primitive lacks; using the factors alone")
         return None, None
     image = _texture_image(scene, info, where, "colour", warn)
