@@ -71,6 +71,21 @@ def test_a_disc_is_cut_to_its_area_and_pieces_keep_their_winding():
     assert (sample_bilinear(alpha[:, :, None], centre)[:, 0] >= 0.5).mean() > 0.99
 
 
+
+def test_a_budget_cuts_every_part_coarser():
+    from prt.train.inputs.cutout import cut_within_budget
+
+    size = 256
+    y, x = np.mgrid[0:size, 0:size] + 0.5
+    alpha = (((x - 128) ** 2 + (y - 128) ** 2) < 100.0**2).astype(np.float32)
+    uv = np.array([[[0, 0], [1, 0], [1, 1]], [[0, 0], [1, 1], [0, 1]]], dtype=np.float64)
+    full = cut_within_budget([(uv, alpha, 0.5), (uv[:1], alpha, 0.5)])
+    small = cut_within_budget([(uv, alpha, 0.5), (uv[:1], alpha, 0.5)], budget=600)
+    assert sum(len(f) for f, _ in full) > 600 >= sum(len(f) for f, _ in small) > 100
+    for face, bary in small:  # coarser, still about the disc
+        pieces = np.einsum("kcj,kjd->kcd", bary, uv[face])
+        assert _area(pieces).sum() / (np.pi * (100 / 256) ** 2 * len(np.unique(face)) / 2) == pytest.approx(1.0, abs=0.05)
+
 # --------------------------------------------------------------------------- a GLB with a leaf card
 
 CELLS = 4  # the card's alpha: CELLS x CELLS squares, opaque and clear in turn (2 texels each)
