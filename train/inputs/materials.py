@@ -187,14 +187,7 @@ def obj_alpha_masks(path: str, object_names: list[str]) -> dict[str, tuple[np.nd
     (H, W) float64 in [0, 1], None without one; its dissolve ``d``: 1 where not given or where
     its ``illum`` is not one with transparency, :data:`TRANSPARENT_ILLUM`).  A ``map_d`` that is
     missing or does not decode counts as none."""
-    uses, libraries = obj_material_names(path)
-    library: dict[str, dict] = {}
-    for mtl in libraries:
-        if os.path.isfile(mtl):
-            for name, entry in read_mtl(mtl).items():
-                library.setdefault(name, entry)
-    if len(object_names) == 1 and object_names[0] not in uses and len(uses) == 1:
-        uses = {object_names[0]: next(iter(uses.values()))}  # a file without groups, named after the file
+    uses, library, _, _ = _obj_library(path, object_names)
     out = {}
     for name in object_names:
         counts = uses.get(name, Counter())
@@ -236,21 +229,30 @@ def _mtl_material(entry: dict, default: Material) -> tuple[Material, str | None]
     return material, entry.get("map_Kd")
 
 
-def _obj_materials(path: str, object_names: list[str], default: Material, warn) -> tuple[list[ObjectMaterial], bool]:
-    """The objects' materials, and whether the file refers to any (mtllib or usemtl)."""
+def _obj_library(path: str, object_names: list[str], warn=None) -> tuple[dict, dict, dict, bool]:
+    """An OBJ file's material uses per object (:func:`obj_material_names`, a file without groups
+    named after the file), its libraries' entries and the library each came from, and whether
+    the file refers to any material; ``warn`` (if given) hears of a missing library."""
     uses, libraries = obj_material_names(path)
     referenced = bool(libraries) or any(m is not None for counts in uses.values() for m in counts)
     library: dict[str, dict] = {}
     sources: dict[str, str] = {}
     for mtl in libraries:
         if not os.path.isfile(mtl):
-            warn(f"{path}: material library {os.path.basename(mtl)} not found")
+            if warn is not None:
+                warn(f"{path}: material library {os.path.basename(mtl)} not found")
             continue
         for name, entry in read_mtl(mtl).items():
             library.setdefault(name, entry)
             sources.setdefault(name, os.path.basename(mtl))
     if len(object_names) == 1 and object_names[0] not in uses and len(uses) == 1:
         uses = {object_names[0]: next(iter(uses.values()))}  # a file without groups, named after the file
+    return uses, library, sources, referenced
+
+
+def _obj_materials(path: str, object_names: list[str], default: Material, warn) -> tuple[list[ObjectMaterial], bool]:
+    """The objects' materials, and whether the file refers to any (mtllib or usemtl)."""
+    uses, library, sources, referenced = _obj_library(path, object_names, warn)
     out = []
     for name in object_names:
         counts = uses.get(name, Counter())
@@ -487,7 +489,7 @@ def obj_cut(path: str, vertices, faces, object_ids, object_names, found=None):
     glass = [name for name, (alpha, d) in masks.items() if alpha is None and d < 0.5]
     textured = {index[name]: (d * alpha, 0.5) for name, (alpha, d) in masks.items() if alpha is not None}
     keep = ~np.isin(object_ids, [index[name] for name in glass])
-    if len(glass) == len(object_names):
+    if len(glass) == len(object_names) or not (glass or textured):  # nothing left, or nothing to do
         return vertices, faces, object_ids, report, found
     report["see_through"] = glass
     if found is None and textured:
