@@ -234,7 +234,7 @@ def shade_objects(transfer, object_ids, normals, view_dirs, lighting, table: Mat
     -------
     (N, 3) float32, >= 0
     """
-    from .shading import diffuse_light_matrix, shade, split_transfer
+    from .shading import diffuse_light_matrix, shade
 
     transfer = np.asarray(transfer)
     n = lighting.sh.shape[0]
@@ -248,15 +248,16 @@ def shade_objects(transfer, object_ids, normals, view_dirs, lighting, table: Mat
         rows = np.flatnonzero(object_ids == k) if k >= 0 else np.flatnonzero(~known)
         material = table[int(k)] if k >= 0 else table.default
         layer = int(table.texture_layer[k]) if k >= 0 else -1
-        if layer >= 0 and uv is not None:  # per-pixel albedo (shade() with the albedo of each row)
-            texel = table.textures.sample(layer, np.asarray(uv)[rows]).astype(np.float64) * np.asarray(material.albedo)
-            t, indirect = split_transfer(np.asarray(transfer[rows], dtype=np.float64), n)
-            received = t @ lighting.sh  # these rows' own (``incident`` holds every row's, for the objects after)
-            if indirect is not None:  # interreflected light: diffuse, scaled by the receiver's albedo
-                received += np.einsum("pcn,nc->pc", indirect, lighting.sh)
+        if layer >= 0 and uv is not None:  # per-pixel albedo: each row's texel times the light it receives
+            texel = table.textures.sample(layer, np.asarray(uv)[rows]) * np.asarray(material.albedo, dtype=np.float32)
+            if incident is not None:  # direct + interreflected (diffuse, scaled by the receiver's albedo)
+                received = incident[rows]
+            else:
+                received = transfer[rows].astype(np.float32, copy=False) @ diffuse_light_matrix(lighting, (1.0, 1.0, 1.0), transfer.shape[1])
             radiance = texel * received
             if material.kind == "glossy":
-                radiance += np.asarray(material.specular) * _specular(t, normals[rows], view_dirs[rows], lighting, material)
+                t = np.asarray(transfer[rows, :n], dtype=np.float64)
+                radiance = radiance + np.asarray(material.specular) * _specular(t, normals[rows], view_dirs[rows], lighting, material)
             out[rows] = np.maximum(radiance, 0.0)
             continue
         if material.kind == "diffuse" and incident is not None:

@@ -175,21 +175,28 @@ def test_shade_objects_with_a_texture_and_bounces_shades_every_object_by_its_own
     from prt.runtime.shading import split_transfer
 
     rng = np.random.default_rng(1)
-    t = rng.normal(size=(60, 64)) * 0.05
+    t = rng.normal(size=(70, 64)) * 0.05
     t[:, 0] += 1.0
-    ids = np.repeat([0, 1, 2], [10, 25, 25])  # the textured object has fewer rows than the others
-    uv = rng.random((60, 2))
+    ids = np.repeat([0, 1, 2, 3], [10, 25, 25, 10])  # the textured objects (0, 3) have fewer rows than the others
+    uv = rng.random((70, 2))
+    normals, views = rng.normal(size=(70, 3)), rng.normal(size=(70, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     light = Lighting.from_sh(rng.normal(size=(16, 3)) * 0.3 + np.eye(16, 3)[:, :1] * 2)
     image = rng.random((4, 4, 3)).astype(np.float32)
-    mats = [Material("diffuse", albedo=(0.5, 0.5, 0.5)), Material("diffuse", albedo=(1, 0, 0)), Material("diffuse", albedo=(0, 0, 1))]
-    per_object = [ObjectMaterial(x, m, albedo_texture=Path("t.png") if x == "a" else None) for x, m in zip("abc", mats)]
-    table = MaterialTable(["a", "b", "c"], Material(), per_object, textures=AlbedoTextures([image]))
-    got = shade_objects(t, ids, None, None, light, table, uv)
+    gloss = Material("glossy", albedo=(0.9, 0.8, 0.7), specular=(0.3, 0.3, 0.3), exponent=8)
+    mats = [Material("diffuse", albedo=(0.5, 0.5, 0.5)), Material("diffuse", albedo=(1, 0, 0)), Material("diffuse", albedo=(0, 0, 1)), gloss]
+    per_object = [ObjectMaterial(x, m, albedo_texture=Path("t.png") if x in "ad" else None) for x, m in zip("abcd", mats)]
+    table = MaterialTable(["a", "b", "c", "d"], Material(), per_object, textures=AlbedoTextures([image]))
+    got = shade_objects(t, ids, normals, views, light, table, uv)
     direct, indirect = split_transfer(t, 16)
     received = direct @ light.sh + np.einsum("pcn,nc->pc", indirect, light.sh)
     albedo = np.asarray([m.albedo for m in mats])[ids]
-    albedo[ids == 0] *= sample_bilinear(image, uv[ids == 0])
-    assert np.allclose(got, np.maximum(albedo * received, 0), atol=1e-4)
+    textured = np.isin(ids, [0, 3])
+    albedo[textured] *= sample_bilinear(image, uv[textured])
+    want = albedo * received
+    lobe = Material("glossy", albedo=(0, 0, 0), specular=gloss.specular, exponent=gloss.exponent)  # the specular part alone
+    want[ids == 3] += shade(direct[ids == 3], normals[ids == 3], views[ids == 3], light, lobe)
+    assert np.allclose(got, np.maximum(want, 0), atol=1e-4)
 
 
 # --------------------------------------------------------------------------- rendering
