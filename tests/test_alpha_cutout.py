@@ -47,11 +47,13 @@ def test_the_cut_matches_its_plain_twin():
     alpha = rng.random((11, 13)).astype(np.float32)  # odd sizes; smooth enough to leave whole pieces
     alpha = (alpha + np.roll(alpha, 1, 0) + np.roll(alpha, 1, 1) + np.roll(alpha, 2, 1)) / 4
     uv = rng.uniform(-1.5, 2.5, (12, 3, 2))  # outside [0, 1]: the texture repeats
+    uv[3, 1, 0] = np.nan  # a malformed triangle: kept whole
     for depth in (0, 3, 5):
         face, bary = cut_triangles(uv, alpha, 0.5, depth)
         face2, bary2 = cut_triangles_reference(uv, alpha, 0.5, depth)
         assert np.array_equal(face, face2) and np.array_equal(bary, bary2)
         assert np.allclose(bary.sum(axis=2), 1.0) and (bary >= 0).all()
+        assert np.array_equal(bary[face == 3], np.eye(3)[None])
     assert 0 < len(face) and len(np.unique(face)) > 1
 
 

@@ -124,10 +124,14 @@ def cut_triangles(uv: np.ndarray, alpha: np.ndarray, cutoff: float, max_depth: i
     alpha = np.asarray(alpha, dtype=np.float32)
     height, width = alpha.shape
     counter = OpaqueCounter(alpha >= cutoff)
+    # A triangle without finite UVs (a malformed file) has no texels to test: kept whole.
+    broken = ~np.isfinite(uv).all(axis=(1, 2))
+    uv = np.where(broken[:, None, None], 0.0, uv)
     limits = _depth_limits(uv, width, height, max_depth)
     face = np.arange(len(uv), dtype=np.int64)
     bary = np.broadcast_to(np.eye(3), (len(uv), 3, 3)).copy()
-    kept_face, kept_bary = [], []
+    kept_face, kept_bary = [face[broken]], [bary[broken]]
+    face, bary = face[~broken], bary[~broken]
     depth = 0
     while len(face):
         corners = np.einsum("kcj,kjd->kcd", bary, uv[face])  # (N, 3, 2) piece UVs
@@ -158,9 +162,13 @@ def cut_triangles_reference(uv: np.ndarray, alpha: np.ndarray, cutoff: float, ma
     alpha = np.asarray(alpha, dtype=np.float32)
     height, width = alpha.shape
     opaque_image = alpha >= cutoff
-    limits = _depth_limits(uv, width, height, max_depth)
     out_face, out_bary = [], []
     for f in range(len(uv)):
+        if not np.isfinite(uv[f]).all():
+            out_face.append(f)
+            out_bary.append(np.eye(3))
+            continue
+        limit = _depth_limits(uv[f : f + 1], width, height, max_depth)[0]
         stack = [(np.eye(3), 0)]
         pieces = []
         while stack:
@@ -172,7 +180,7 @@ def cut_triangles_reference(uv: np.ndarray, alpha: np.ndarray, cutoff: float, ma
             if opaque == total:
                 pieces.append((depth, b))
             elif opaque > 0:
-                if depth >= limits[f]:
+                if depth >= limit:
                     if sample_bilinear(alpha[:, :, None], corners.mean(axis=0)[None])[0, 0] >= np.float32(cutoff):
                         pieces.append((depth, b))
                 else:
