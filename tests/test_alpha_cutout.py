@@ -88,6 +88,20 @@ def test_a_budget_cuts_every_part_coarser():
         pieces = np.einsum("kcj,kjd->kcd", bary, uv[face])
         assert _area(pieces).sum() / (np.pi * (100 / 256) ** 2 * len(np.unique(face)) / 2) == pytest.approx(1.0, abs=0.05)
 
+
+def test_parts_sharing_a_texture_are_cut_as_each_alone():
+    """One call per texture (its summed-area table built once) gives every part what cutting it alone gives."""
+    from prt.train.inputs.cutout import cut_within_budget
+
+    rng = np.random.default_rng(4)
+    alpha = (rng.random((16, 16)) > 0.5).astype(np.float32)
+    other = (rng.random((8, 8)) > 0.3).astype(np.float32)
+    uvs = [rng.uniform(0, 1, (n, 3, 2)) for n in (3, 5, 2)]
+    jobs = [(uvs[0], alpha, 0.5), (uvs[1], other, 0.5), (uvs[2], alpha, 0.5), (uvs[0], alpha, 0.7)]
+    for (face, bary), (uv, a, cutoff) in zip(cut_within_budget(jobs), jobs):
+        alone_face, alone_bary = cut_triangles(uv, a, cutoff)
+        assert np.array_equal(face, alone_face) and np.array_equal(bary, alone_bary)
+
 # --------------------------------------------------------------------------- a GLB with a leaf card
 
 CELLS = 4  # the card's alpha: CELLS x CELLS squares, opaque and clear in turn (2 texels each)

@@ -56,8 +56,9 @@ class OpaqueCounter:
     def __init__(self, opaque: np.ndarray):
         opaque = np.asarray(opaque, dtype=bool)
         self.height, self.width = opaque.shape
-        table = np.zeros((self.height + 1, self.width + 1), dtype=np.int64)
-        table[1:, 1:] = np.cumsum(np.cumsum(opaque, axis=0, dtype=np.int64), axis=1)
+        # int32 holds any count of a texture up to 46k a side (MAX_TEXTURE_SIZE is 8192): half the memory.
+        table = np.zeros((self.height + 1, self.width + 1), dtype=np.int32)
+        table[1:, 1:] = np.cumsum(np.cumsum(opaque, axis=0, dtype=np.int32), axis=1, dtype=np.int32)
         self._table = table
 
     def _prefix(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -66,7 +67,8 @@ class OpaqueCounter:
         t, h, w = self._table, self.height, self.width
         qx, rx = np.divmod(x, w)
         qy, ry = np.divmod(y, h)
-        return qx * qy * t[h, w] + qx * t[ry, w] + qy * t[h, rx] + t[ry, rx]
+        total = np.int64(t[h, w])
+        return qx * qy * total + qx * t[ry, w].astype(np.int64) + qy * t[h, rx].astype(np.int64) + t[ry, rx].astype(np.int64)
 
     def count(self, x0, y0, x1, y1) -> np.ndarray:
         """Opaque texels in columns [x0, x1) and rows [y0, y1) (int arrays, x1 >= x0, y1 >= y0)."""
@@ -197,8 +199,20 @@ def cut_within_budget(jobs: list, budget: int = CUT_BUDGET) -> list:
     """:func:`cut_triangles` on every ``(uv, alpha, cutoff)`` of ``jobs``, all at the deepest
     level (at most :data:`MAX_DEPTH`) whose pieces number ``budget`` or fewer in all (at least
     one level: 0)."""
+    # Jobs on the same alpha array and cutoff (parts sharing a texture) are cut in one call: one
+    # summed-area table per texture, however many parts use it.
+    groups: dict = {}
+    for k, (uv, alpha, cutoff) in enumerate(jobs):
+        groups.setdefault((id(alpha), float(cutoff)), []).append(k)
     for depth in range(MAX_DEPTH, -1, -1):
-        results = [cut_triangles(uv, alpha, cutoff, depth) for uv, alpha, cutoff in jobs]
+        results: list = [None] * len(jobs)
+        for members in groups.values():
+            uvs = [np.asarray(jobs[k][0], dtype=np.float64).reshape(-1, 3, 2) for k in members]
+            face, bary = cut_triangles(np.concatenate(uvs), jobs[members[0]][1], jobs[members[0]][2], depth)
+            edges = np.cumsum([0] + [len(u) for u in uvs])
+            for k, lo, hi in zip(members, edges[:-1], edges[1:]):
+                rows = (face >= lo) & (face < hi)
+                results[k] = (face[rows] - lo, bary[rows])
         if sum(len(face) for face, _ in results) <= budget:
             break
     return results

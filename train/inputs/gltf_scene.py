@@ -301,14 +301,10 @@ def _albedo_info(scene: GltfScene, part: GltfPart) -> dict | None:
     return albedo_texture_info(scene.document, part.material)
 
 
-def alpha_image(scene: GltfScene, part: GltfPart) -> np.ndarray | None:
-    """The alpha channel of ``part``'s colour texture, (H, W) float64 in [0, 1], row 0 at the top;
-    None when it has no such texture, no alpha channel, no UVs for it or its file is missing (the
-    materials' reader says so)."""
-    info = albedo_texture_info(scene.document, part.material)
-    if info is None or scene.texture_coords(part, info) is None:
-        return None
-    image = scene.image(int(info["index"]))
+def alpha_image(scene: GltfScene, texture: int) -> np.ndarray | None:
+    """The alpha channel of texture ``texture``'s image, (H, W) float64 in [0, 1], row 0 at the top;
+    None when its image has no alpha channel or its file is missing (the materials' reader says so)."""
+    image = scene.image(int(texture))
     if image is None or image.shape[2] not in (2, 4):
         return None
     return image[:, :, -1].astype(np.float64) / float(np.iinfo(image.dtype).max)
@@ -322,18 +318,27 @@ def cut_parts(scene: GltfScene, budget: int = CUT_BUDGET) -> None:
     whole or wholly gone."""
     materials = scene.document.get("materials", [])
     jobs = []  # (part, cutoff, alpha image or None, factor)
+    shared: dict = {}  # (texture, factor) -> factor x its alpha: one array for every part using it
     for part in scene.parts:
         if part.material is None or not 0 <= part.material < len(materials):
             continue
         cutoff = alpha_cutoff(materials[part.material])
         if cutoff is None:
             continue
+        factor = factor_alpha(materials[part.material])
         with malformed_gltf(scene.path):
-            jobs.append((part, cutoff, alpha_image(scene, part), factor_alpha(materials[part.material])))
+            info, alpha = _albedo_info(scene, part), None
+            if info is not None and scene.texture_coords(part, info) is not None:
+                key = (int(info["index"]), factor)
+                if key not in shared:
+                    image = alpha_image(scene, key[0])
+                    shared[key] = None if image is None else (factor * image).astype(np.float32)
+                alpha = shared[key]
+            jobs.append((part, cutoff, alpha, factor))
     if not jobs:
         return
     textured = [k for k, job in enumerate(jobs) if job[2] is not None]
-    cuts = cut_within_budget([(scene.texture_coords(jobs[k][0], _albedo_info(scene, jobs[k][0]))[jobs[k][0].faces], jobs[k][3] * jobs[k][2], jobs[k][1])
+    cuts = cut_within_budget([(scene.texture_coords(jobs[k][0], _albedo_info(scene, jobs[k][0]))[jobs[k][0].faces], jobs[k][2], jobs[k][1])
                               for k in textured], budget)  # fmt: skip
     results = dict(zip(textured, cuts))
     for k, (_, cutoff, image, factor) in enumerate(jobs):

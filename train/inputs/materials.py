@@ -188,14 +188,18 @@ def obj_alpha_masks(path: str, object_names: list[str]) -> dict[str, tuple[np.nd
     its ``illum`` is not one with transparency, :data:`TRANSPARENT_ILLUM`).  A ``map_d`` that is
     missing or does not decode counts as none."""
     uses, library, _, _ = _obj_library(path, object_names)
-    out = {}
+    out, maps = {}, {}  # maps: each map_d read once, one array for every object using it
     for name in object_names:
         counts = uses.get(name, Counter())
         entry = library.get(counts.most_common(1)[0][0] if counts else None)
         if entry is None:
             continue
         d = float(entry.get("d", 1.0)) if entry.get("illum") in TRANSPARENT_ILLUM else 1.0
-        alpha = _dissolve_image(entry["map_d"]) if "map_d" in entry and os.path.isfile(entry["map_d"]) else None
+        alpha = None
+        if "map_d" in entry and os.path.isfile(entry["map_d"]):
+            if entry["map_d"] not in maps:
+                maps[entry["map_d"]] = _dissolve_image(entry["map_d"])
+            alpha = maps[entry["map_d"]]
         if alpha is not None or d < 1.0:
             out[name] = (alpha, d)
     return out
@@ -487,7 +491,11 @@ def obj_cut(path: str, vertices, faces, object_ids, object_names, found=None):
         return vertices, faces, object_ids, report, found
     index = {name: k for k, name in enumerate(object_names)}
     glass = [name for name, (alpha, d) in masks.items() if alpha is None and d < 0.5]
-    textured = {index[name]: (d * alpha, 0.5) for name, (alpha, d) in masks.items() if alpha is not None}
+    scaled: dict = {}  # (map, d) -> d x the map: shared by the objects that use both (one table per texture)
+    for alpha, d in masks.values():
+        if alpha is not None and (id(alpha), d) not in scaled:
+            scaled[id(alpha), d] = (d * alpha).astype(np.float32)
+    textured = {index[name]: (scaled[id(alpha), d], 0.5) for name, (alpha, d) in masks.items() if alpha is not None}
     keep = ~np.isin(object_ids, [index[name] for name in glass])
     if len(glass) == len(object_names) or not (glass or textured):  # nothing left, or nothing to do
         return vertices, faces, object_ids, report, found
