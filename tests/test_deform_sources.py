@@ -530,3 +530,16 @@ def test_folder_and_spec_errors(tmp_path):
     _one_line(GeometryError, lambda: parse_deform("bend:angle=0..9", tmp_path / "none.obj"), "none.obj", "no such file")
     _one_line(SpecError, lambda: procedural("fold", [10]), "at least 2")
     assert issubclass(SpecError, InputError) and issubclass(GeometryError, InputError)
+
+
+def test_gltf_cut_out_materials_are_named_as_drawn_opaque(tmp_path):
+    """A skinned primitive with an alpha-masked material keeps its vertices (the skin's), so the
+    deformable build cannot cut it: the source names it for the build's warning line."""
+    document, arrays = _two_joint_document()
+    plain = load_gltf(_write(tmp_path / "plain.glb", document, arrays, "glb"), frames=2)
+    assert "drawn_opaque" not in plain.description
+    document["materials"] = [{"alphaMode": "MASK", "pbrMetallicRoughness": {"baseColorFactor": [1, 1, 1, 1]}}]
+    document["meshes"][0]["primitives"][0]["material"] = 0
+    masked = load_gltf(_write(tmp_path / "masked.glb", document, arrays, "glb"), frames=2)
+    assert masked.description["drawn_opaque"] == ["mesh 0 primitive 0"]
+    np.testing.assert_allclose(masked.rest, plain.rest)

@@ -251,6 +251,11 @@ def run_deform_build(source, out_dir, spec: DeformSpec | None = None, *, name: s
     log(f"deform: {source.kind} source, {len(rest):,} vertices, {len(faces):,} triangles, {len(frames)} frames "
         f"({len(roles['train'])} train, {len(roles['unseen'])} unseen, {len(roles['extrapolated'])} extrapolated); "
         f"shape code: {code['dim']} PCA components ({100 * code['explained']:.2f} % of the offsets' variance)")  # fmt: skip
+    opaque = source.description.get("drawn_opaque")
+    if opaque:
+        shown = ", ".join(opaque[:3]) + (f" and {len(opaque) - 3} more" if len(opaque) > 3 else "")
+        log(f"warning: {len(opaque)} primitives have alpha-masked or see-through materials; a deformable build draws and traces them "
+            f"opaque: {shown}")  # fmt: skip
     mark_output_folder(out, "scene")
 
     t0 = time.perf_counter()

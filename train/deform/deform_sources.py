@@ -342,8 +342,28 @@ def _sample_gltf(given: str, animation: str | None, count: int, time_range) -> D
         "parameters": {"time": [float(start), float(end)]},
         "clip_range": [float(t) for t in clip.time_range],
     }
+    opaque = _masked_primitives(scene)
+    if opaque:
+        description["drawn_opaque"] = opaque
     names = [f"{clip.name} t={t:.3f}" for t in times]
     return _source("gltf", rest, scene.faces, np.stack(poses), times, ("time",), names, description)
+
+
+def _masked_primitives(scene: AnimatedScene) -> list[str]:
+    """Primitives of an animated scene whose material lets light through (alpha cut-outs, glass:
+    :func:`prt.train.inputs.gltf_scene.alpha_cutoff`, ``is_see_through``), which a deformable build
+    draws and traces opaque (it keeps the skinned vertices as they are), as ``mesh M primitive K``."""
+    from ..inputs.gltf_scene import alpha_cutoff, is_see_through
+
+    document = scene.gltf.document
+    materials, meshes, out = document.get("materials", []), document.get("meshes", []), []
+    for mesh in sorted({int(scene.nodes[node]["mesh"]) for node, _ in scene._order if "mesh" in scene.nodes[node]}):
+        for number, prim in enumerate(meshes[mesh].get("primitives", [])):
+            material = prim.get("material")
+            spec = materials[material] if isinstance(material, int) and 0 <= material < len(materials) else None
+            if spec is not None and (alpha_cutoff(spec) is not None or is_see_through(spec)):
+                out.append(f"mesh {mesh} primitive {number}")
+    return out
 
 
 def _frame_count(value, field: str) -> int:
