@@ -302,3 +302,34 @@ def test_obj_map_d_cuts_and_d_leaves_glass_out(tmp_path):
     assert np.array_equal(again.mesh.vertices, geometry.mesh.vertices) and np.array_equal(again.mesh.faces, geometry.mesh.faces)
     summary = geometry.summary()
     assert "1 see-through (glass) parts left out, light passes them: pane" in summary and "cut along their texture's alpha" in summary
+
+
+def test_a_gpu_texture_is_named_not_a_failed_build(tmp_path):
+    """A colour texture only in KTX2 (KHR_texture_basisu without a fallback image) cannot be decoded
+    here: the build goes on, the materials' reader warns (the factors alone), the alpha-masked part is
+    drawn opaque and the build's first line says so."""
+    from prt.train.inputs.materials import mesh_materials
+
+    card_v = np.array([[0, 0, 0], [1, 0, 0], [1, 0, 1], [0, 0, 1]], np.float32)
+    card_uv = np.array([[0, 1], [1, 1], [1, 0], [0, 0]], np.float32)
+    card_f = np.array([[0, 2, 1], [0, 3, 2]], np.uint32)
+    views, accessors, binary = pack_accessors([card_v, card_f.reshape(-1, 1), card_uv])
+    ktx2 = b"\xabKTX 20\xbb\r\n\x1a\n" + bytes(64)
+    views.append({"buffer": 0, "byteOffset": len(binary), "byteLength": len(ktx2)})
+    binary += ktx2 + b"\0" * ((-len(ktx2)) % 4)
+    document = {
+        "asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"name": "leaf", "mesh": 0}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 2}, "indices": 1, "material": 0}]}],
+        "materials": [{"name": "leaf", "alphaMode": "MASK", "pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}],
+        "textures": [{"extensions": {"KHR_texture_basisu": {"source": 0}}}],
+        "images": [{"bufferView": 3, "mimeType": "image/ktx2"}],
+        "extensionsUsed": ["KHR_texture_basisu"], "bufferViews": views, "accessors": accessors,
+    }  # fmt: skip
+    path = tmp_path / "ktx.glb"
+    write_glb(path, document, binary)
+    geometry = load_geometry(path)
+    assert len(geometry.mesh.faces) == 2 and geometry.uncut == ["ktx"]  # a single part is named after its file
+    assert "WARNING: 1 alpha-masked parts drawn opaque (their alpha could not be read or lined up): ktx" in geometry.summary()
+    said = []
+    materials = mesh_materials(str(path), geometry.object_names, {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]}, said.append)
+    assert any("KTX2 GPU texture" in line for line in said) and materials[0].albedo_texture is None

@@ -82,7 +82,7 @@ class Geometry:
     see_through: list = field(default_factory=list)  # parts left out as glass (gltf_scene.is_see_through; OBJ d < 0.5)
     cut_out: dict = field(default_factory=dict)  # parts cut along their alpha (glTF MASK, OBJ map_d): name -> (pieces, triangles before)
     cut_away: list = field(default_factory=list)  # parts whose alpha leaves nothing, left out
-    uncut: list = field(default_factory=list)  # OBJ objects whose map_d could not be applied (UVs not lined up)
+    uncut: list = field(default_factory=list)  # alpha-masked parts drawn opaque: their alpha unreadable (a GPU texture, a missing file) or not lined up (OBJ)
 
     @property
     def kind(self) -> str:
@@ -135,7 +135,7 @@ class Geometry:
         if self.cut_away:
             dropped += f"; {len(self.cut_away)} parts left out, wholly clear under their alpha cutoff: {_listed(self.cut_away)}"
         if self.uncut:
-            dropped += f"; WARNING: {len(self.uncut)} objects' map_d not applied (their texture coordinates could not be read), drawn opaque: {_listed(self.uncut)}"
+            dropped += f"; WARNING: {len(self.uncut)} alpha-masked parts drawn opaque (their alpha could not be read or lined up): {_listed(self.uncut)}"
         return (
             f"{self.source} [{self.kind}]: {n_faces} triangles, {len(self.mesh.vertices)} vertices, "
             f"{self.n_objects} objects, {closed}, bounds [{low}]..[{high}] (source units){dropped}"
@@ -251,7 +251,7 @@ def _read_mesh_file(path: str, *, report: dict | None = None) -> tuple[np.ndarra
         try:
             scene = read_gltf_scene(path, stem)
             if report is not None:
-                report.update(see_through=scene.transparent, cut=scene.cut, cut_away=scene.cut_away)
+                report.update(see_through=scene.transparent, cut=scene.cut, cut_away=scene.cut_away, unaligned=scene.uncut)
             return scene.arrays()
         except GeometryError as error:
             detail = str(error).removeprefix(f"{path}: ")

@@ -43,6 +43,8 @@ SPEC_GLOSS = "KHR_materials_pbrSpecularGlossiness"
 
 _TRIANGLES, _STRIP, _FAN = 4, 5, 6
 _MIME_EXTENSIONS = {"image/png": ".png", "image/jpeg": ".jpg", "image/webp": ".webp", "image/bmp": ".bmp", "image/gif": ".gif"}
+# Texture containers for GPUs (block-compressed), by their first bytes: read as no image (a warning), not as a corrupt file.
+_GPU_FORMATS = ((b"\xabKTX 20\xbb\r\n\x1a\n", "KTX2"), (b"\xabKTX 11\xbb\r\n\x1a\n", "KTX"), (b"DDS ", "DDS"))
 
 
 @dataclass
@@ -88,6 +90,8 @@ class GltfScene:
     transparent: list = field(default_factory=list)  # names of the parts left out as see-through (is_see_through)
     cut: dict = field(default_factory=dict)  # name -> (pieces, triangles before) of the parts cut along their alpha
     cut_away: list = field(default_factory=list)  # names of the parts whose alpha leaves nothing (left out)
+    uncut: list = field(default_factory=list)  # names of alpha-masked parts whose alpha could not be read (drawn opaque)
+    unreadable: dict = field(default_factory=dict)  # texture -> the GPU format its image is in (not decoded here)
 
     @property
     def path(self) -> str:
@@ -164,6 +168,10 @@ class GltfScene:
                 raise GeometryError(f"{self.path}: texture {texture} has no image source")
             image = self.document["images"][source]
             data, suffix = self._image_bytes(source, image)
+        kind = None if data is None else next((name for magic, name in _GPU_FORMATS if data.startswith(magic)), None)
+        if kind is not None:  # a compressed GPU texture (KHR_texture_basisu without a fallback, DDS): not an image here
+            self.unreadable[texture] = kind
+            data = None
         decoded = None if data is None else _decode_image(data, suffix, f"{self.path}: image {source}")
         self._images[texture] = decoded
         return decoded
@@ -334,6 +342,8 @@ def cut_parts(scene: GltfScene, budget: int = CUT_BUDGET) -> None:
                     image = alpha_image(scene, key[0])
                     shared[key] = None if image is None else (factor * image).astype(np.float32)
                 alpha = shared[key]
+                if alpha is None and scene.image(key[0]) is None:  # an alpha we cannot read: drawn opaque, and said so
+                    scene.uncut.append(part.name)
             jobs.append((part, cutoff, alpha, factor))
     if not jobs:
         return

@@ -31,7 +31,8 @@ Rules
   texture's mean, at most 1).  ``baseColorTexture`` / ``diffuseTexture`` (embedded or beside
   the file, by its ``texCoord`` set and ``KHR_texture_transform``) is the object's albedo texture,
   multiplying the albedo; the other textures enter as their means, emission is ignored.  A
-  missing image file is a warning (the factors alone), an undecodable one a one-line error.
+  missing image file or a GPU texture (KTX2, DDS) is a warning (the factors alone), an
+  undecodable image a one-line error.
 - Missing: objects with no material (no ``mtllib``, an unknown ``usemtl`` name, a missing MTL
   file, a glTF primitive without ``material``, PLY/STL files) take the scene-wide material; one
   warning line lists them (only them).
@@ -333,7 +334,9 @@ def _unit(image: np.ndarray) -> np.ndarray:
 
 def _texture_image(scene, info, where: str, role: str, warn) -> np.ndarray | None:
     image = scene.image(int(info["index"]))
-    if image is None:
+    if image is None and int(info["index"]) in scene.unreadable:
+        warn(f"{where}: the {role} texture is a {scene.unreadable[int(info['index'])]} GPU texture, not decoded here; using the factors alone")
+    elif image is None:
         warn(f"{where}: the {role} texture's image file is missing; using the factors alone")
     elif max(image.shape[:2]) > MAX_TEXTURE_SIZE:
         raise GeometryError(f"{where}: {role} texture {image.shape[1]}x{image.shape[0]} exceeds {MAX_TEXTURE_SIZE} pixels a side")
