@@ -43,6 +43,18 @@ def test_mtl_fields_and_single_value_colours(tmp_path):
     assert mtl["shiny"]["map_Kd"] == str(tmp_path / "tex" / "wood.png")
 
 
+def test_texture_names_with_spaces_and_options():
+    """A map statement's options are skipped by the format's list (-o, -s, -t take up to three
+    numbers) and the file name is the rest, spaces and all (Windows exports)."""
+    from prt.train.inputs.materials import _map_file
+
+    assert _map_file(" -s 2 2 1 leaf texture.png") == "leaf texture.png"
+    assert _map_file(" -o 0.5 my file.png") == "my file.png"  # -o with u alone
+    assert _map_file(" -clamp on -mm 0 1 -bm 0.3 mask.png") == "mask.png"
+    assert _map_file(" -s 2 1.png") == "1.png"  # a name, not a number
+    assert _map_file(" plain.png") == "plain.png"
+
+
 @pytest.mark.parametrize("line, message", [
     ("Kd red 0 0", r"a\.mtl, line 2: Kd values must be numbers"),
     ("Kd 0.5 0.5", r"a\.mtl, line 2: Kd needs 3 numbers"),

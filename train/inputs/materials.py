@@ -113,7 +113,9 @@ def read_mtl(path: str) -> dict[str, dict]:
         elif key == "Ns":
             current["Ns"] = _numbers(path, number, key, parts[1:2])[0] if len(parts) > 1 else 0.0
         elif key in ("map_Kd", "map_d") and len(parts) > 1:
-            current[key] = _texture_path(folder, parts[-1])  # options (-s, -o ...) come before the name
+            name = _map_file(line.partition("#")[0].strip()[len(key):])
+            if name:
+                current[key] = _texture_path(folder, name)
         elif key in ("d", "Tr") and len(parts) > 1:
             value = min(_numbers(path, number, key, parts[1:2])[0], 1.0)
             if key == "d" or "d" not in current:  # Tr is 1 - d; d wins where both are given
@@ -121,6 +123,34 @@ def read_mtl(path: str) -> dict[str, dict]:
         elif key == "illum" and len(parts) > 1 and parts[1].isdigit():
             current["illum"] = int(parts[1])
     return materials
+
+
+# A texture statement's options and how many values each takes (the MTL format's list); the file
+# name is what follows them, spaces and all (``map_Kd -s 2 2 1 leaf texture.png``).
+_MAP_OPTIONS = {"-blendu": 1, "-blendv": 1, "-bm": 1, "-boost": 1, "-cc": 1, "-clamp": 1, "-imfchan": 1, "-mm": 2, "-o": 3,
+                "-s": 3, "-t": 3, "-texres": 1, "-type": 1}
+
+
+def _map_file(text: str) -> str:
+    """The file name of a ``map_...`` statement's arguments: its options skipped (``-o``, ``-s`` and
+    ``-t`` take one to three numbers), the rest as written."""
+    tokens = text.split()
+    k = 0
+    while k < len(tokens) and tokens[k] in _MAP_OPTIONS:
+        count = _MAP_OPTIONS[tokens[k]]
+        k += 1
+        for _ in range(count):  # -o/-s/-t: v and w are optional; a value is a number
+            if k < len(tokens) and (count < 3 or _is_number(tokens[k])) and k < len(tokens) - 1:
+                k += 1
+    return " ".join(tokens[k:])
+
+
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
 
 
 def _texture_path(folder: str, name: str) -> str:
