@@ -43,6 +43,16 @@ def test_mtl_fields_and_single_value_colours(tmp_path):
     assert mtl["shiny"]["map_Kd"] == str(tmp_path / "tex" / "wood.png")
 
 
+def test_a_material_library_named_with_spaces(tmp_path):
+    from prt.train.inputs.materials import obj_material_names
+
+    (tmp_path / "my model.mtl").write_text("newmtl red\nKd 1 0 0\n")
+    (tmp_path / "m.obj").write_text("mtllib my model.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nusemtl red\nf 1 2 3\n")
+    (tmp_path / "two.obj").write_text("mtllib a.mtl b.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    assert obj_material_names(str(tmp_path / "m.obj"))[1] == [str(tmp_path / "my model.mtl")]
+    assert obj_material_names(str(tmp_path / "two.obj"))[1] == [str(tmp_path / "a.mtl"), str(tmp_path / "b.mtl")]
+
+
 def test_texture_names_with_spaces_and_options():
     """A map statement's options are skipped by the format's list (-o, -s, -t take up to three
     numbers) and the file name is the rest, spaces and all (Windows exports)."""

@@ -208,7 +208,9 @@ def obj_material_names(path: str) -> tuple[dict[str, Counter], list[str]]:
         elif key == "usemtl":
             material = " ".join(parts[1:]) or None
         elif key == "mtllib":
-            libraries.extend(os.path.join(os.path.dirname(path), name) for name in parts[1:])
+            folder, names = os.path.dirname(path), parts[1:]
+            whole = os.path.join(folder, " ".join(names))  # one file name with spaces, where that is the file
+            libraries.extend([whole] if len(names) > 1 and os.path.isfile(whole) else [os.path.join(folder, n) for n in names])
     return (by_group if has_groups else by_material), libraries
 
 
