@@ -44,7 +44,7 @@ from ...runtime.errors import SpecError
 from ...runtime.files import atomic_save_npz, atomic_write_json
 from ..build import _env_lights
 from ..networks.fit import FitSettings, fit_segment
-from ..inputs.geometry import Geometry
+from ..inputs.geometry import Geometry, _listed
 from .deform_sources import orientation
 from ..networks.network import Architecture, evaluate_numpy
 from ..outdir import check_output_folder, mark_output_folder
@@ -253,9 +253,8 @@ def run_deform_build(source, out_dir, spec: DeformSpec | None = None, *, name: s
         f"shape code: {code['dim']} PCA components ({100 * code['explained']:.2f} % of the offsets' variance)")  # fmt: skip
     opaque = source.description.get("drawn_opaque")
     if opaque:
-        shown = ", ".join(opaque[:3]) + (f" and {len(opaque) - 3} more" if len(opaque) > 3 else "")
         log(f"warning: {len(opaque)} primitives have alpha-masked or see-through materials; a deformable build draws and traces them "
-            f"opaque: {shown}")  # fmt: skip
+            f"opaque: {_listed(opaque)}")  # fmt: skip
     mark_output_folder(out, "scene")
 
     t0 = time.perf_counter()

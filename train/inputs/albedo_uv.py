@@ -138,4 +138,3 @@ def match_corner_uvs(geometry, positions: np.ndarray, uvs: np.ndarray) -> tuple[
             same = np.flatnonzero((file_q[index] == built_q[f, c]).all(axis=1))
             out[f, c] = uvs[index, same[0] if len(same) else c]
     return out, unmatched
-

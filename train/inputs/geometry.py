@@ -187,7 +187,7 @@ def load_geometry(source, *, normalise: bool = True, sdf_resolution: int = 128) 
         vertices, faces, object_ids, object_names = _read_mesh_file(name, report=report)
         geometry = _build_geometry(vertices, faces, object_ids, object_names, name, normalise=normalise)
         geometry.see_through, geometry.cut_out = report.get("see_through", []), report.get("cut", {})
-        geometry.cut_away, geometry.uncut = report.get("cut_away", []), report.get("unaligned", [])
+        geometry.cut_away, geometry.uncut = report.get("cut_away", []), report.get("uncut", [])
         return geometry
     if _extension(name) in MESH_EXTENSIONS or os.sep in name or (os.altsep and os.altsep in name):
         raise GeometryError(f"{name}: no such file")
@@ -251,7 +251,7 @@ def _read_mesh_file(path: str, *, report: dict | None = None) -> tuple[np.ndarra
         try:
             scene = read_gltf_scene(path, stem)
             if report is not None:
-                report.update(see_through=scene.transparent, cut=scene.cut, cut_away=scene.cut_away, unaligned=scene.uncut)
+                report.update(see_through=scene.transparent, cut=scene.cut, cut_away=scene.cut_away, uncut=scene.uncut)
             return scene.arrays()
         except GeometryError as error:
             detail = str(error).removeprefix(f"{path}: ")

@@ -514,13 +514,13 @@ def obj_cut(path: str, vertices, faces, object_ids, object_names, found=None):
     -------
     vertices, faces, object_ids : the triangles (as corners, three vertices each, where anything was cut)
     report : dict with ``see_through`` (names), ``cut`` (name -> (pieces, triangles before)),
-        ``cut_away`` (names), ``unaligned`` (names whose map could not be applied)
+        ``cut_away`` (names), ``uncut`` (names whose map could not be lined up with the file's UVs)
     found : the corner UVs of the result, (positions, uvs), or None
     """
     from .albedo_uv import _obj_corner_uvs
     from .cutout import cut_corners
 
-    report = {"see_through": [], "cut": {}, "cut_away": [], "unaligned": []}
+    report = {"see_through": [], "cut": {}, "cut_away": [], "uncut": []}
     masks = obj_alpha_masks(path, object_names)
     if not masks:
         return vertices, faces, object_ids, report, found
@@ -539,7 +539,7 @@ def obj_cut(path: str, vertices, faces, object_ids, object_names, found=None):
         found = _obj_corner_uvs(path)
     corners = np.asarray(vertices, np.float64)[np.asarray(faces, np.int64)]
     if textured and (found is None or found[0].shape != corners.shape or not np.allclose(found[0], corners)):
-        report["unaligned"], textured = [object_names[o] for o in textured], {}
+        report["uncut"], textured = [object_names[o] for o in textured], {}
     uvs = found[1] if found is not None and found[1].shape[0] == len(corners) else np.zeros(corners.shape[:2] + (2,))
     positions, uvs, owner, _ = cut_corners(corners[keep], uvs[keep], np.asarray(object_ids)[keep], textured)
     for o in textured:
