@@ -20,7 +20,8 @@ over ``hit_rays`` cosine-distributed rays from ``p`` hitting ``q_j``:
 - ``H(q_j) = T_1 + ... + T_{N-1}`` (``N >= 2`` only): the higher bounces, from the nearest of
   an independent set of surface samples (own seed and count, not the build's) on which the
   bounce operator of :mod:`prt.train.transport.interreflection` ran with the same albedos (its
-  tangent-plane-aware nearest-sample rule, stricter: :data:`REFERENCE_CANDIDATES`, :data:`REFERENCE_PLANE_WEIGHT`).
+  tangent-plane-aware nearest-sample rule on the hit's side of walls, stricter: :data:`REFERENCE_CANDIDATES`,
+  :data:`REFERENCE_PLANE_WEIGHT`; a hit with no clear candidate carries no higher bounces).
 
 So the reference shares nothing with the build but the scene, the albedos recorded in the
 manifest and the SH-projected light: only the transfer representation differs.  Cached by
@@ -39,7 +40,7 @@ from scipy.spatial import cKDTree
 from prt.runtime.errors import InputError
 from prt.runtime.files import atomic_save_npz
 from prt.train import compute_transfer
-from prt.train.transport.interreflection import NORMAL_WEIGHT, entering, face_normals, interreflect, nearest_on_plane, surface_faces, trace_bounce_rays
+from prt.train.transport.interreflection import NORMAL_WEIGHT, RAY_RULE, entering, face_normals, interreflect, nearest_visible, surface_faces, trace_bounce_rays
 from prt.train.inputs.sampling import sample_surface
 from prt.train.transport.transfer import cosine_directions, orthonormal_frames
 
@@ -91,7 +92,7 @@ def higher_bounce_samples(geometry, tracer, albedo, bounces: int, *, rays: int, 
         return None
     path = None
     if cache is not None:
-        path = Path(cache) / f"higher-b{bounces}-n{count}-r{rays}-s{seed}-{_digest(geometry_id, albedo, 'v3')}.npz"
+        path = Path(cache) / f"higher-b{bounces}-n{count}-r{rays}-s{seed}-{_digest(geometry_id, albedo, 'v3', RAY_RULE)}.npz"
         if path.is_file():
             with np.load(path) as data:
                 return data["points"], data["normals"], data["higher"]
@@ -170,9 +171,9 @@ def indirect_transfer(geometry, tracer, points, normals, albedo, bounces: int, *
             t0 = compute_transfer(geometry, q[hit], nq[hit], rays=rays, seed=seed + c, tracer=tracer).astype(np.float64)
             t[hit] = t0[:, :, None]
             if tree is not None:
-                nearest = nearest_on_plane(tree, np.concatenate([q[hit], NORMAL_WEIGHT * nq[hit]], axis=1), candidates=REFERENCE_CANDIDATES,
-                                           plane_weight=REFERENCE_PLANE_WEIGHT, bound=np.inf)  # fmt: skip
-                t[hit] += higher[2][nearest]
+                nearest = nearest_visible(tree, np.concatenate([q[hit], NORMAL_WEIGHT * nq[hit]], axis=1), tracer, candidates=REFERENCE_CANDIDATES,
+                                          plane_weight=REFERENCE_PLANE_WEIGHT, bound=np.inf)  # fmt: skip
+                t[hit] += np.where((nearest >= 0)[:, None, None], higher[2][np.maximum(nearest, 0)], 0.0)
         weight = np.where(hit[:, None], albedo[np.where(hit, faces, 0)], 0.0)  # (P*M, 3)
         n = len(points[rows])
         out[rows] = np.einsum("pmc,pmkc->pkc", weight.reshape(n, hit_rays, 3), t.reshape(n, hit_rays, 16, 3)) / hit_rays
@@ -187,7 +188,7 @@ def cached_indirect(cache: Path, tag: str, geometry, tracer, points, normals, al
     (None for a file cached before its time was kept)."""
     points = np.ascontiguousarray(points, dtype=np.float32)
     normals = np.ascontiguousarray(normals, dtype=np.float32)
-    key = _digest(points, normals, albedo, bounces, hit_rays, rays, seed, geometry_id, None if higher is None else higher[2], "v3")  # v3: entering
+    key = _digest(points, normals, albedo, bounces, hit_rays, rays, seed, geometry_id, None if higher is None else higher[2], "v3", RAY_RULE)
     path = Path(cache) / f"{tag}-indirect-b{bounces}-s{seed}-{key}.npz"
     if path.is_file():
         with np.load(path) as data:

@@ -33,14 +33,14 @@ MITIGATION = (f"probe validity (a probe with more than {VALIDITY_THRESHOLD:g} of
 
 def hit_radiance_source(sb, light_sh):
     """``hit_radiance(points, normals, faces) -> (K, 3)`` for :func:`prt.bench.probe_grid.bake_probes`, and how many
-    samples carry it: the outgoing diffuse radiance ``a(q) [T_0 + H](q) . L`` of the nearest independent surface sample
+    samples carry it: the outgoing diffuse radiance ``a(q) [T_0 + H](q) . L`` of the nearest independent surface sample on the hit's side of walls
     (the reference's higher-bounce samples and rule, :mod:`prt.bench.bounce_reference`); (None, 0) without bounces."""
     if sb.bounces <= 0:
         return None, 0
     from scipy.spatial import cKDTree
 
     from prt.train.inputs.sampling import sample_surface
-    from prt.train.transport.interreflection import NORMAL_WEIGHT, nearest_on_plane
+    from prt.train.transport.interreflection import NORMAL_WEIGHT, nearest_visible
 
     settings = sb.settings
     if sb.higher is not None:  # bounces >= 2: the reference's independent samples, with T_1 + ... + T_{N-1}
@@ -58,8 +58,8 @@ def hit_radiance_source(sb, light_sh):
     albedo = np.asarray(sb.bounce_albedo, dtype=np.float64)
 
     def hit_radiance(q, n, faces):
-        nearest = nearest_on_plane(tree, np.concatenate([q, NORMAL_WEIGHT * n], axis=1), candidates=REFERENCE_CANDIDATES,
-                                   plane_weight=REFERENCE_PLANE_WEIGHT, bound=np.inf)  # fmt: skip
+        nearest = nearest_visible(tree, np.concatenate([q, NORMAL_WEIGHT * n], axis=1), sb.tracer, candidates=REFERENCE_CANDIDATES,
+                                  plane_weight=REFERENCE_PLANE_WEIGHT, bound=np.inf)  # fmt: skip
         return albedo[faces] * outgoing[np.maximum(nearest, 0)] * (nearest >= 0)[:, None]
 
     return hit_radiance, len(points)
@@ -88,7 +88,7 @@ def scene_grids(sb, lighting) -> tuple[dict, dict]:
         "grids": {d: g.info for d, g in grids.items()}, "engine_spacing_m": ENGINE_SPACING_M, "engine_clamped": clamped,
         "engine_limits": {"per_axis": [MIN_PER_AXIS, MAX_PER_AXIS], "probes": MAX_PROBES},
         "validity_threshold": VALIDITY_THRESHOLD, "normal_bias": NORMAL_BIAS, "mitigation": MITIGATION,
-        "radiance": ("rays leaving the scene see the SH light; hits see the nearest independent sample's outgoing diffuse "
+        "radiance": ("rays leaving the scene see the SH light; hits see the nearest independent sample on their side of walls: its outgoing diffuse "
                      f"radiance with {sb.bounces - 1} further bounce(s)") if sb.bounces > 0 else "rays leaving the scene see the SH light; surfaces send nothing (no bounces)",
         "samples": samples, "seconds": round(time.perf_counter() - t0, 3),
     }  # fmt: skip

@@ -16,7 +16,7 @@ for scenes, reduced to its core:
   transfer integrates); a ray that hits a surface sees that point's outgoing diffuse radiance
   with the same number of bounces as the build: ``a(q) [T_0 + ... + T_{N-1}](q) . L`` read from
   the nearest of a set of independent ray-traced surface samples (the bounce operator's
-  tangent-plane-aware rule, :func:`prt.train.transport.interreflection.nearest_on_plane`), so a
+  tangent-plane-aware rule on the hit's side of walls, :func:`prt.train.transport.interreflection.nearest_visible`), so a
   probe lit through N bounces matches the reference's N-bounce pixel (with ``--bounces 0``
   surfaces send nothing, as in the reference).  The incident radiance is projected on 9 real SH
   (bands 0-2) per RGB channel: 27 numbers per probe.

@@ -82,7 +82,7 @@ def test_bounce_stage_is_deterministic_and_resumes(tmp_path):
                                threads=2, progress=False, log=lambda line: None)  # fmt: skip
     first = run()
     stores = sorted((tmp_path / "cache").glob("bounce-*"))
-    assert [p.name for p in stores] == ["bounce-train-k", "bounce-validation-k"]
+    assert [p.name for p in stores] == ["bounce-train-k-clear1", "bounce-validation-k-clear1"]  # named with the rule (CLEAR_RULE)
     assert len(list(stores[0].glob("chunk_*.npy"))) == 3
     (stores[0] / "chunk_00001.npy").unlink()  # an interrupted run: that chunk is traced again
     (stores[1] / "chunk_00000.npy").write_bytes(b"damaged")

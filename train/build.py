@@ -47,7 +47,8 @@ from .presets import differences as preset_differences
 from .progress import BOUNCE_RAY, EXPORT_SEGMENT, RAY, BuildProgress, step_cost
 from .transport.vertex_estimate import estimate_vertex_prt
 from .presets import resolve as resolve_preset
-from .transport.interreflection import BOUNCE_RAYS, SMOOTH_NEIGHBOURS, SMOOTH_RULE, bounce_stage, smooth_indirect
+from .transport.interreflection import BOUNCE_RAYS, RAY_RULE, SMOOTH_NEIGHBOURS, SMOOTH_RULE, bounce_stage, smooth_indirect
+from .transport.transfer import EmbreeTracer
 from .transport.bounce_depth import auto_bounces
 from .networks.rightsize import HEAD_MODES, RESIDUAL_MODES, SCENE_LIGHT, SegmentJob, candidates, scene_sizing, segment_task
 from .transport.precompute import SPEC_LIMITS, DamagedPrecompute, PrecomputeSettings, SpecLimits, check_settings, load_precompute, run_precompute
@@ -533,8 +534,9 @@ def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log
         spec = dataclasses.replace(spec, bounces=auto_n)
     if spec.bounces:
         albedos = _object_albedos(geometry, materials, spec.material)
-        # v3: bounce rays entering the surface carry nothing; SMOOTH_RULE: the training targets' indirect part averaged over neighbours
-        data_key = _hash(pre_summary["key"], spec.bounces, spec.bounce_rays, albedos, "v3", SMOOTH_RULE)
+        # RAY_RULE: rays entering the surface carry nothing, hits take only samples on their side of walls;
+        # SMOOTH_RULE: the training targets' indirect part averaged over neighbours
+        data_key = _hash(pre_summary["key"], spec.bounces, spec.bounce_rays, albedos, "v3", RAY_RULE, SMOOTH_RULE)
         log(f"bounces: {spec.bounces} diffuse bounce(s), {spec.bounce_rays} rays per sample ({len(samples['points']):,} + "
             f"{len(valid['points']):,} samples)")  # fmt: skip
         face_albedo = np.asarray([albedos[n] for n in geometry.object_names], dtype=np.float64)[geometry.object_ids]
@@ -546,8 +548,8 @@ def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log
         t1 = time.perf_counter()
         # The training samples' indirect part averaged with their nearest on the same side (the gather's
         # noise out); the held-out samples keep theirs, so held-out errors stay against independent targets.
-        indirect = smooth_indirect(samples["points"], samples["normals"], indirect)
-        log(f"bounces: training targets' indirect part averaged over each sample's {SMOOTH_NEIGHBOURS} nearest on its side "
+        indirect = smooth_indirect(samples["points"], samples["normals"], indirect, tracer=EmbreeTracer(geometry.mesh))
+        log(f"bounces: training targets' indirect part averaged over each sample's {SMOOTH_NEIGHBOURS} nearest on its side of walls "
             f"({time.perf_counter() - t1:.1f} s)")  # fmt: skip
         for part, extra in ((samples, indirect), (valid, valid_indirect)):  # [direct, indirect R, G, B]
             part["transfer"] = np.concatenate([part["transfer"], extra.transpose(0, 2, 1).reshape(len(extra), -1)], axis=1)

@@ -48,6 +48,7 @@ from ...runtime.files import atomic_save_npz
 from ...runtime.gl import bind_framebuffer
 from ...runtime.normals import corner_normals
 from .transfer import DEFAULT_CHUNK, _fingerprint, compute_transfer, make_tracer
+from .interreflection import RAY_RULE
 from ..inputs.uv_atlas import UVAtlas, build_atlas
 
 __all__ = ["TransferTexture", "TextureBounces", "scene_bounces", "texel_indirect", "uv_gbuffer", "dilate", "bake_transfer_texture",
@@ -355,7 +356,7 @@ def scene_bounces(manifest, geometry, *, cache_dir=None, threads: int | None = N
     if info.bounces > 1:  # T_1 + ... + T_{N-1} of the samples, as the bounce stage found them
         n = direct.shape[1]
         empty = {"points": np.zeros((0, 3)), "normals": np.zeros((0, 3)), "transfer": np.zeros((0, n))}
-        key = _fingerprint(samples["points"], samples["normals"], info.bounce_rays, seed, chunk_size, "v2")
+        key = _fingerprint(samples["points"], samples["normals"], info.bounce_rays, seed, chunk_size, "v2", RAY_RULE)
         folder = Path(cache_dir) if cache_dir is not None else manifest.root / "cache" / "transfer_texture"
         indirect, _ = bounce_stage(geometry.mesh, folder, samples, empty, face_albedo, info.bounces - 1, rays=info.bounce_rays,
                                    seed=seed, chunk_size=chunk_size, key=key, threads=threads, progress=progress, log=log)  # fmt: skip
@@ -383,7 +384,7 @@ def texel_indirect(tracer, points, normals, bounces: TextureBounces, *, chunk_si
     out = np.full((count, 2, rays), -1, dtype=np.int32)
     store, todo = None, list(range(n_chunks))
     if cache_dir is not None:
-        key = _fingerprint(points, normals, bounces.points, bounces.normals, rays, bounces.seed, chunk_size, tracer.identity, "v3")  # v3: RAY_RULE
+        key = _fingerprint(points, normals, bounces.points, bounces.normals, rays, bounces.seed, chunk_size, tracer.identity, "v3", RAY_RULE)
         store = _IndexStore(Path(cache_dir) / f"bounce-texels-{key}", n_chunks)
         todo = store.load_into(out, chunk_size)
     job = BounceJob(tracer, bounces.points, bounces.normals, rays=rays, seed=bounces.seed, stream=2, workers=1)
