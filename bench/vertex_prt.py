@@ -11,7 +11,8 @@ samples, so the baseline carries no information beyond its own vertices: the sam
 front of every used vertex plus the back of the vertices of open faces (reversed normal); each
 shoots cosine rays (:func:`prt.train.transport.interreflection.trace_bounce_rays`), every hit takes the
 previous bounce of the vertex sample nearest to it in (position, normal), tangent-plane aware
-and on its side of walls (:func:`prt.train.transport.interreflection.nearest_visible`), and the bounces are the sparse products of
+(:func:`prt.train.transport.interreflection.nearest_on_plane`; unchecked for walls between, unlike the build's:
+see :func:`prt.train.transport.vertex_estimate.vertex_indirect`), and the bounces are the sparse products of
 :func:`prt.train.transport.interreflection.interreflect`: ``T_b = W @ T_{b-1}`` over the vertex samples,
 starting from their ray-traced direct transfer.  (Not the benchmark reference's estimator,
 :mod:`prt.bench.bounce_reference`, which traces the direct transfer afresh at every hit and
@@ -40,9 +41,7 @@ __all__ = ["VertexPRT", "vertex_transfer", "vertex_samples", "vertex_indirect", 
            "ESTIMATOR_VERSION"]
 
 # Part of the cache key of the interreflected vertex transfer: raise it when the estimator changes.
-from prt.train.transport.interreflection import RAY_RULE  # noqa: E402
-
-ESTIMATOR_VERSION = "vertex-bounces-v1-" + RAY_RULE  # the bounce lookups' rules
+ESTIMATOR_VERSION = "vertex-bounces-v1"
 _PASS = 16  # transfer values one raster pass writes (4 RGBA32F targets)
 
 

@@ -115,7 +115,7 @@ def _loop_twin(geometry, front, back, albedo, bounces: int, rays: int, seed: int
     points = np.array([vertices[v] for v, _ in samples])
     normals = np.array([side * normal_of[v] for v, side in samples])
     direct = [front[v] if side > 0 else back[v] for v, side in samples]
-    found = trace_bounce_rays(geometry.mesh, points, normals, rays=rays, seed=seed)
+    found = trace_bounce_rays(geometry.mesh, points, normals, rays=rays, seed=seed, clear=False)  # the estimator's lookup
     previous = [np.repeat(t[:, None], 3, axis=1).astype(np.float64) for t in direct]
     indirect = [np.zeros((16, 3)) for _ in samples]
     for _ in range(bounces):

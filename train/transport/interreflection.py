@@ -243,7 +243,8 @@ class BounceRays:
 
 
 def trace_bounce_rays(mesh, points, normals, sample_faces=None, *, rays: int = BOUNCE_RAYS, seed: int = 0, chunk: int = 4096,
-                      workers: int = -1, targets=None, candidates: int | None = None, plane_weight: float | None = None) -> BounceRays:
+                      workers: int = -1, targets=None, candidates: int | None = None, plane_weight: float | None = None,
+                      clear: bool = True) -> BounceRays:  # fmt: skip
     """Trace ``rays`` cosine-distributed rays per sample and find, at every hit, the nearest sample.
 
     Parameters
@@ -263,6 +264,10 @@ def trace_bounce_rays(mesh, points, normals, sample_faces=None, *, rays: int = B
         bounce stage).  Other query points (the benchmark's pixels) pass the precomputed samples.
     candidates, plane_weight : optional
         Of :func:`nearest_on_plane` (defaults :data:`PLANE_CANDIDATES`, :data:`PLANE_WEIGHT`).
+    clear : bool
+        Keep to candidates whose segment from the hit is clear (:func:`nearest_visible`, the default);
+        False: the best-ranked candidate whatever lies between (the vertex estimator: see
+        :mod:`prt.train.transport.vertex_estimate`).
     """
     from .transfer import EmbreeTracer
 
@@ -271,7 +276,7 @@ def trace_bounce_rays(mesh, points, normals, sample_faces=None, *, rays: int = B
     if targets is None:
         targets = (points, normals)
     job = BounceJob(EmbreeTracer(mesh), targets[0], targets[1], rays=rays, seed=seed, workers=workers, candidates=candidates,
-                    plane_weight=plane_weight)  # fmt: skip
+                    plane_weight=plane_weight, clear=clear)  # fmt: skip
     nearest = np.full((len(points), rays), -1, dtype=np.int64)
     hit_face = np.full((len(points), rays), -1, dtype=np.int64)
     for c, start in enumerate(range(0, len(points), chunk)):
@@ -285,7 +290,7 @@ class BounceJob:
     the k-d tree of the target samples travels as it is)."""
 
     def __init__(self, tracer, target_points, target_normals, *, rays: int = BOUNCE_RAYS, seed: int = 0, stream: int = 0,
-                 workers: int = -1, candidates: int | None = None, plane_weight: float | None = None):  # fmt: skip
+                 workers: int = -1, candidates: int | None = None, plane_weight: float | None = None, clear: bool = True):  # fmt: skip
         from scipy.spatial import cKDTree
 
         target_points = np.asarray(target_points, dtype=np.float64)
@@ -294,7 +299,7 @@ class BounceJob:
         self.tree = cKDTree(np.concatenate([target_points, NORMAL_WEIGHT * target_normals], axis=1))
         self.positions = cKDTree(target_points)
         self.local = cosine_directions(self.rays).astype(np.float32)
-        self.candidates, self.plane_weight = candidates, plane_weight
+        self.candidates, self.plane_weight, self.clear = candidates, plane_weight, bool(clear)
         self.face_normal = face_normals(tracer)
 
     def chunk(self, points, normals, c: int, faces=None) -> tuple[np.ndarray, np.ndarray]:
@@ -332,7 +337,10 @@ class BounceJob:
             fallback[:, :k] = np.take_along_axis(d2, order, axis=1)[:, : index.shape[1]]
             index[far, :k] = np.take_along_axis(near, order, axis=1)[:, : index.shape[1]]
             score[far] = fallback
-        chosen = first_clear(self.tracer, self.tree.data, key, index, score)
+        if self.clear:
+            chosen = first_clear(self.tracer, self.tree.data, key, index, score)
+        else:
+            chosen = np.where(np.isfinite(score[:, 0]), index[:, 0], -1)
         flat_nearest = np.full(len(origins), -1, dtype=np.int64)
         flat_nearest[hit] = chosen
         return flat_nearest.reshape(-1, rays), faces.reshape(-1, rays)
