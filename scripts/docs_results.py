@@ -36,7 +36,7 @@ PAGES = [
     ("sdf", "SDF and mixed scenes", "Neural SDFs, tracing, mixed scenes.", ("neural_sdf", "mixed_scene")),
     ("deformable", "Deformable objects", "Deformable characters and sheets per frame.", ("deform",)),
     ("scenes", "Scenes and probe grids", "The networks against the engines' L2 SH probe grid: equal bytes, engine density, light leaking.",
-     ("probe_grid", "scenes_real", "nearest_samples", "refine_steps", "view_error", "cutout")),
+     ("probe_grid", "scenes_real", "nearest_samples", "refine_steps", "view_error", "cutout", "bounce_lookup")),
 ]
 OTHER = ("other", "Other records", "Recorded files no other page takes.", ())
 

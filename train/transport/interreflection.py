@@ -95,19 +95,18 @@ SURFACE_REACH = 1e-3
 # both ends lifted off their surfaces by this share of their distance: two points of one floor are
 # joined above it, two of a curved surface clear it while the chord is shorter than twice the
 # curvature radius (the sagitta stays below the lift), and a wall between them blocks whatever its
-# thickness.  Without the test a hit on a room's floor or ceiling near a wall took, 4 % of the time,
-# a sample beyond the wall (outdoors, or the next room), and a room's first bounce came out 3.4 %
-# too bright on average (10 % of the room samples 30 % or more) against the direct transfer traced
-# at the hits themselves (scratch, 3,000 samples the Duplex house's inside views see, 64 rays each).
-# A hit none of whose candidates is clear carries no light: it is a side no sample stands for
-# (a gap the sampling leaves out, :mod:`prt.train.inputs.visibility`, which is nearly dark: the
-# direct light traced at such hits was a third of the others'), and its candidates lie in the lit
-# places around it (3.5 times as bright).  With the test that first bounce is within 0.1 % of the
-# traced one on average (the 90th percentile of the samples' ratios 1.09).  Not every such hit is
-# dark: over 2,000 samples drawn from the whole house, on open surfaces they carried 17 % of the
-# traced first bounce (small lit parts whose nearest samples lie down a step), which is now 10 %
-# low there (14 % low before the test); in the voids and the dim places it went from 2.6x and +3 %
-# to +11 % and +1 %.  Tracing the direct transfer at hits without a clear sample would serve both.
+# thickness.  A hit none of whose candidates is clear carries no light: it is a side no sample
+# stands for (mostly a gap the sampling leaves out, :mod:`prt.train.inputs.visibility`: nearly dark).
+# Measured on the Duplex house (``studies/bounce_lookup.py``: the first bounce of each rule against
+# the direct transfer traced at the hits themselves, 64 rays per sample; the build's samples):
+# - one sample per pixel of the four inside views (``docs/benchmarks/bounce_lookup_duplex_inside.md``):
+#   without the test 4.5 % of the hits read a sample beyond a wall (outdoors, the next room) and the
+#   rooms' first bounce was 3.8 % too bright, a tenth of the samples 23 % or more; with it -0.1 %
+#   (90th percentile 1.09), the 3.1 % of hits without a clear sample carrying 1 % of the traced light;
+# - 2,000 samples at random over the house (``bounce_lookup_duplex.md``): in its voids (dark
+#   samples) 2.8x -> 1.13x, dim +3 % -> +1.6 %, but open surfaces 15 % low -> 12 % low: there the
+#   13 % of the hits without a clear sample carry 10 % of the traced light (small lit parts whose
+#   nearest samples lie down a step).  Tracing the direct transfer at such hits is the next step.
 CLEAR_LIFT = 0.25
 
 
@@ -310,6 +309,15 @@ class BounceJob:
         """(nearest, hit_face), each (S, rays) int64, of the rays of chunk ``c`` (deterministic in seed, stream, c).
 
         With the samples' ``faces`` (S,), rays entering the surface count as misses (:func:`entering`)."""
+        faces, q, ng = self.hits(points, normals, c, faces)
+        hit = faces >= 0
+        flat_nearest = np.full(faces.size, -1, dtype=np.int64)
+        flat_nearest[hit.reshape(-1)] = self.choose(q, ng)
+        return flat_nearest.reshape(faces.shape), faces
+
+    def hits(self, points, normals, c: int, faces=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The rays of chunk ``c``: hit faces (S, rays) int64 (-1: miss or entering), and of the hits
+        (row-major) their points and normals turned towards the ray's origin, (H, 3) float64 each."""
         points = np.asarray(points, dtype=np.float64)
         normals = _unit(np.asarray(normals, dtype=np.float64))
         rays, tracer = self.rays, self.tracer
@@ -328,7 +336,11 @@ class BounceJob:
         q = origins[hit] + result["tfar"][hit, None] * dirs[hit]
         ng = _unit(result["Ng"][hit].astype(np.float64))
         ng *= -np.sign(np.einsum("qc,qc->q", ng, w))[:, None]  # the side facing the ray's origin
-        key = np.concatenate([q, NORMAL_WEIGHT * ng], axis=1)
+        return faces.reshape(-1, rays), q.astype(np.float64), ng
+
+    def choose(self, q, ng) -> np.ndarray:
+        """(H,) int64: the target sample each hit (point ``q``, normal ``ng`` facing the ray) reads; -1: none."""
+        key = np.concatenate([np.asarray(q, np.float64), NORMAL_WEIGHT * np.asarray(ng, np.float64)], axis=1)
         index, score = _ranked(self.tree, key, candidates=self.candidates, plane_weight=self.plane_weight, workers=self.workers)
         far = np.flatnonzero(~np.isfinite(score[:, 0]))
         if len(far):  # the same 6-d distance, over the samples nearest in position
@@ -342,12 +354,8 @@ class BounceJob:
             index[far, :k] = np.take_along_axis(near, order, axis=1)[:, : index.shape[1]]
             score[far] = fallback
         if self.clear:
-            chosen = first_clear(self.tracer, self.tree.data, key, index, score)
-        else:
-            chosen = np.where(np.isfinite(score[:, 0]), index[:, 0], -1)
-        flat_nearest = np.full(len(origins), -1, dtype=np.int64)
-        flat_nearest[hit] = chosen
-        return flat_nearest.reshape(-1, rays), faces.reshape(-1, rays)
+            return first_clear(self.tracer, self.tree.data, key, index, score)
+        return np.where(np.isfinite(score[:, 0]), index[:, 0], -1).astype(np.int64)
 
 
 def _ranked(tree, key, *, candidates: int | None = None, plane_weight: float | None = None, bound: float = SEARCH_RADIUS,
