@@ -14,7 +14,9 @@ and the first bounce ``mean_j a(q_j) T_0(.) . L`` (RGB mean) compared for two lo
 
 - **unchecked**: the best-ranked candidate (the rule before 2026-12-07, and per-vertex PRT's);
 - **clear**: the best-ranked candidate whose segment from the hit crosses no surface, none: no light
-  (the build's rule since).
+  (the build's rule since);
+- **clear + traced**: as clear, the hits without a clear candidate reading the direct transfer traced
+  there (what the next step would give the first bounce; not a rule of the build).
 
 Figures: the ratio of the mean first bounce to the traced one, over all samples and over three
 groups by the sample's own direct light (open: > 0.05, dim, dark: < 0.002: voids, gaps); the
@@ -150,6 +152,9 @@ def main(argv: list[str] | None = None) -> int:
             entry["their_traced_light_share"] = round(float(per_hit[~found].sum() / max(per_hit.sum(), 1e-30)), 4)
         result["rules"][rule] = entry
         print(json.dumps({"rule": rule, **entry}), flush=True)
+        if rule == "clear":
+            values[~found] = per_hit[~found]
+            result["rules"]["clear + traced"] = {"ratio_to_traced": ratios(first_bounce(values, rows, len(pick), args.rays), traced, direct)}
     atomic_write_json(args.json, result)
     if args.md:
         lines = [f"Made by `{result['provenance']['command']}` ({result['provenance']['date']}, {result['cpu']}).",
@@ -162,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
             share = entry.get("hits_blocked_share", entry.get("hits_without_clear_sample_share"))
             extra = f" (carrying {100 * entry['their_traced_light_share']:.1f} % of the traced light)" if "their_traced_light_share" in entry else ""
             lines.append(f"| {rule} | {r['all']} | {r['open']} | {r['dim']} | {r['dark']} | {' / '.join(map(str, r['per_sample_p10_p50_p90']))} | "
-                         f"{100 * share:.2f} %{extra} |")  # fmt: skip
+                         f"{'-' if share is None else f'{100 * share:.2f} %'}{extra} |")  # fmt: skip
         atomic_write_bytes(args.md, ("\n".join(lines) + "\n").encode())
     return 0
 
