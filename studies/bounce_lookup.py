@@ -16,7 +16,9 @@ and the first bounce ``mean_j a(q_j) T_0(.) . L`` (RGB mean) compared for two lo
 - **clear**: the best-ranked candidate whose segment from the hit crosses no surface, none: no light
   (the build's rule since);
 - **clear + traced**: as clear, the hits without a clear candidate reading the direct transfer traced
-  there (what the next step would give the first bounce; not a rule of the build).
+  there (what the next step would give the first bounce; not a rule of the build);
+- **clear + traced far**: as clear + traced, and so the hits whose clear sample lies farther from them
+  than twice the median such distance (with the share of hits that is).
 
 Figures: the ratio of the mean first bounce to the traced one, over all samples and over three
 groups by the sample's own direct light (open: > 0.05, dim, dark: < 0.002: voids, gaps); the
@@ -155,17 +157,25 @@ def main(argv: list[str] | None = None) -> int:
         if rule == "clear":
             values[~found] = per_hit[~found]
             result["rules"]["clear + traced"] = {"ratio_to_traced": ratios(first_bounce(values, rows, len(pick), args.rays), traced, direct)}
+            gap = np.full(len(q), np.inf)
+            gap[found] = np.linalg.norm(points[chosen[found]] - q[found], axis=1)
+            far = gap > 2.0 * float(np.median(gap[found]))
+            values[far] = per_hit[far]
+            result["rules"]["clear + traced far"] = {"ratio_to_traced": ratios(first_bounce(values, rows, len(pick), args.rays), traced, direct),
+                                                     "traced_hits_share": round(float(far.mean()), 4),
+                                                     "far_beyond": round(2.0 * float(np.median(gap[found])), 5)}  # fmt: skip
     atomic_write_json(args.json, result)
     if args.md:
         lines = [f"Made by `{result['provenance']['command']}` ({result['provenance']['date']}, {result['cpu']}).",
                  "", f"Build `{args.build}`; {result['samples']:,} training samples ({result['selection']}), {args.rays} rays each, "
                  f"{result['hits']:,} hits; the direct transfer traced at each hit with {args.hit_rays} rays; light {LIGHT}. "
                  "Mean first bounce of each lookup rule over the traced one (1 = unbiased):", "",
-                 "| rule | all | open | dim | dark | per sample p10 / p50 / p90 | hits blocked or without a clear sample |", "|---|---:|---:|---:|---:|---|---|"]  # fmt: skip
+                 "| rule | all | open | dim | dark | per sample p10 / p50 / p90 | hits blocked, without a clear sample, or traced |", "|---|---:|---:|---:|---:|---|---|"]  # fmt: skip
         for rule, entry in result["rules"].items():
             r = entry["ratio_to_traced"]
-            share = entry.get("hits_blocked_share", entry.get("hits_without_clear_sample_share"))
+            share = entry.get("hits_blocked_share", entry.get("hits_without_clear_sample_share", entry.get("traced_hits_share")))
             extra = f" (carrying {100 * entry['their_traced_light_share']:.1f} % of the traced light)" if "their_traced_light_share" in entry else ""
+            extra += f" traced (none clear, or clear farther than {entry['far_beyond']:g})" if "far_beyond" in entry else ""
             lines.append(f"| {rule} | {r['all']} | {r['open']} | {r['dim']} | {r['dark']} | {' / '.join(map(str, r['per_sample_p10_p50_p90']))} | "
                          f"{'-' if share is None else f'{100 * share:.2f} %'}{extra} |")  # fmt: skip
         atomic_write_bytes(args.md, ("\n".join(lines) + "\n").encode())
