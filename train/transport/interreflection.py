@@ -424,8 +424,7 @@ def clear_between(tracer, points, normals, others, other_normals) -> np.ndarray:
     apart = length > 1e-9
     clear = np.ones(len(points), dtype=bool)
     if apart.any():
-        result = tracer._scene.run(start[apart].astype(np.float32), (step[apart] / length[apart, None]).astype(np.float32), output=1)
-        clear[apart] = ~((result["primID"] >= 0) & (result["tfar"] < length[apart]))
+        clear[apart] = ~tracer.occluded(start[apart].astype(np.float32), (step[apart] / length[apart, None]).astype(np.float32), t_max=length[apart])
     return clear
 
 

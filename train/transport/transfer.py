@@ -147,9 +147,11 @@ class EmbreeTracer:
         """Ray origins (S, 3) float32 of surface points with unit normals: ``offset`` along the normal."""
         return np.asarray(points, dtype=np.float32) + self.offset * np.asarray(normals, dtype=np.float32)
 
-    def occluded(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-        """origins, dirs : (K, 3) float32 -> (K,) bool, True where the ray hits anything."""
-        return self._scene.run(origins, dirs, query="OCCLUDED") != -1
+    def occluded(self, origins: np.ndarray, dirs: np.ndarray, t_max=None) -> np.ndarray:
+        """origins, dirs : (K, 3) float32 -> (K,) bool, True where the ray hits anything (within ``t_max`` (K,) when given)."""
+        if t_max is None:
+            return self._scene.run(origins, dirs, query="OCCLUDED") != -1
+        return self._scene.run(origins, dirs, query="OCCLUDED", dists=np.ascontiguousarray(t_max, dtype=np.float32)) != -1
 
 
 # Tracers unpickled in this process (a cluster worker), by geometry identity: a worker builds

@@ -87,8 +87,8 @@ def vertex_indirect(geometry, points, normals, direct, face_albedo, bounces: int
         return np.zeros(direct.shape + (3,), dtype=np.float32)
     # Unchecked lookups (clear=False): a vertex sample sits on a mesh's corner, often metres from the hit,
     # and the segment to it usually crosses the geometry round that corner (on the Duplex house 54 %
-    # of the hits found no clear vertex, and the clear rule left them dark: vertex PRT inside from
-    # 9.3 to 6.3 dB).  The baseline keeps the lookup it always had, leaks through walls included.
+    # of the hits found no clear vertex, scratch: 512 of its vertex samples x 512 rays, and the clear rule left them dark: vertex PRT inside from
+    # 9.3 to 6.3 dB, prt-bench on a scratch build).  The baseline keeps the lookup it always had, leaks through walls included.
     found = trace_bounce_rays(geometry.mesh, points, normals, rays=int(rays), seed=int(seed), clear=False)
     return (interreflect(direct, found, face_albedo, int(bounces)) - direct[:, :, None]).astype(np.float32)
 
