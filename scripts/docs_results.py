@@ -347,6 +347,7 @@ def readme_rows(root: Path) -> list[tuple[str, str, str, str]]:
     add("scenes_real.json", "real scenes at the defaults, diffuse PSNR from their own cameras (exposure matched)", scenes)
     add("scenes_real_copies.json", "the same on public copies of a house and an assembly (origin and sha1: docs/benchmarks/cameras/SOURCES.md)", scenes)
     add("scenes_real_clear.json", "the copies again, bounce lookups kept to their side of walls (and the reference's)", scenes)
+    add("scenes_real_traced.json", "the house again, the first bounce traced at hits far from any clear sample", scenes)
     return rows
 
 

@@ -17,9 +17,9 @@ pytest.importorskip("embreex")
 from scipy.spatial import cKDTree  # noqa: E402
 
 from prt.train.transport.interreflection import (  # noqa: E402
-    NORMAL_WEIGHT, clear_between, interreflect, nearest_on_plane, nearest_visible, nearest_visible_reference, smooth_indirect,
-    smooth_indirect_reference, trace_bounce_rays,
+    NORMAL_WEIGHT, clear_between, interreflect, nearest_on_plane, nearest_visible, nearest_visible_reference, trace_bounce_rays,
 )  # fmt: skip
+from prt.train.transport.smoothing import smooth_indirect, smooth_indirect_reference  # noqa: E402
 from prt.train.transport.transfer import EmbreeTracer, compute_transfer  # noqa: E402
 
 HALF, WALL, HEIGHT, FLOOR = 0.3, 0.006, 0.4, 0.01  # the room: 0.6 wide, walls 0.006 thick (a quarter of the sample spacing)

@@ -82,10 +82,12 @@ def test_bounce_stage_is_deterministic_and_resumes(tmp_path):
                                threads=2, progress=False, log=lambda line: None)  # fmt: skip
     first = run()
     stores = sorted((tmp_path / "cache").glob("bounce-*"))
-    assert [p.name for p in stores] == ["bounce-train-k-clear1", "bounce-validation-k-clear1"]  # named with the rule (CLEAR_RULE)
-    assert len(list(stores[0].glob("chunk_*.npy"))) == 3
+    # named with the rules (CLEAR_RULE, TRACE_RULE)
+    assert [p.name for p in stores] == ["bounce-train-k-clear1-far2.5t32", "bounce-validation-k-clear1-far2.5t32"]
+    assert len(list(stores[0].glob("chunk_*.npy"))) == 3 and len(list((stores[0] / "traced").glob("chunk_*.npy"))) == 3
     (stores[0] / "chunk_00001.npy").unlink()  # an interrupted run: that chunk is traced again
     (stores[1] / "chunk_00000.npy").write_bytes(b"damaged")
+    (stores[0] / "traced" / "chunk_00002.npy").write_bytes(b"damaged")  # its traced transfer damaged: traced again
     second = run()
     for a, b in zip(first, second):
         np.testing.assert_array_equal(a, b)

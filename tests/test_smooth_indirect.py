@@ -1,12 +1,12 @@
 """The bounce stage's indirect targets averaged over neighbours on the same side
-(train/transport/interreflection.py: smooth_indirect) against its plain twin, and what the mean
+(train/transport/smoothing.py: smooth_indirect) against its plain twin, and what the mean
 must and must not do: take out noise, keep the two sides of a sheet and an isolated sample apart."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from prt.train.transport.interreflection import SMOOTH_NEIGHBOURS, smooth_indirect, smooth_indirect_reference
+from prt.train.transport.smoothing import SMOOTH_NEIGHBOURS, smooth_indirect, smooth_indirect_reference
 
 
 def sheet(count, rng, z=0.0, normal=(0.0, 0.0, 1.0)):

@@ -182,10 +182,10 @@ def test_texel_indirect_matches_the_independent_reference(cornell_texture):
 
 def test_two_bounces_gather_what_the_bounce_stage_computes(cornell_texture, tmp_path):
     """N = 2: the texels gather T_0 + T_1 of the build's samples, T_1 from the bounce operator with
-    the build's rays (seed, stream, chunks): :func:`prt.train.transport.interreflection.interreflect`."""
+    the build's rays (seed, stream, chunks, far hits traced): :func:`prt.train.transport.interreflection.interreflect`."""
     import json
 
-    from prt.train.transport.interreflection import interreflect, trace_bounce_rays
+    from prt.train.transport.interreflection import TRACE_FAR, interreflect, sample_spacing, trace_bounce_rays
     from prt.train.transport.precompute import load_precompute
     from prt.train.transport.transfer import DEFAULT_CHUNK
     from prt.train.transport.transfer_texture import scene_bounces, scene_geometry
@@ -197,7 +197,8 @@ def test_two_bounces_gather_what_the_bounce_stage_computes(cornell_texture, tmp_
     spec = json.loads((m.root / "build.json").read_text())["spec"]
     samples = load_precompute(m.root / "precompute")["samples"]
     found = trace_bounce_rays(geometry.mesh, samples["points"], samples["normals"], samples["face_index"], rays=m.interreflection.bounce_rays,
-                              seed=spec["seed"], chunk=spec.get("chunk_size", DEFAULT_CHUNK), workers=1)  # fmt: skip
+                              seed=spec["seed"], chunk=spec.get("chunk_size", DEFAULT_CHUNK), workers=1,
+                              trace_far=TRACE_FAR * sample_spacing(samples["points"], samples["normals"]))  # fmt: skip
     expected = interreflect(samples["transfer"], found, got.face_albedo, 1)
     assert got.bounces == 2 and got.gathered.shape == (len(samples["points"]), N, 3)
     np.testing.assert_allclose(got.gathered, expected, rtol=1e-5, atol=1e-6)

@@ -47,7 +47,8 @@ from .presets import differences as preset_differences
 from .progress import BOUNCE_RAY, EXPORT_SEGMENT, RAY, BuildProgress, step_cost
 from .transport.vertex_estimate import estimate_vertex_prt
 from .presets import resolve as resolve_preset
-from .transport.interreflection import BOUNCE_RAYS, RAY_RULE, SMOOTH_NEIGHBOURS, SMOOTH_RULE, bounce_stage, smooth_indirect
+from .transport.interreflection import BOUNCE_RAYS, RAY_RULE, TRACE_RULE, bounce_stage
+from .transport.smoothing import SMOOTH_NEIGHBOURS, SMOOTH_RULE, smooth_indirect
 from .transport.transfer import EmbreeTracer
 from .transport.bounce_depth import auto_bounces
 from .networks.rightsize import HEAD_MODES, RESIDUAL_MODES, SCENE_LIGHT, SegmentJob, candidates, scene_sizing, segment_task
@@ -535,8 +536,9 @@ def _run_build(spec: BuildSpec, out_dir, *, threads, display: BuildProgress, log
     if spec.bounces:
         albedos = _object_albedos(geometry, materials, spec.material)
         # RAY_RULE: rays entering the surface carry nothing, hits take only samples on their side of walls;
-        # SMOOTH_RULE: the training targets' indirect part averaged over neighbours
-        data_key = _hash(pre_summary["key"], spec.bounces, spec.bounce_rays, albedos, "v3", RAY_RULE, SMOOTH_RULE)
+        # TRACE_RULE: hits far from a clear sample get their direct transfer traced; SMOOTH_RULE: the
+        # training targets' indirect part averaged over neighbours
+        data_key = _hash(pre_summary["key"], spec.bounces, spec.bounce_rays, albedos, "v3", RAY_RULE, TRACE_RULE, SMOOTH_RULE)
         log(f"bounces: {spec.bounces} diffuse bounce(s), {spec.bounce_rays} rays per sample ({len(samples['points']):,} + "
             f"{len(valid['points']):,} samples)")  # fmt: skip
         face_albedo = np.asarray([albedos[n] for n in geometry.object_names], dtype=np.float64)[geometry.object_ids]

@@ -21,7 +21,9 @@ the Cornell box's light quad below the ceiling, issue #13), and of those only on
 from the hit crosses no surface (:func:`nearest_visible`: a wall between a room's floor and the
 ground outside; :data:`CLEAR_LIFT`).  The search is bounded (:data:`SEARCH_RADIUS`); a hit with
 no sample of its side that near takes the best of the samples nearest in position, and a hit
-with no clear candidate carries no light.
+with no clear candidate carries no light.  In the bounce stage's first bounce, such a hit and one
+whose clear sample lies far from it read the direct transfer traced at the hit itself instead
+(:data:`TRACE_FAR`, :meth:`BounceJob.traced_chunk`).
 A ray leaving its sample below the plane of the sample's own face enters the surface: the
 sample's normal is the interpolated (smooth) one, so its cosine hemisphere reaches a sliver under
 the flat face, and from an origin lifted along that normal such a ray hits the face itself from
@@ -40,7 +42,7 @@ rays landing nearest to q.  Indirect light is smooth, so it takes fewer rays tha
 term (:data:`BOUNCE_RAYS`).
 
 The training samples' indirect part is then averaged over their nearest samples on the same side
-(:func:`smooth_indirect`): the networks would otherwise fit part of the gather's noise.
+(:func:`prt.train.transport.smoothing.smooth_indirect`): the networks would otherwise fit part of the gather's noise.
 
 ``prt-train --bounces N`` runs :func:`bounce_stage` after the direct precompute and fits
 networks of the "direct+rgb" layout (:mod:`prt.train.networks.network`) to ``[T_0, T_ind_R, T_ind_G,
@@ -58,8 +60,9 @@ import numpy as np
 from .transfer import _unit, cosine_directions, orthonormal_frames
 
 __all__ = ["BounceRays", "BounceJob", "trace_bounce_rays", "bounce_chunk", "trace_stage", "bounce_terms", "bounce_stage", "interreflect", "bounce_matrices",
-           "nearest_on_plane", "nearest_visible", "nearest_visible_reference", "clear_between", "first_clear", "face_normals", "surface_faces", "entering", "smooth_indirect", "smooth_indirect_reference",
-           "BOUNCE_RAYS", "CLEAR_LIFT", "CLEAR_RULE", "NORMAL_WEIGHT", "RAY_RULE", "SMOOTH_NEIGHBOURS", "SMOOTH_REACH", "SMOOTH_RULE"]
+           "nearest_on_plane", "nearest_visible", "nearest_visible_reference", "clear_between", "first_clear", "face_normals", "surface_faces", "entering",
+           "sample_spacing", "traced_term", "BOUNCE_RAYS", "CLEAR_LIFT", "CLEAR_RULE", "NORMAL_WEIGHT", "RAY_RULE", "TRACE_FAR", "TRACED_RAYS",
+           "TRACE_RULE"]
 
 # Rays per sample of the bounce stage (the direct transfer keeps its own count).  32: on the
 # Cornell box (105k samples, 512 direct rays) 64 bounce rays made the stage 3.5x the direct
@@ -111,95 +114,19 @@ SURFACE_REACH = 1e-3
 #   brighter than it.  Tracing also the hits whose clear sample is farther than twice the median such
 #   distance ("clear + traced far": 29 % of the hits over the house, 19 % at the inside views' pixels)
 #   puts every group within 2.6 % (open +1.6 %, per-sample 90th percentile 1.08; inside +0.1 %): the
-#   next step for the bounce stage (about 4 M hits x 64 rays on the Duplex build, roughly 15 s).
+#   next step for the bounce stage, taken: :data:`TRACE_FAR`.
 CLEAR_LIFT = 0.25
-
-
-# The indirect targets the networks fit are averaged over each training sample's nearest samples
-# on its side of the surface (:func:`smooth_indirect`): 32 gathered rays leave the indirect part
-# noisy (a room lit by a sun patch: a few rays of 32 find it), and networks with 1000 steps fit
-# part of that noise.  One-off check on the Duplex house's build (2 of its segments, networks
-# refitted at their build sizes, 800 held-out points against a quiet reference: 2048 direct rays,
-# 512 bounce rays): raw targets 24.1 / 28.8 dB, averaged over 8 neighbours 26.8 / 30.2 dB.
-SMOOTH_NEIGHBOURS = 8
-# Neighbours farther than this many times the median distance of every sample's SMOOTH_NEIGHBOURS-th
-# neighbour (in (position, NORMAL_WEIGHT * normal)) are left out: the filter's width follows the
-# sample spacing, and an isolated sample (a small part, a sliver) keeps its own value.
-SMOOTH_REACH = 2.0
-SMOOTH_RULE = "smooth8-" + CLEAR_RULE  # part of the fits' cache key (prt.train.build)
-
-
-def smooth_indirect(points, normals, indirect, neighbours: int = SMOOTH_NEIGHBOURS, *, tracer=None, chunk: int = 65536,
-                    workers: int = -1) -> np.ndarray:  # fmt: skip
-    """Each sample's indirect transfer averaged with its ``neighbours - 1`` nearest samples on its side.
-
-    Nearest in (position, :data:`NORMAL_WEIGHT` * normal), the bounce stage's own distance: the other
-    side of a sheet, and a surface turned by more than a few degrees, lie far beyond the sample spacing.
-    Neighbours beyond :data:`SMOOTH_REACH` times the median distance of the samples' last neighbour are
-    left out (the sample itself, at distance 0, always counts).  Indirect light varies on the scale of the scene, not of
-    the sample spacing, so the mean keeps it and takes out the gather's noise.  With the scene's
-    ``tracer``, a neighbour whose segment from the sample crosses a surface (:func:`clear_between`:
-    the floor beyond a wall) is left out too.
-
-    Parameters
-    ----------
-    points, normals : (S, 3)
-    indirect : (S, n, 3) the bounce stage's indirect transfer
-    neighbours : samples in each mean, the sample included (<= 1: ``indirect`` unchanged)
-    tracer : the scene's tracer (:class:`prt.train.transport.transfer.EmbreeTracer`), optional
-
-    Returns
-    -------
-    (S, n, 3) float32
-    """
-    from scipy.spatial import cKDTree
-
-    indirect = np.asarray(indirect)
-    k = min(int(neighbours), len(indirect))
-    if k <= 1:
-        return indirect.astype(np.float32)
-    key = np.concatenate([np.asarray(points, np.float64), NORMAL_WEIGHT * np.asarray(normals, np.float64)], axis=1)
-    tree = cKDTree(key)
-    dist, near = tree.query(key, k=k, workers=workers)
-    reach = SMOOTH_REACH * float(np.median(dist[:, -1]))
-    keep = dist <= reach  # the first is the sample itself (or a sample at its very place): distance 0
-    if tracer is not None:
-        keep[:, 1:] &= _clear_neighbours(tracer, key, near, keep)
-    out = np.empty(indirect.shape, np.float32)
-    for a in range(0, len(indirect), chunk):
-        b = min(a + chunk, len(indirect))
-        w = keep[a:b].astype(np.float64)
-        total = np.einsum("sk,sknc->snc", w, indirect[near[a:b]].astype(np.float64))
-        out[a:b] = total / w.sum(axis=1)[:, None, None]
-    return out
-
-
-def _clear_neighbours(tracer, key, near, keep) -> np.ndarray:
-    """(S, k - 1) bool: the segment from each sample to each of its kept neighbours after the first is clear."""
-    rows, cols = np.nonzero(keep[:, 1:])
-    clear = np.zeros(keep[:, 1:].shape, dtype=bool)
-    other = key[near[rows, cols + 1]]
-    clear[rows, cols] = clear_between(tracer, key[rows, :3], key[rows, 3:], other[:, :3], other[:, 3:])
-    return clear
-
-
-def smooth_indirect_reference(points, normals, indirect, neighbours: int = SMOOTH_NEIGHBOURS, *, tracer=None) -> np.ndarray:
-    """Plain twin of :func:`smooth_indirect`: all pairwise distances, one sample and neighbour at a time (small inputs)."""
-    indirect = np.asarray(indirect, np.float64)
-    k = min(int(neighbours), len(indirect))
-    if k <= 1:
-        return indirect.astype(np.float32)
-    key = np.concatenate([np.asarray(points, np.float64), NORMAL_WEIGHT * np.asarray(normals, np.float64)], axis=1)
-    d = np.sqrt(((key[:, None, :] - key[None, :, :]) ** 2).sum(axis=2))
-    kth = np.sort(d, axis=1)[:, k - 1]
-    reach = SMOOTH_REACH * float(np.median(kth))
-    out = np.empty(indirect.shape, np.float32)
-    for i in range(len(indirect)):
-        order = np.argsort(d[i], kind="stable")[:k]
-        kept = [j for j in order if d[i, j] <= reach
-                and (tracer is None or j == order[0] or clear_between(tracer, key[None, i, :3], key[None, i, 3:], key[None, j, :3], key[None, j, 3:])[0])]
-        out[i] = indirect[kept].mean(axis=0)
-    return out
+# The bounce stage's first bounce reads the direct transfer traced at the hit itself (TRACED_RAYS
+# cosine rays, :class:`prt.train.transport.transfer.TransferIntegrator`) where the hit has no clear
+# candidate, or where its clear sample lies farther from it than TRACE_FAR times the training samples'
+# median spacing (:func:`sample_spacing`: the distance to the nearest other sample on its side).
+# Higher bounces still read the clear sample's previous bounce (nothing where there is none).  2.5
+# spacings is twice the median distance from a hit to its clear sample on the Duplex house (spacing
+# 0.0043, that median 0.0054): the threshold of the study's "clear + traced far" row (0.0108 there),
+# which put the first bounce within 2.6 % of the traced one in every group (see CLEAR_LIFT).
+TRACE_FAR = 2.5
+TRACED_RAYS = 32
+TRACE_RULE = f"far{TRACE_FAR:g}t{TRACED_RAYS}"  # names the bounce stage's chunk stores and is in the fits' cache key
 
 
 def face_normals(tracer) -> np.ndarray:
@@ -243,16 +170,23 @@ class BounceRays:
         Sample index nearest to the ray's hit point on a surface facing the ray, -1 for a miss.
     hit_face : (S, M) int64
         Triangle hit (-1: miss).
+    traced : (S, M) int64 or None
+        Row of ``traced_transfer`` the ray's first bounce reads (-1: its nearest sample's), where the
+        rays were traced with :data:`TRACE_FAR` (the bounce stage's); None: every hit reads its sample.
+    traced_transfer : (H, n) float32 or None
+        The direct transfer traced at those hits.
     """
 
-    def __init__(self, nearest: np.ndarray, hit_face: np.ndarray):
+    def __init__(self, nearest: np.ndarray, hit_face: np.ndarray, traced: np.ndarray | None = None, traced_transfer: np.ndarray | None = None):
         self.nearest = nearest
         self.hit_face = hit_face
+        self.traced = traced
+        self.traced_transfer = traced_transfer
 
 
 def trace_bounce_rays(mesh, points, normals, sample_faces=None, *, rays: int = BOUNCE_RAYS, seed: int = 0, chunk: int = 4096,
                       workers: int = -1, targets=None, candidates: int | None = None, plane_weight: float | None = None,
-                      clear: bool = True) -> BounceRays:  # fmt: skip
+                      clear: bool = True, trace_far: float | None = None, bands: int = 4) -> BounceRays:  # fmt: skip
     """Trace ``rays`` cosine-distributed rays per sample and find, at every hit, the nearest sample.
 
     Parameters
@@ -276,6 +210,9 @@ def trace_bounce_rays(mesh, points, normals, sample_faces=None, *, rays: int = B
         Keep to candidates whose segment from the hit is clear (:func:`nearest_visible`, the default);
         False: the best-ranked candidate whatever lies between (the vertex estimator: see
         :mod:`prt.train.transport.vertex_estimate`).
+    trace_far, bands : optional
+        As :class:`BounceJob`'s: the bounce stage's rays (:func:`trace_stage` passes :data:`TRACE_FAR`
+        times the samples' spacing); None: every hit reads its sample.
     """
     from .transfer import EmbreeTracer
 
@@ -284,13 +221,22 @@ def trace_bounce_rays(mesh, points, normals, sample_faces=None, *, rays: int = B
     if targets is None:
         targets = (points, normals)
     job = BounceJob(EmbreeTracer(mesh), targets[0], targets[1], rays=rays, seed=seed, workers=workers, candidates=candidates,
-                    plane_weight=plane_weight, clear=clear)  # fmt: skip
+                    plane_weight=plane_weight, clear=clear, trace_far=trace_far, bands=bands)  # fmt: skip
     nearest = np.full((len(points), rays), -1, dtype=np.int64)
     hit_face = np.full((len(points), rays), -1, dtype=np.int64)
+    traced, transfer = np.full((len(points), rays), -1, dtype=np.int64), [np.zeros((0, bands * bands), np.float32)]
     for c, start in enumerate(range(0, len(points), chunk)):
         rows = slice(start, start + chunk)
-        nearest[rows], hit_face[rows] = job.chunk(points[rows], normals[rows], c, None if sample_faces is None else sample_faces[rows])
-    return BounceRays(nearest, hit_face)
+        faces = None if sample_faces is None else sample_faces[rows]
+        if trace_far is None:
+            nearest[rows], hit_face[rows] = job.chunk(points[rows], normals[rows], c, faces)
+            continue
+        nearest[rows], hit_face[rows], local, values = job.traced_chunk(points[rows], normals[rows], c, faces)
+        traced[rows] = np.where(local >= 0, local + sum(len(t) for t in transfer), -1)
+        transfer.append(values)
+    if trace_far is None:
+        return BounceRays(nearest, hit_face)
+    return BounceRays(nearest, hit_face, traced, np.concatenate(transfer))
 
 
 class BounceJob:
@@ -298,7 +244,11 @@ class BounceJob:
     the k-d tree of the target samples travels as it is)."""
 
     def __init__(self, tracer, target_points, target_normals, *, rays: int = BOUNCE_RAYS, seed: int = 0, stream: int = 0,
-                 workers: int = -1, candidates: int | None = None, plane_weight: float | None = None, clear: bool = True):  # fmt: skip
+                 workers: int = -1, candidates: int | None = None, plane_weight: float | None = None, clear: bool = True,
+                 trace_far: float | None = None, bands: int = 4):  # fmt: skip
+        """``trace_far``: hits with no clear sample, or whose clear sample lies farther than this (scene
+        units), read the direct transfer traced at themselves (``bands`` SH bands; :meth:`traced_chunk`,
+        :data:`TRACE_FAR`); None: every hit reads its sample's."""
         from scipy.spatial import cKDTree
 
         target_points = np.asarray(target_points, dtype=np.float64)
@@ -308,6 +258,7 @@ class BounceJob:
         self.positions = cKDTree(target_points)
         self.local = cosine_directions(self.rays).astype(np.float32)
         self.candidates, self.plane_weight, self.clear = candidates, plane_weight, bool(clear)
+        self.trace_far, self.bands = (None if trace_far is None else float(trace_far)), int(bands)
         self.face_normal = face_normals(tracer)
 
     def chunk(self, points, normals, c: int, faces=None) -> tuple[np.ndarray, np.ndarray]:
@@ -319,6 +270,30 @@ class BounceJob:
         flat_nearest = np.full(faces.size, -1, dtype=np.int64)
         flat_nearest[hit.reshape(-1)] = self.choose(q, ng)
         return flat_nearest.reshape(faces.shape), faces
+
+    def traced_chunk(self, points, normals, c: int, faces=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(nearest, hit_face, traced) (S, rays) int64 and the traced transfer (H, n) float32 of chunk ``c``
+        (:class:`BounceRays`' attributes, ``traced`` counting rows from 0 in this chunk)."""
+        from .transfer import TransferIntegrator
+
+        faces, q, ng = self.hits(points, normals, c, faces)
+        hit = faces.reshape(-1) >= 0
+        chosen = self.choose(q, ng)
+        gap = np.full(len(q), np.inf)
+        found = chosen >= 0
+        gap[found] = np.linalg.norm(self.tree.data[chosen[found], :3] - q[found], axis=1)
+        pick = np.flatnonzero(gap > (np.inf if self.trace_far is None else self.trace_far))
+        integrator = TransferIntegrator(self.tracer, rays=TRACED_RAYS, bands=self.bands, seed=self.seed)
+        # Its own seed stream apart from the precompute's ((stream + 1) << 32 | c); the hit lies on its
+        # face (float32 ray arithmetic), the integrator lifts it by the tracer's offset.
+        transfer = integrator.chunk(q[pick], ng[pick], ((self.stream + 1) << 32) | int(c)) if len(pick) else np.zeros((0, self.bands**2), np.float32)
+        flat = np.full(faces.size, -1, dtype=np.int64)
+        flat[hit] = chosen
+        rows = np.full(len(q), -1, dtype=np.int64)
+        rows[pick] = np.arange(len(pick))
+        traced = np.full(faces.size, -1, dtype=np.int64)
+        traced[hit] = rows
+        return flat.reshape(faces.shape), faces, traced.reshape(faces.shape), transfer
 
     def hits(self, points, normals, c: int, faces=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The rays of chunk ``c``: hit faces (S, rays) int64 (-1: miss or entering), and of the hits
@@ -469,25 +444,51 @@ def nearest_visible_reference(data, key, tracer, *, candidates: int | None = Non
     return np.asarray(out, dtype=np.int64)
 
 
-def bounce_chunk(job: BounceJob, item) -> np.ndarray:
-    """One chunk ``(c, points, normals[, faces])`` of bounce rays -> (S, 2, rays) int32 [nearest, hit_face]: a task."""
+def bounce_chunk(job: BounceJob, item):
+    """One chunk ``(c, points, normals[, faces])`` of bounce rays -> (S, 2, rays) int32 [nearest, hit_face]: a task.
+
+    A job with ``trace_far``: ((S, 3, rays) int32 [nearest, hit_face, traced], (H, n) float32 traced transfer)."""
     c, points, normals, *faces = item
+    if job.trace_far is not None:
+        *index, transfer = job.traced_chunk(points, normals, c, faces[0] if faces else None)
+        return np.stack(index, axis=1).astype(np.int32), transfer
     nearest, faces = job.chunk(points, normals, c, faces[0] if faces else None)
     return np.stack([nearest, faces], axis=1).astype(np.int32)  # sample and face counts are far below 2^31
 
 
-class _IndexStore:
-    """A :class:`prt.train.cache.ChunkStore` of int32 chunks (its ``load`` takes float chunks only)."""
+def sample_spacing(points, normals) -> float:
+    """Median distance (position) from each sample to the nearest other sample on its side, in
+    (position, :data:`NORMAL_WEIGHT` * normal); inf for fewer than two samples."""
+    from scipy.spatial import cKDTree
 
-    def __init__(self, folder, n_chunks: int):
+    points = np.asarray(points, dtype=np.float64)
+    if len(points) < 2:
+        return float("inf")
+    key = np.concatenate([points, NORMAL_WEIGHT * _unit(np.asarray(normals, dtype=np.float64))], axis=1)
+    _, near = cKDTree(key).query(key, k=2, workers=-1)
+    return float(np.median(np.linalg.norm(points[near[:, 1]] - points, axis=1)))
+
+
+class _IndexStore:
+    """A :class:`prt.train.cache.ChunkStore` of int32 chunks (its ``load`` takes float chunks only); with
+    ``traced``, each chunk's traced transfer beside it (``traced/``: :func:`bounce_chunk`'s pairs)."""
+
+    def __init__(self, folder, n_chunks: int, traced: bool = False):
+        from pathlib import Path
+
         from ..cache import ChunkStore
 
         self.store = ChunkStore(folder, n_chunks)
+        self.transfer = ChunkStore(Path(folder) / "traced", n_chunks) if traced else None
+        self.traced: dict[int, np.ndarray] = {}  # chunk -> traced transfer, of the chunks load_into found
 
     def has(self, k: int) -> bool:
-        return self.store.has(k)
+        return self.store.has(k) and (self.transfer is None or self.transfer.has(k))
 
-    def save(self, k: int, value: np.ndarray) -> None:
+    def save(self, k: int, value) -> None:
+        if self.transfer is not None:  # the transfer first: a chunk counts as done once its indices are there
+            self.transfer.save(k, value[1])
+            value = value[0]
         self.store.save(k, value)
 
     def load(self, k: int, shape: tuple) -> np.ndarray | None:
@@ -504,6 +505,13 @@ class _IndexStore:
         for k in range(self.store.n_chunks):
             rows = slice(k * chunk_size, (k + 1) * chunk_size)
             cached = self.load(k, out[rows].shape) if self.has(k) else None  # damaged: traced again
+            if cached is not None and self.transfer is not None:
+                count = int((cached[:, 2] >= 0).sum())
+                transfer = self.transfer.load(k)
+                if transfer is None or transfer.ndim != 2 or len(transfer) != count or transfer.dtype != np.float32:
+                    cached = None
+                else:
+                    self.traced[k] = transfer
             if cached is None:
                 todo.append(k)
             else:
@@ -538,6 +546,8 @@ def interreflect(direct, bounce_rays: BounceRays, face_albedo, bounces: int, tra
     hit = bounce_rays.nearest >= 0
     rays = bounce_rays.nearest.shape[1]
     if transfer_at is not None:  # a general estimator: gather its values chunk by chunk
+        if bounce_rays.traced is not None:
+            raise ValueError("interreflect: transfer_at takes rays without traced hits (trace_far=None)")
         index = np.where(hit, bounce_rays.nearest, 0)
         for _ in range(int(bounces)):
             current = np.empty_like(previous)
@@ -548,31 +558,61 @@ def interreflect(direct, bounce_rays: BounceRays, face_albedo, bounces: int, tra
             total += current
             previous = current
         return total
-    matrices = bounce_matrices(bounce_rays, albedo)
-    for _ in range(int(bounces)):
-        previous = np.stack([matrices[c] @ previous[:, :, c] for c in range(3)], axis=2)
+    for _, step in zip(range(int(bounces)), _steps(bounce_rays, albedo)):
+        previous = step(previous)
         total += previous
     return total
 
 
-def bounce_matrices(bounce_rays: BounceRays, face_albedo, targets: int | None = None) -> list:
+def _steps(bounce_rays: BounceRays, albedo, targets: int | None = None):
+    """Yield, bounce after bounce, ``step(T_{b-1} of the targets)`` -> ``T_b`` of the rays' samples (S, n, 3):
+    ``W @ T_{b-1}`` per channel, the first bounce reading the traced transfer where the rays have it
+    (:func:`traced_term`)."""
+    matrices = bounce_matrices(bounce_rays, albedo, targets)
+    if bounce_rays.traced is not None:
+        first, extra = bounce_matrices(bounce_rays, albedo, targets, first=True), traced_term(bounce_rays, albedo)
+        yield lambda previous: np.stack([first[c] @ previous[:, :, c] for c in range(3)], axis=2) + extra
+    while True:
+        yield lambda previous: np.stack([matrices[c] @ previous[:, :, c] for c in range(3)], axis=2)
+
+
+def bounce_matrices(bounce_rays: BounceRays, face_albedo, targets: int | None = None, *, first: bool = False) -> list:
     """``W_c`` (S, T) sparse, per channel: ``W_c[p, q]`` = sum over p's rays landing nearest to q of
-    ``a_c(hit face) / M``; ``targets`` T: the samples searched (default: S, the rays' own samples)."""
+    ``a_c(hit face) / M``; ``targets`` T: the samples searched (default: S, the rays' own samples).
+    ``first``: the first bounce's, leaving out the rays that read a traced transfer (:func:`traced_term`)."""
     from scipy.sparse import csr_matrix
 
     nearest = bounce_rays.nearest
     count, rays = nearest.shape
-    rows, cols = np.nonzero(nearest >= 0)
+    reads = nearest >= 0
+    if first and bounce_rays.traced is not None:
+        reads &= bounce_rays.traced < 0
+    rows, cols = np.nonzero(reads)
     landed = nearest[rows, cols]
     albedo = np.asarray(face_albedo, dtype=np.float64)[bounce_rays.hit_face[rows, cols]] / rays
     shape = (count, count if targets is None else int(targets))
     return [csr_matrix((albedo[:, c], (rows, landed)), shape=shape) for c in range(3)]
 
 
-def run_ray_chunks(executor, job, items, out: np.ndarray, chunk_size: int, rays: int, *, store=None, bar=None) -> None:
+def traced_term(bounce_rays: BounceRays, face_albedo) -> np.ndarray:
+    """(S, n, 3): the first bounce's part from the hits that read the direct transfer traced there,
+    ``sum over p's such rays of a(hit face) T_0(hit) / M``."""
+    from scipy.sparse import csr_matrix
+
+    traced = bounce_rays.traced
+    count, rays = traced.shape
+    rows, cols = np.nonzero(traced >= 0)
+    albedo = np.asarray(face_albedo, dtype=np.float64)[bounce_rays.hit_face[rows, cols]] / rays
+    transfer = np.asarray(bounce_rays.traced_transfer, dtype=np.float64)
+    shape = (count, len(transfer))
+    return np.stack([csr_matrix((albedo[:, c], (rows, traced[rows, cols])), shape=shape) @ transfer for c in range(3)], axis=2)
+
+
+def run_ray_chunks(executor, job, items, out: np.ndarray, chunk_size: int, rays: int, *, store=None, bar=None, traced: dict | None = None) -> None:
     """Trace the chunks ``items`` (``(k, points, normals)``) of bounce rays through ``executor``
-    (:func:`bounce_chunk`): each chunk's rows into ``out[k * chunk_size ...]`` and, when given, into
-    ``store`` (the driver alone writes the cache); ``bar`` advances by rays and is closed at the end."""
+    (:func:`bounce_chunk`): each chunk's rows into ``out[k * chunk_size ...]`` (a job with ``trace_far``:
+    its traced transfer into ``traced[k]``) and, when given, into ``store`` (the driver alone writes the
+    cache); ``bar`` advances by rays and is closed at the end."""
     from contextlib import closing
 
     try:
@@ -580,6 +620,8 @@ def run_ray_chunks(executor, job, items, out: np.ndarray, chunk_size: int, rays:
             for (k, chunk_points, *_), value in finished:
                 if store is not None:
                     store.save(k, value)
+                if isinstance(value, tuple):
+                    value, traced[k] = value
                 out[k * chunk_size : (k + 1) * chunk_size] = value
                 if bar is not None:
                     bar.update(len(chunk_points) * rays)
@@ -595,7 +637,9 @@ def trace_stage(mesh, folder, train: dict, valid: dict, *, rays: int = BOUNCE_RA
     The hit points and nearest training samples do not depend on the albedos or the bounce count
     (see :func:`bounce_stage`); validation samples shoot their own rays (another seed stream).
     Samples with a ``face_index`` (the precompute's) apply the rule for rays entering the surface
-    (:func:`entering`; their chunk stores are named with :data:`RAY_RULE`).
+    (:func:`entering`; their chunk stores are named with :data:`RAY_RULE`).  Hits with no clear sample,
+    or whose clear sample lies farther than :data:`TRACE_FAR` times the training samples' spacing, get
+    the direct transfer traced at themselves (``bands`` from the training transfer; :data:`TRACE_RULE`).
     """
     from pathlib import Path
 
@@ -608,6 +652,8 @@ def trace_stage(mesh, folder, train: dict, valid: dict, *, rays: int = BOUNCE_RA
     tracer = EmbreeTracer(mesh)
     found = {}
     t0 = time.perf_counter()
+    far = TRACE_FAR * sample_spacing(train["points"], train["normals"])
+    bands = int(round(np.sqrt(np.shape(train["transfer"])[1]))) if "transfer" in train else 4
     for stream, (name, data) in enumerate((("train", train), ("validation", valid))):
         points = np.ascontiguousarray(data["points"], dtype=np.float64)
         normals = np.ascontiguousarray(data["normals"], dtype=np.float64)
@@ -615,10 +661,11 @@ def trace_stage(mesh, folder, train: dict, valid: dict, *, rays: int = BOUNCE_RA
         n_chunks = (count + chunk_size - 1) // chunk_size
         faces = data.get("face_index")
         faces = None if faces is None or len(faces) != count else np.asarray(faces, dtype=np.int64)
-        store = _IndexStore(Path(folder) / f"bounce-{name}-{key}-{CLEAR_RULE if faces is None else RAY_RULE}", n_chunks)
-        out = np.empty((count, 2, rays), dtype=np.int32)
+        store = _IndexStore(Path(folder) / f"bounce-{name}-{key}-{CLEAR_RULE if faces is None else RAY_RULE}-{TRACE_RULE}", n_chunks, traced=True)
+        out = np.empty((count, 3, rays), dtype=np.int32)
         todo = store.load_into(out, chunk_size)
-        job = BounceJob(tracer, train["points"], train["normals"], rays=rays, seed=seed, stream=stream, workers=1)
+        traced = store.traced
+        job = BounceJob(tracer, train["points"], train["normals"], rays=rays, seed=seed, stream=stream, workers=1, trace_far=far, bands=bands)
         from ..progress import BOUNCE_RAY, progress_bar
 
         bar = progress_bar(progress, "bounces", f"bounce rays ({name})", count * rays, unit="ray", unit_cost=BOUNCE_RAY,
@@ -626,9 +673,18 @@ def trace_stage(mesh, folder, train: dict, valid: dict, *, rays: int = BOUNCE_RA
                            mininterval=0.5)  # fmt: skip
         items = [(k, points[k * chunk_size : (k + 1) * chunk_size], normals[k * chunk_size : (k + 1) * chunk_size])
                  + (() if faces is None else (faces[k * chunk_size : (k + 1) * chunk_size],)) for k in todo]  # fmt: skip
-        run_ray_chunks(executor, job, items, out, chunk_size, rays, store=store, bar=bar)
-        found[name] = BounceRays(out[:, 0].astype(np.int64), out[:, 1].astype(np.int64))
-    log(f"bounce rays: {sum(len(f.nearest) for f in found.values()):,} samples x {rays} rays in {time.perf_counter() - t0:.1f} s")
+        run_ray_chunks(executor, job, items, out, chunk_size, rays, store=store, bar=bar, traced=traced)
+        rows, start = out[:, 2].astype(np.int64), 0
+        for k in range(n_chunks):  # chunk-local rows of the traced transfer -> rows of their concatenation
+            part = rows[k * chunk_size : (k + 1) * chunk_size]
+            part[part >= 0] += start
+            start += len(traced[k])
+        transfer = np.concatenate([traced[k] for k in range(n_chunks)]) if n_chunks else np.zeros((0, bands * bands), np.float32)
+        found[name] = BounceRays(out[:, 0].astype(np.int64), out[:, 1].astype(np.int64), rows, transfer)
+    hits = sum(int((f.hit_face >= 0).sum()) for f in found.values())
+    log(f"bounce rays: {sum(len(f.nearest) for f in found.values()):,} samples x {rays} rays in {time.perf_counter() - t0:.1f} s; "
+        f"{sum(len(f.traced_transfer) for f in found.values()) / max(hits, 1):.1%} of the hits traced there "
+        f"(no clear sample, or none within {far:.3g})")  # fmt: skip
     return found
 
 
@@ -641,12 +697,11 @@ def bounce_terms(found: dict, face_albedo, direct, bounces: int):
     Each term is (count, n, 3) float64; only the previous training term is kept.
     """
     albedo = np.asarray(face_albedo, dtype=np.float64)
-    matrices = bounce_matrices(found["train"], albedo)
-    valid_matrices = bounce_matrices(found["validation"], albedo, targets=len(direct))
+    steps, valid_steps = _steps(found["train"], albedo), _steps(found["validation"], albedo, targets=len(direct))
     previous = np.repeat(np.asarray(direct, dtype=np.float64)[:, :, None], 3, axis=2)
-    for b in range(1, int(bounces) + 1):
-        valid_term = np.stack([valid_matrices[c] @ previous[:, :, c] for c in range(3)], axis=2)
-        previous = np.stack([matrices[c] @ previous[:, :, c] for c in range(3)], axis=2)
+    for b, step, valid_step in zip(range(1, int(bounces) + 1), steps, valid_steps):
+        valid_term = valid_step(previous)
+        previous = step(previous)
         yield b, previous, valid_term
 
 
