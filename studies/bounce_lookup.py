@@ -18,7 +18,10 @@ and the first bounce ``mean_j a(q_j) T_0(.) . L`` (RGB mean) compared for two lo
 - **clear + traced**: as clear, the hits without a clear candidate reading the direct transfer traced
   there (what the next step would give the first bounce; not a rule of the build);
 - **clear + traced far**: as clear + traced, and so the hits whose clear sample lies farther from them
-  than twice the median such distance (with the share of hits that is).
+  than twice the median such distance (with the share of hits that is);
+- **build** (since 2026-12-07): the bounce stage's own first bounce, :meth:`BounceJob.traced_chunk` with
+  ``trace_far`` = :data:`TRACE_FAR` times the training samples' spacing and its 32-ray traced transfer
+  (:func:`traced_term`): the implementation of the row above, checked on the same rays.
 
 Figures: the ratio of the mean first bounce to the traced one, over all samples and over three
 groups by the sample's own direct light (open: > 0.05, dim, dark: < 0.002: voids, gaps); the
@@ -41,7 +44,7 @@ from prt.bench.reference import load_scene_geometry
 from prt.runtime.files import atomic_write_bytes, atomic_write_json
 from prt.runtime.manifest import load_manifest
 from prt.train.build import _env_lights
-from prt.train.transport.interreflection import BounceJob, clear_between
+from prt.train.transport.interreflection import TRACE_FAR, BounceJob, BounceRays, bounce_matrices, clear_between, sample_spacing, traced_term
 from prt.train.transport.transfer import EmbreeTracer, compute_transfer
 
 LIGHT = "potsdamer"
@@ -164,6 +167,16 @@ def main(argv: list[str] | None = None) -> int:
             result["rules"]["clear + traced far"] = {"ratio_to_traced": ratios(first_bounce(values, rows, len(pick), args.rays), traced, direct),
                                                      "traced_hits_share": round(float(far.mean()), 4),
                                                      "far_beyond": round(2.0 * float(np.median(gap[found])), 5)}  # fmt: skip
+    far = TRACE_FAR * sample_spacing(points, normals)
+    build = BounceJob(tracer, points, normals, rays=args.rays, seed=7, workers=1, trace_far=far)
+    nearest, hit_face, traced_rows, traced_transfer = build.traced_chunk(points[pick], normals[pick], 0, samples["face_index"][pick])
+    rays_build = BounceRays(nearest, hit_face, traced_rows, traced_transfer)
+    first = bounce_matrices(rays_build, face_albedo, targets=len(points), first=True)
+    t1 = np.stack([first[c] @ samples["transfer"].astype(np.float64) for c in range(3)], axis=2) + traced_term(rays_build, face_albedo)
+    values = np.einsum("snc,nc->s", t1, light) / 3.0
+    result["rules"]["build"] = {"ratio_to_traced": ratios(values, traced, direct), "traced_hits_share": round(float((traced_rows >= 0).sum() / hit.sum()), 4),
+                                "far_beyond": round(far, 5)}  # fmt: skip
+    print(json.dumps({"rule": "build", **result["rules"]["build"]}), flush=True)
     atomic_write_json(args.json, result)
     if args.md:
         lines = [f"Made by `{result['provenance']['command']}` ({result['provenance']['date']}, {result['cpu']}).",
