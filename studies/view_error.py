@@ -17,7 +17,9 @@ bench cache's higher bounces):
   precompute's segments, before refinement cut some in two).
 
 Figures: the median and 90th percentile of |x - reference| / reference per sample, over the view and
-per segment.  The relative error is what a view's auto-exposure shows: a room's networks at 28 %
+per segment; with bounces, the direct and the indirect part apart as well (each part's error relative
+to the whole radiance, so the two say which part the error is in, and the indirect part's share of the
+reference's light).  The relative error is what a view's auto-exposure shows: a room's networks at 28 %
 while their targets are at 7 % is a fitting problem, not a sampling one.
 
 ``BUILD_DIR`` needs its ``precompute`` caches (samples, bounce rays) and, for bounces >= 2, a
@@ -44,7 +46,7 @@ from prt.runtime.manifest import load_manifest
 from prt.runtime.segmentation import segment_of
 from prt.train.build import _env_lights
 from prt.train.networks.fit import total_transfer
-from prt.train.transport.interreflection import bounce_stage
+from prt.train.transport.interreflection import RAY_RULE, bounce_stage
 from prt.train.transport.transfer import compute_transfer, make_tracer
 
 LIGHT = "potsdamer"
@@ -107,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
         stores = glob.glob(str(b / "precompute" / "cache" / "bounce-train-*"))
         if not stores:
             parser.error(f"{b}: no bounce-ray cache under precompute/cache")
-        key = Path(stores[0]).name[len("bounce-train-"):].removesuffix("-enter1")
+        key = Path(stores[0]).name[len("bounce-train-"):].split("-" + RAY_RULE)[0]  # the store is named KEY-RULE
         indirect, _ = bounce_stage(geometry.mesh, b / "precompute" / "cache", samples, valid, albedo, bounces, rays=info.bounce_rays,
                                    key=key, progress=False, log=lambda *a: None)  # fmt: skip
         higher = None
@@ -129,13 +131,21 @@ def main(argv: list[str] | None = None) -> int:
         pts, nrm = samples["points"][idx], samples["normals"][idx]
         ref = shade(compute_transfer(geometry, pts, nrm, rays=2048, seed=5, tracer=tracer), light)
         target = shade(samples["transfer"][idx, :16], light)
-        if bounces:
-            ref += shade(indirect_transfer(geometry, tracer, pts, nrm, albedo, bounces, hit_rays=256, rays=128, higher=higher, seed=11), light)
-            target += shade(indirect[idx], light)
         # the segments by the manifest's rule: samples.npz keeps the precompute's, before refinement's splits
         seg = segment_of(manifest, pts.astype(np.float64), samples["object_ids"][idx]).astype(np.int64)
         _, out = networks.compute_reference(np.concatenate([pts, nrm], axis=1).astype(np.float32), seg)
         net = shade(total_transfer(out, light.shape[0]), light)
+        parts = {}
+        if bounces:
+            n = light.shape[0]
+            ref_ind = shade(indirect_transfer(geometry, tracer, pts, nrm, albedo, bounces, hit_rays=256, rays=128, higher=higher, seed=11), light)
+            target_ind, net_ind = shade(indirect[idx], light), shade(out[:, n:].reshape(len(out), 3, n).transpose(0, 2, 1), light)
+            ref_dir, target_dir, net_dir = ref.copy(), target.copy(), net - net_ind
+            ref, target = ref + ref_ind, target + target_ind
+            whole = np.maximum(ref, 1e-6)
+            parts = {"indirect_share_of_reference": round(float(ref_ind.sum() / max(ref.sum(), 1e-30)), 4),
+                     "direct": {"target": summary(np.abs(target_dir - ref_dir) / whole), "network": summary(np.abs(net_dir - ref_dir) / whole)},
+                     "indirect": {"target": summary(np.abs(target_ind - ref_ind) / whole), "network": summary(np.abs(net_ind - ref_ind) / whole)}}  # fmt: skip
         rt, rn = relative(target, ref), relative(net, ref)
         segs = []
         for s in np.unique(seg):
@@ -144,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
                          "target": summary(rt[k]), "network": summary(rn[k])})  # fmt: skip
         rows.append({"view": v, "eye": view["eye"], "samples": int(len(idx)), "target": summary(rt), "network": summary(rn),
                      "mean_ratio_target": round(float(target.mean() / ref.mean()), 4), "mean_ratio_network": round(float(net.mean() / ref.mean()), 4),
-                     "segments": sorted(segs, key=lambda r: -r["samples"])})  # fmt: skip
+                     **parts, "segments": sorted(segs, key=lambda r: -r["samples"])})  # fmt: skip
         print(json.dumps({k: rows[-1][k] for k in ("view", "samples", "target", "network")}), flush=True)
     result = {"provenance": provenance(), "cpu": cpu_name(), "build": str(b), "label": args.label, "light": LIGHT, "bounces": bounces,
               "segments": len(manifest.segments), "views": rows}  # fmt: skip
@@ -153,11 +163,16 @@ def main(argv: list[str] | None = None) -> int:
         lines = [f"Made by `{result['provenance']['command']}` ({result['provenance']['date']}, {cpu_name()}).", "",
                  f"Build `{b}` ({args.label or 'no label'}, {len(manifest.segments)} segments). Relative error of the diffuse radiance under "
                  f"{LIGHT} at the training samples each view sees, against a quiet reference (the benchmark's estimator, more rays).", "",
-                 "| view | samples | targets median / p90 | networks median / p90 | mean ratio targets / networks |", "|---:|---:|---|---|---|"]  # fmt: skip
+                 "| view | samples | targets median / p90 | networks median / p90 | mean ratio targets / networks | indirect share | "
+                 "direct part: targets / networks median | indirect part: targets / networks median |", "|---:|---:|---|---|---|---:|---|---|"]  # fmt: skip
         for r in rows:
             if r["samples"]:
+                split = (f"{100 * r['indirect_share_of_reference']:.1f} % | {r['direct']['target']['median_pct']} % / {r['direct']['network']['median_pct']} % | "
+                         f"{r['indirect']['target']['median_pct']} % / {r['indirect']['network']['median_pct']} %") if "direct" in r else "- | - | -"  # fmt: skip
                 lines.append(f"| {r['view']} | {r['samples']} | {r['target']['median_pct']} % / {r['target']['p90_pct']} % | "
-                             f"{r['network']['median_pct']} % / {r['network']['p90_pct']} % | {r['mean_ratio_target']} / {r['mean_ratio_network']} |")  # fmt: skip
+                             f"{r['network']['median_pct']} % / {r['network']['p90_pct']} % | {r['mean_ratio_target']} / {r['mean_ratio_network']} | {split} |")  # fmt: skip
+        if any("direct" in r for r in rows):
+            lines += ["", "The parts' errors are relative to the whole reference radiance at the sample (|part - its reference| / whole)."]
         atomic_write_bytes(args.md, ("\n".join(lines) + "\n").encode())
     return 0
 
