@@ -205,6 +205,49 @@ def test_two_bounces_gather_what_the_bounce_stage_computes(cornell_texture, tmp_
     assert (got.gathered[:, 0] > np.asarray(samples["transfer"])[:, :1]).mean() > 0.5  # T_1 adds light
 
 
+def test_texel_gather_equals_a_plain_loop_over_its_rays(cornell_texture, tmp_path):
+    """The texels' gather with far hits traced (sparse products) against a loop over the same rays:
+    a traced hit takes its traced transfer plus its clear sample's higher bounces, the others the
+    sample's gathered transfer; cached and resumed, the same bytes."""
+    import dataclasses as dc
+
+    from prt.train.transport.interreflection import TRACE_FAR, BounceJob, sample_spacing, surface_faces
+    from prt.train.transport.transfer import make_tracer
+    from prt.train.transport.transfer_texture import scene_bounces, scene_geometry, texel_indirect
+
+    m = load_manifest(cornell_texture)
+    geometry = scene_geometry(m)
+    m2 = dc.replace(m, interreflection=dc.replace(m.interreflection, bounces=2))
+    bounces = dc.replace(scene_bounces(m2, geometry, cache_dir=tmp_path / "stage", log=lambda line: None), rays=16)
+    tracer = make_tracer(geometry)
+    rng = np.random.default_rng(6)
+    pick = rng.choice(len(bounces.points), 300, replace=False)
+    points, normals = bounces.points[pick], bounces.normals[pick]
+    got = texel_indirect(tracer, points, normals, bounces, chunk_size=128, cache_dir=tmp_path / "texels", threads=1)
+    job = BounceJob(tracer, bounces.points, bounces.normals, rays=16, seed=bounces.seed, stream=2, workers=1,
+                    trace_far=TRACE_FAR * sample_spacing(bounces.points, bounces.normals))  # fmt: skip
+    faces = surface_faces(tracer, points, normals)
+    plain, traced_hits = np.zeros(got.shape), 0
+    for c, start in enumerate(range(0, len(points), 128)):
+        rows = slice(start, start + 128)
+        nearest, hit_face, traced, transfer = job.traced_chunk(points[rows], normals[rows], c, faces[rows])
+        for i in range(nearest.shape[0]):
+            for j in range(16):
+                if hit_face[i, j] < 0:
+                    continue
+                a = bounces.face_albedo[hit_face[i, j]]
+                if traced[i, j] >= 0:
+                    traced_hits += 1
+                    light = transfer[traced[i, j]][:, None] + (bounces.gathered[nearest[i, j]] - bounces.direct[nearest[i, j]][:, None] if nearest[i, j] >= 0 else 0.0)
+                else:
+                    light = bounces.gathered[nearest[i, j]] if nearest[i, j] >= 0 else 0.0
+                plain[start + i] += a * light / 16
+    assert traced_hits > 0
+    np.testing.assert_allclose(got, plain, rtol=1e-5, atol=1e-6)
+    again = texel_indirect(tracer, points, normals, bounces, chunk_size=128, cache_dir=tmp_path / "texels", threads=1)  # from the cache
+    np.testing.assert_array_equal(again, got)
+
+
 def test_the_bake_resumes_to_the_same_bytes(cornell_texture, tmp_path):
     import shutil
 

@@ -61,7 +61,7 @@ from .transfer import _unit, cosine_directions, orthonormal_frames
 
 __all__ = ["BounceRays", "BounceJob", "trace_bounce_rays", "bounce_chunk", "trace_stage", "bounce_terms", "bounce_stage", "interreflect", "bounce_matrices",
            "nearest_on_plane", "nearest_visible", "nearest_visible_reference", "clear_between", "first_clear", "face_normals", "surface_faces", "entering",
-           "sample_spacing", "traced_term", "BOUNCE_RAYS", "CLEAR_LIFT", "CLEAR_RULE", "NORMAL_WEIGHT", "RAY_RULE", "TRACE_FAR", "TRACED_RAYS",
+           "sample_spacing", "traced_term", "collect_rays", "BOUNCE_RAYS", "CLEAR_LIFT", "CLEAR_RULE", "NORMAL_WEIGHT", "RAY_RULE", "TRACE_FAR", "TRACED_RAYS",
            "TRACE_RULE"]
 
 # Rays per sample of the bounce stage (the direct transfer keeps its own count).  32: on the
@@ -674,18 +674,25 @@ def trace_stage(mesh, folder, train: dict, valid: dict, *, rays: int = BOUNCE_RA
         items = [(k, points[k * chunk_size : (k + 1) * chunk_size], normals[k * chunk_size : (k + 1) * chunk_size])
                  + (() if faces is None else (faces[k * chunk_size : (k + 1) * chunk_size],)) for k in todo]  # fmt: skip
         run_ray_chunks(executor, job, items, out, chunk_size, rays, store=store, bar=bar, traced=traced)
-        rows, start = out[:, 2].astype(np.int64), 0
-        for k in range(n_chunks):  # chunk-local rows of the traced transfer -> rows of their concatenation
-            part = rows[k * chunk_size : (k + 1) * chunk_size]
-            part[part >= 0] += start
-            start += len(traced[k])
-        transfer = np.concatenate([traced[k] for k in range(n_chunks)]) if n_chunks else np.zeros((0, bands * bands), np.float32)
-        found[name] = BounceRays(out[:, 0].astype(np.int64), out[:, 1].astype(np.int64), rows, transfer)
+        found[name] = collect_rays(out, traced, chunk_size, bands)
     hits = sum(int((f.hit_face >= 0).sum()) for f in found.values())
     log(f"bounce rays: {sum(len(f.nearest) for f in found.values()):,} samples x {rays} rays in {time.perf_counter() - t0:.1f} s; "
         f"{sum(len(f.traced_transfer) for f in found.values()) / max(hits, 1):.1%} of the hits traced there "
         f"(no clear sample, or none within {far:.3g})")  # fmt: skip
     return found
+
+
+def collect_rays(out: np.ndarray, traced: dict, chunk_size: int, bands: int) -> BounceRays:
+    """:class:`BounceRays` of chunks traced with ``trace_far``: ``out`` (count, 3, rays) int32 [nearest,
+    hit_face, traced row within its chunk] and ``traced`` {chunk: (H_k, n) its traced transfer}."""
+    n_chunks = (len(out) + chunk_size - 1) // chunk_size
+    rows, start = out[:, 2].astype(np.int64), 0
+    for k in range(n_chunks):  # chunk-local rows of the traced transfer -> rows of their concatenation
+        part = rows[k * chunk_size : (k + 1) * chunk_size]
+        part[part >= 0] += start
+        start += len(traced[k])
+    transfer = np.concatenate([traced[k] for k in range(n_chunks)]) if n_chunks else np.zeros((0, bands * bands), np.float32)
+    return BounceRays(out[:, 0].astype(np.int64), out[:, 1].astype(np.int64), rows, transfer)
 
 
 def bounce_terms(found: dict, face_albedo, direct, bounces: int):

@@ -310,6 +310,9 @@ class TextureBounces:
     rays : int
         Bounce rays per texel (the build's ``bounce_rays``).
     seed : int
+    direct : (S, n) float, optional
+        ``T_0`` of the samples: with it, a texel's hits far from any clear sample read the direct
+        transfer traced there instead (the bounce stage's rule, :data:`prt.train.transport.interreflection.TRACE_FAR`).
     """
 
     points: np.ndarray
@@ -319,6 +322,7 @@ class TextureBounces:
     bounces: int
     rays: int
     seed: int = 0
+    direct: np.ndarray | None = None
 
 
 def scene_bounces(manifest, geometry, *, cache_dir=None, threads: int | None = None, progress: bool = False,
@@ -362,7 +366,7 @@ def scene_bounces(manifest, geometry, *, cache_dir=None, threads: int | None = N
                                    seed=seed, chunk_size=chunk_size, key=key, threads=threads, progress=progress, log=log)  # fmt: skip
         gathered += indirect
     return TextureBounces(np.asarray(samples["points"], np.float64), np.asarray(samples["normals"], np.float64), gathered,
-                          face_albedo, int(info.bounces), int(info.bounce_rays), seed)  # fmt: skip
+                          face_albedo, int(info.bounces), int(info.bounce_rays), seed, direct)  # fmt: skip
 
 
 def texel_indirect(tracer, points, normals, bounces: TextureBounces, *, chunk_size: int = DEFAULT_CHUNK, cache_dir=None,
@@ -371,23 +375,35 @@ def texel_indirect(tracer, points, normals, bounces: TextureBounces, *, chunk_si
 
     ``bounces.rays`` cosine rays per point (:class:`prt.train.transport.interreflection.BounceJob`, seed
     stream 2: apart from the build's training and validation rays), the nearest sample at each
-    hit, ``mean_j a(hit_j) gathered[nearest_j]``.  Chunked through a local executor; with
-    ``cache_dir`` the chunks' ray indices (not the albedos) are kept, so a bake resumes.
+    hit, ``mean_j a(hit_j) gathered[nearest_j]``; with ``bounces.direct``, a hit with no clear sample or
+    one farther than :data:`~prt.train.transport.interreflection.TRACE_FAR` spacings takes the direct
+    transfer traced there plus its clear sample's higher bounces (``gathered - direct``; none without
+    one), as the bounce stage's first bounce does.  Chunked through a local executor; with
+    ``cache_dir`` the chunks' ray indices and traced transfer (not the albedos) are kept, so a bake resumes.
     """
     from ..executor import LocalExecutor
-    from .interreflection import BounceJob, BounceRays, _IndexStore, bounce_matrices, run_ray_chunks, surface_faces
+    from .interreflection import (
+        TRACE_FAR, TRACE_RULE, BounceJob, BounceRays, _IndexStore, bounce_matrices, collect_rays, run_ray_chunks, sample_spacing, surface_faces,
+        traced_term,
+    )  # fmt: skip
 
     points = np.ascontiguousarray(points, dtype=np.float64)
     normals = np.ascontiguousarray(normals, dtype=np.float64)
     count, rays = len(points), int(bounces.rays)
     n_chunks = (count + chunk_size - 1) // chunk_size
-    out = np.full((count, 2, rays), -1, dtype=np.int32)
-    store, todo = None, list(range(n_chunks))
+    gathered = np.asarray(bounces.gathered, dtype=np.float64)
+    trace = bounces.direct is not None
+    far = TRACE_FAR * sample_spacing(bounces.points, bounces.normals) if trace else None
+    bands = int(round(np.sqrt(gathered.shape[1])))
+    out = np.full((count, 3 if trace else 2, rays), -1, dtype=np.int32)
+    store, todo, traced = None, list(range(n_chunks)), {}
     if cache_dir is not None:
-        key = _fingerprint(points, normals, bounces.points, bounces.normals, rays, bounces.seed, chunk_size, tracer.identity, "v3", RAY_RULE)
-        store = _IndexStore(Path(cache_dir) / f"bounce-texels-{key}", n_chunks)
+        key = _fingerprint(points, normals, bounces.points, bounces.normals, rays, bounces.seed, chunk_size, tracer.identity, "v3", RAY_RULE,
+                           TRACE_RULE if trace else "")  # fmt: skip
+        store = _IndexStore(Path(cache_dir) / f"bounce-texels-{key}", n_chunks, traced=trace)
         todo = store.load_into(out, chunk_size)
-    job = BounceJob(tracer, bounces.points, bounces.normals, rays=rays, seed=bounces.seed, stream=2, workers=1)
+        traced = store.traced
+    job = BounceJob(tracer, bounces.points, bounces.normals, rays=rays, seed=bounces.seed, stream=2, workers=1, trace_far=far, bands=bands)
     bar = None
     if progress:
         from tqdm import tqdm
@@ -396,11 +412,18 @@ def texel_indirect(tracer, points, normals, bounces: TextureBounces, *, chunk_si
     faces = surface_faces(tracer, points, normals)  # the texels' own faces: rays entering the surface carry nothing
     items = [(k, points[k * chunk_size : (k + 1) * chunk_size], normals[k * chunk_size : (k + 1) * chunk_size],
               faces[k * chunk_size : (k + 1) * chunk_size]) for k in todo]  # fmt: skip
-    run_ray_chunks(LocalExecutor(threads), job, items, out, chunk_size, rays, store=store, bar=bar)
-    found = BounceRays(out[:, 0].astype(np.int64), out[:, 1].astype(np.int64))
-    matrices = bounce_matrices(found, bounces.face_albedo, targets=len(bounces.points))
-    gathered = np.asarray(bounces.gathered, dtype=np.float64)
-    return np.stack([matrices[c] @ gathered[:, :, c] for c in range(3)], axis=2).astype(np.float32)
+    run_ray_chunks(LocalExecutor(threads), job, items, out, chunk_size, rays, store=store, bar=bar, traced=traced)
+    if not trace:
+        found = BounceRays(out[:, 0].astype(np.int64), out[:, 1].astype(np.int64))
+        matrices = bounce_matrices(found, bounces.face_albedo, targets=len(bounces.points))
+        return np.stack([matrices[c] @ gathered[:, :, c] for c in range(3)], axis=2).astype(np.float32)
+    found = collect_rays(out, traced, chunk_size, bands)
+    every = bounce_matrices(found, bounces.face_albedo, targets=len(bounces.points))
+    first = bounce_matrices(found, bounces.face_albedo, targets=len(bounces.points), first=True)
+    direct = np.asarray(bounces.direct, dtype=np.float64)
+    # every ray's gathered sample, less the direct part of the traced rays' samples, plus what they traced
+    return (np.stack([every[c] @ gathered[:, :, c] - (every[c] - first[c]) @ direct for c in range(3)], axis=2)
+            + traced_term(found, bounces.face_albedo)).astype(np.float32)  # fmt: skip
 
 
 def bake_transfer_texture(
