@@ -91,6 +91,15 @@ def test_exposed_psnr_scores_a_dark_room_as_a_view_exposed_for_it_would():
     black[:130] = 0.0
     lit = exposed_psnr(pred[130:], truth[130:], light, n, albedo)
     assert exposed_psnr(np.where(black == 0.0, 0.0, pred), black, light, n, albedo) > lit - 2.0
+    # most samples black (a dim room's segment: undersides, voids; the Duplex's had a median of 0): still
+    # exposed for its lit ones (LIT_SHARE), not left at exposure 1 where its error hardly counts
+    mostly = truth / 40
+    mostly[:300] = 0.0
+    kept = np.where(mostly == 0.0, 0.0, pred / 40)
+    assert exposed_psnr(kept, mostly, light, n, albedo) < shaded_psnr(kept, mostly, {"a": light}, n, albedo)["a"] - 5
+    rl = np.maximum((mostly[300:] @ light) * np.asarray(albedo), 0.0) @ np.asarray(LUMINANCE)  # the lit samples' luminance
+    lit_exposure = KEY / np.median(rl)
+    assert exposed_psnr(kept, mostly, light, n, albedo) == pytest.approx(shaded_psnr(kept, mostly, {"a": light}, n, albedo, exposure=lit_exposure)["a"], abs=1e-9)
     assert exposed_psnr(truth, truth, light, n, albedo) == 100.0
     assert exposed_psnr(pred * 1.1, truth, light, n, albedo) < bright  # a bias on top: worse
 

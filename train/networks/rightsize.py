@@ -139,7 +139,7 @@ def shaded_psnr(pred, truth, lights: dict, n: int, albedo=DEFAULT_ALBEDO, exposu
 
 def exposed_psnr(pred, truth, light, n: int, albedo=DEFAULT_ALBEDO) -> float:
     """:func:`shaded_psnr` under one light at the exposure that puts the median luminance of ``truth``'s
-    radiance at :data:`prt.runtime.exposure.KEY`: the samples' error as a view they filled would show
+    radiance (of its lit samples, :data:`LIT_SHARE`) at :data:`prt.runtime.exposure.KEY`: the samples' error as a view they filled would show
     it, exposed for them (``prt-bench --exposure auto``).  A room lit through its windows is dark at
     exposure 1, so its error hardly counts in the absolute figure, while a view inside it is exposed
     5-20x brighter.  The median, not auto-exposure's log-average: area-uniform samples include the
@@ -151,8 +151,17 @@ def exposed_psnr(pred, truth, light, n: int, albedo=DEFAULT_ALBEDO) -> float:
     albedo = np.asarray(albedo, dtype=np.float64).reshape(3)
     rp = _radiance(total_transfer(np.asarray(pred, dtype=np.float64), n), light, albedo)
     rt = _radiance(total_transfer(np.asarray(truth, dtype=np.float64), n), light, albedo)
-    median = float(np.median(rt @ np.asarray(LUMINANCE))) if len(rt) else 0.0
+    lum = rt @ np.asarray(LUMINANCE)
+    lit = lum[lum > LIT_SHARE * (float(lum.max()) if len(lum) else 0.0)]
+    median = float(np.median(lit)) if len(lit) else 0.0
     return _tonemapped_psnr(rp, rt, exposure_from_log_mean(math.log(median) if median > 0.0 else None))
+
+
+LIT_SHARE = 1e-3
+""":func:`exposed_psnr`'s median is over the samples brighter than this share of the brightest: a dim
+room's segment whose samples are mostly black (undersides, voids) is exposed for its lit part, as a view
+into the room would be, not left at exposure 1 (the Duplex house's segment of view 1's room had a median of
+0 and was reported at 30.7 dB, its PSNR at exposure 1)."""
 
 
 def _radiance(t: np.ndarray, light, albedo: np.ndarray) -> np.ndarray:
