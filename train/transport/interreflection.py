@@ -222,21 +222,17 @@ def trace_bounce_rays(mesh, points, normals, sample_faces=None, *, rays: int = B
         targets = (points, normals)
     job = BounceJob(EmbreeTracer(mesh), targets[0], targets[1], rays=rays, seed=seed, workers=workers, candidates=candidates,
                     plane_weight=plane_weight, clear=clear, trace_far=trace_far, bands=bands)  # fmt: skip
-    nearest = np.full((len(points), rays), -1, dtype=np.int64)
-    hit_face = np.full((len(points), rays), -1, dtype=np.int64)
-    traced, transfer = np.full((len(points), rays), -1, dtype=np.int64), [np.zeros((0, bands * bands), np.float32)]
+    out = np.full((len(points), 2 if trace_far is None else 3, rays), -1, dtype=np.int32)
+    traced = {}
     for c, start in enumerate(range(0, len(points), chunk)):
-        rows = slice(start, start + chunk)
-        faces = None if sample_faces is None else sample_faces[rows]
-        if trace_far is None:
-            nearest[rows], hit_face[rows] = job.chunk(points[rows], normals[rows], c, faces)
-            continue
-        nearest[rows], hit_face[rows], local, values = job.traced_chunk(points[rows], normals[rows], c, faces)
-        traced[rows] = np.where(local >= 0, local + sum(len(t) for t in transfer), -1)
-        transfer.append(values)
+        value = bounce_chunk(job, (c, points[start : start + chunk], normals[start : start + chunk])
+                             + (() if sample_faces is None else (sample_faces[start : start + chunk],)))  # fmt: skip
+        if isinstance(value, tuple):
+            value, traced[c] = value
+        out[start : start + chunk] = value
     if trace_far is None:
-        return BounceRays(nearest, hit_face)
-    return BounceRays(nearest, hit_face, traced, np.concatenate(transfer))
+        return BounceRays(out[:, 0].astype(np.int64), out[:, 1].astype(np.int64))
+    return collect_rays(out, traced, chunk, bands)
 
 
 class BounceJob:
