@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from prt.train.progress import BOUNCE_RAY, RAY, BuildProgress, format_seconds, progress_bar, step_cost
+from prt.train.progress import BOUNCE_RAY, RAY, STEP_OVERHEAD, BuildProgress, format_seconds, progress_bar, step_cost
 
 DATA = Path(__file__).parent / "data"
 
@@ -103,7 +103,8 @@ def test_the_fit_plan_follows_the_segments_as_they_finish():
     p.add("fits", 40.0)
     p.segment_done(0)  # it took 40, not 100
     assert p.stages["fits"].planned == 140.0
-    assert step_cost(5000, 1000) == pytest.approx(3 * 5000 * 1000 / 5000)
+    assert step_cost(5000, 1000) == pytest.approx(3 * 5000 * 1000 / 5000 + STEP_OVERHEAD)
+    assert step_cost(5000, 2000) - step_cost(5000, 1000) == pytest.approx(3 * 5000 * 1000 / 5000)  # the FLOPs scale, the overhead not
 
 
 def test_the_line_is_drawn_on_a_terminal_and_cleared_at_the_end():

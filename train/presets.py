@@ -51,9 +51,12 @@ PRESETS: dict[str, dict] = {
     # A first look at a new mesh in minutes: a tenth of the samples, half the rays, short fits, networks up to k64-l3.
     "draft": {"samples": 100_000, "rays": 256, "segments": 8, "steps": 400, "batch": 4096, "bounce_rays": 16,
               "vertex_margin": 1.0, "ladder": _SMALL_LADDER, "floor_db": 30.0, "build_budget": 300.0},
-    # The default.  The paper's rays; half its samples and steps, half the batch: the fits of the old default
-    # (1M samples, 2000 steps of 8192, --match 64x4) took 1,633 of a 15k-vertex scan's 1,881 s (issue 35).
-    "standard": {"samples": 500_000, "rays": 512, "segments": 8, "steps": 1000, "batch": 4096, "bounce_rays": 32,
+    # The default.  The paper's rays, half its samples: the fits of the old default (1M samples, 2000 steps of
+    # 8192, --match 64x4) took 1,633 of a 15k-vertex scan's 1,881 s (issue 35).  Many small steps: a fit on two
+    # cores is bound by its count of Adam steps more than by the samples each sees; 4000 steps of 256 take
+    # about the time of the former 1000 of 4096 and fitted the Duplex house's segments 2-6 dB better held out
+    # (studies/fit_batch.py, docs/benchmarks/fit_batch_duplex.md).
+    "standard": {"samples": 500_000, "rays": 512, "segments": 8, "steps": 4000, "batch": 256, "bounce_rays": 32,
                  "vertex_margin": 1.0, "ladder": None, "floor_db": 35.0, "build_budget": 1200.0},
     # The paper's samples and steps, twice its rays and leaves, twice the bounce rays, a 2 dB margin.
     "high": {"samples": 1_000_000, "rays": 1024, "segments": 16, "steps": 2000, "batch": 8192, "bounce_rays": 64,

@@ -23,7 +23,7 @@ import sys
 import threading
 import time
 
-__all__ = ["BuildProgress", "progress_bar", "step_cost", "RAY", "BOUNCE_RAY", "EXPORT_SEGMENT", "STAGES", "format_seconds"]
+__all__ = ["BuildProgress", "progress_bar", "step_cost", "STEP_OVERHEAD", "RAY", "BOUNCE_RAY", "EXPORT_SEGMENT", "STAGES", "format_seconds"]
 
 STAGES = ("precompute", "bounces", "vertices", "fits", "export")
 
@@ -37,9 +37,16 @@ FLOPS_PER_RAY = 5000.0  # training FLOPs as costly as one direct ray
 EXPORT_SEGMENT = 2.0e6  # ONNX + GLSL + manifest share of one segment
 
 
+STEP_OVERHEAD = 13_000.0
+"""Ray equivalents of an Adam step's fixed cost, whatever its batch (the optimiser and torch's dispatch): about
+2 ms a step with two one-thread fits at once (a k16 network on batches of 256: 9.4 s for 4000 steps, of which
+the FLOPs are about 0.6 s; AMD EPYC, 2 cores)."""
+
+
 def step_cost(flops_per_fragment: float, batch: int) -> float:
-    """Ray equivalents of one Adam step: a forward and a backward pass (about 3x the forward FLOPs) over a batch."""
-    return 3.0 * float(flops_per_fragment) * int(batch) / FLOPS_PER_RAY
+    """Ray equivalents of one Adam step: a forward and a backward pass (about 3x the forward FLOPs) over a
+    batch, plus :data:`STEP_OVERHEAD`."""
+    return 3.0 * float(flops_per_fragment) * int(batch) / FLOPS_PER_RAY + STEP_OVERHEAD
 
 
 def format_seconds(seconds: float) -> str:
