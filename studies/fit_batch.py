@@ -3,8 +3,8 @@
 usage: python studies/fit_batch.py SCENE BUILD_DIR --json OUT.json [--md OUT.md] [--segments 5]
        [--ids 26,34] [--configs 4096x1000@0.01,256x4000@0.01] [--threads 2]
 
-``BUILD_DIR`` is ``prt-train SCENE -o BUILD_DIR``'s folder: the build is resumed there with the fit settings
-its ``build.json`` recorded (every stage up to the fits read back from its caches) and stopped where
+``BUILD_DIR`` is ``prt-train SCENE -o BUILD_DIR``'s folder: the build is resumed there with the spec its
+``build.json`` recorded (every stage up to the fits read back from its caches) and stopped where
 refinement would start (nothing of the build is rewritten).  For the segments holding most of the error
 at that point (:func:`prt.train.refine.error_shares`; ``--ids`` adds others), each is refitted at its own
 size by the call the build makes (:func:`prt.train.networks.rightsize.train_segment`, no fit cache) once
@@ -21,6 +21,7 @@ import json
 import re
 import statistics
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -130,8 +131,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(str(exc))
     if not (args.build / "build.json").is_file():
         parser.error(f"{args.build}: not a finished prt-train folder (no build.json)")
-    spec = json.loads((args.build / "build.json").read_text())["spec"]
-    own = ["--steps", str(spec["steps"]), "--batch", str(spec["batch"]), "--lr", str(spec["lr"])]  # resume with the fits the build made
+    spec = {**json.loads((args.build / "build.json").read_text())["spec"], "geometry": str(Path(args.scene).resolve())}
     found = {}
 
     def stop_at_refinement(job, records):
@@ -139,10 +139,13 @@ def main(argv: list[str] | None = None) -> int:
         raise _Stop
 
     build_module.refine_build = stop_at_refinement
-    try:
-        train_main([args.scene, "-o", str(args.build), "--no-progress", "--threads", str(args.threads), *own])
-    except _Stop:
-        pass
+    with tempfile.TemporaryDirectory() as tmp:  # resumed with the spec the build recorded: every stage's cache serves
+        spec_file = Path(tmp) / "spec.json"
+        spec_file.write_text(json.dumps(spec))
+        try:
+            train_main([str(spec_file), "-o", str(args.build), "--no-progress", "--threads", str(args.threads)])
+        except _Stop:
+            pass
     if "rows" not in found:
         print(f"fit_batch: {args.build}: the build did not reach refinement (no floor?)", file=sys.stderr)
         return 1

@@ -474,3 +474,31 @@ def test_a_rounds_time_bound_counts_refits_run_together():
     takes two refits' time on two threads, one refit's four; a long one beside short ones bounds it."""
     assert refine.together_wall([10.0] * 4, 2) == 25.0 and refine.together_wall([10.0] * 4, 1) == 40.0
     assert refine.together_wall([30.0, 1.0, 1.0], 2) == 31.0 and refine.together_wall([], 2) == 0.0
+
+
+def test_fit_batch_study_refits_the_builds_segments_by_its_own_call(two_objects, tmp_path):
+    """studies/fit_batch.py resumes a build from the spec it recorded, stops where refinement starts and
+    refits segments per batch x steps configuration; the build's own configuration gives its own PSNR."""
+    out = tmp_path / "build"
+    spec = tmp_path / "spec.json"
+    spec.write_text(json.dumps({"geometry": str(two_objects), **TINY, "vertex_margin": 1.0, "ladder": ONE_SIZE}))
+    run = [sys.executable, "-m", "prt.train.train_cli", str(spec), "-o", str(out), "--floor", "90", "--build-budget", "1", "--no-progress", "--threads", "1"]
+    assert subprocess.run(run, capture_output=True, text=True).returncode == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    lr = json.loads((out / "build.json").read_text())["spec"]["lr"]
+    own, other = f"{TINY['batch']}x{TINY['steps']}@{lr:g}", f"64x{2 * TINY['steps']}@{lr:g}"
+    study = Path(__file__).resolve().parents[1] / "studies" / "fit_batch.py"
+    proc = subprocess.run([sys.executable, str(study), str(two_objects), str(out), "--json", str(tmp_path / "r.json"), "--md", str(tmp_path / "r.md"),
+                           "--segments", "1", "--configs", f"{own},{other}", "--threads", "1"], capture_output=True, text=True)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads((tmp_path / "r.json").read_text())
+    assert result["configs"] == [own, other] and len(result["segments"]) == 1
+    row = result["segments"][0]
+    assert row["fits"][own]["psnr_db"] == pytest.approx(row["psnr_db"], abs=1e-3)  # the build's call, the build's fit
+    assert row["fits"][other]["psnr_db"] != row["psnr_db"] and row["fits"][other]["seconds"] > 0
+    assert result["summary"][0]["median_gain_db"] == 0.0 and result["summary"][1]["config"] == other
+    assert f"| {other} |" in (tmp_path / "r.md").read_text()
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before  # nothing of the build rewritten
+    bad = subprocess.run([sys.executable, str(study), str(two_objects), str(out), "--json", str(tmp_path / "x.json"), "--configs", "256x@1"],
+                         capture_output=True, text=True)  # fmt: skip
+    assert bad.returncode == 2 and "BATCHxSTEPS@LR" in bad.stderr and not (tmp_path / "x.json").exists()

@@ -25,7 +25,7 @@ segments) that are under the floor themselves, and for each (:func:`plan_round`)
   the split is kept where the halves' pooled held-out PSNR is above the whole's (else the segment
   stays whole and is not cut again).
 
-The steps axis comes from the Duplex house (issue 43): its fits at the preset's 1,000 steps are far
+The steps axis comes from the Duplex house (issue 43): its fits at the preset's then 1,000 steps of 4,096 are far
 from converged (its five worst segments, ``studies/refine_steps.py``, ``docs/benchmarks/refine_steps_duplex.json``:
 the same size at 3x the steps +1.5 to +2.8 dB; one size up at 1x -0.6 to +3.6 dB, at 2x the steps -0.0 to +5.1 dB).
 
