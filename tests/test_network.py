@@ -286,3 +286,26 @@ def test_residual_network_fits_shadowed_transfer_better(fitted, fitted_residual)
     """On Spot's ray-traced (occluded) transfer the same size, epochs and seed fit better as a residual
     (Spot's mean visibility is high; docs/benchmarks/residual_fit.md)."""
     assert fitted_residual.val_mae < 0.95 * fitted.val_mae, (fitted_residual.val_mae, fitted.val_mae)
+
+
+@pytest.mark.parametrize("arch", [Architecture(hidden=16, layers=2, pos_freqs=4, layout="direct+rgb"),
+                                  Architecture(hidden=64, layers=3, pos_freqs=6, code_dim=2, code_freqs=2)])  # fmt: skip
+def test_encode_once_matches_the_per_step_encoding(arch):
+    """fit_segment encodes a fit's samples once and gathers each step's rows: the rows the per-step encoding
+    (its twin: encode the step's samples) gives, points outside the bounds and zero normals included."""
+    from prt.train.networks.fit import _as_input
+
+    rng = np.random.default_rng(3)
+    n = 5000
+    points = rng.uniform(-1.5, 1.5, (n, 3))  # bounds below are [-1, 1]: a third clamp
+    normals = rng.standard_normal((n, 3))
+    normals[::97] = 0.0
+    codes = rng.uniform(-1, 1, (n, arch.code_dim)) if arch.code_dim else None
+    model = TransferMLP(arch, np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]), np.ones(arch.outputs, np.float32), np.zeros(arch.outputs, np.float32))
+    x = _as_input(points, normals, codes)
+    with torch.no_grad():
+        once = model.encode(x)
+        gen = torch.Generator().manual_seed(0)
+        for _ in range(20):
+            idx = torch.randperm(n, generator=gen)[:256]
+            assert torch.equal(once[idx], model.encode(x[idx]))
